@@ -1,0 +1,40 @@
+# VolumeEVM: `make demo` and `make test` set everything up from pinned requirements and run.
+# Two environments, one per supported Blender LTS line (the real bpy wheels, never a fake):
+#   .venv/py311  bpy 4.5.x, Python 3.11, NumPy 1.26
+#   .venv/py313  bpy 5.2.3, Python 3.13, NumPy 2.x
+SHELL := /bin/bash
+PY311 ?= $(shell command -v python3.11 || echo python3.11)
+PY313 ?= $(shell PYENV_VERSION=3.13.0 pyenv which python3.13 2>/dev/null || command -v python3.13 || echo python3.13)
+VENVS := .venv/py311 .venv/py313
+PYTEST_ARGS ?=
+
+.PHONY: demo test test-py311 test-py313 bench extension clean
+
+.venv/py311/.stamp: requirements/py311.txt
+	rm -rf .venv/py311
+	$(PY311) -m venv .venv/py311
+	.venv/py311/bin/pip install --quiet --disable-pip-version-check -r requirements/py311.txt
+	touch $@
+
+.venv/py313/.stamp: requirements/py313.txt
+	rm -rf .venv/py313
+	$(PY313) -m venv .venv/py313
+	.venv/py313/bin/pip install --quiet --disable-pip-version-check -r requirements/py313.txt
+	touch $@
+
+test: test-py311 test-py313
+
+test-py311: .venv/py311/.stamp
+	.venv/py311/bin/python -m pytest tests $(PYTEST_ARGS)
+
+test-py313: .venv/py313/.stamp
+	.venv/py313/bin/python -m pytest tests $(PYTEST_ARGS)
+
+demo: .venv/py313/.stamp
+	.venv/py313/bin/python sample_blends/make_demo.py --out out
+
+bench: .venv/py313/.stamp
+	.venv/py313/bin/python bench/bench_evm.py --out bench/results
+
+clean:
+	rm -rf .venv out dist wheels
