@@ -17,6 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+BLENDER_UNITS_PER_MM = 0.001
+"""The one unit mapping: 1 mm of patient space is 0.001 Blender units (1 BU = 1 m, Blender's
+default metric scene), so a 25 cm head is 0.25 BU across and measures right in Blender."""
+
 
 @dataclass(frozen=True)
 class Volume:
