@@ -1,0 +1,225 @@
+"""Validation shared by all readers: one place decides what a usable volume is.
+
+Every reader decodes its format into a NumPy array plus grid geometry and hands both to
+:func:`checked_volume`, which refuses what the core cannot use (wrong number of dimensions, an
+empty grid, a dtype that is not a real number, NaN or Inf densities, degenerate geometry) with a
+:class:`~volumeevm_addon._errors.VolumeEVMError` naming the file, and otherwise returns the
+:class:`~volumeevm_addon._volume.Volume` in the core's conventions (native byte order,
+C-contiguous ``[x, y, z]`` array).
+"""
+
+import importlib
+
+import numpy as np
+
+from .._errors import VolumeEVMError
+from .._volume import Volume
+
+#: Length units found in file headers (NRRD, NIfTI, ImageJ, OME), as millimetres per unit.
+MM_PER_UNIT = {
+    "mm": 1.0,
+    "millimeter": 1.0,
+    "millimetre": 1.0,
+    "cm": 10.0,
+    "m": 1000.0,
+    "meter": 1000.0,
+    "metre": 1000.0,
+    "um": 1e-3,
+    "µm": 1e-3,
+    "\u03bcm": 1e-3,
+    "micron": 1e-3,
+    "micrometer": 1e-3,
+    "nm": 1e-6,
+}
+
+
+def import_reader_package(module, pip_name, path):
+    """Import a third-party package a reader needs, only when that reader runs.
+
+    Keeping the import here (not at module level) lets ``import volumeevm_addon`` work in a
+    Blender without pydicom, nibabel, pynrrd or tifffile; the user learns which one to install
+    only when opening a file that needs it.
+
+    Parameters
+    ----------
+    module : str
+        Module to import ("pydicom", "nibabel", "nrrd", "tifffile").
+    pip_name : str
+        Name of the package that provides it on PyPI, for the message.
+    path : str
+        The file being read, for the message.
+
+    Returns
+    -------
+    module
+        The imported module.
+
+    Raises
+    ------
+    VolumeEVMError
+        If the package is not installed.
+    """
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise VolumeEVMError(
+            f"{path}: reading this format needs the Python package '{pip_name}', which is not "
+            f"installed ({exc})"
+        ) from exc
+
+
+def mm_per_unit(unit, path, what):
+    """Millimetres per one ``unit`` of a header's length unit.
+
+    Parameters
+    ----------
+    unit : str
+        Unit spelling from the header ("mm", "um", "micron", "cm", ...), case-insensitive.
+    path : str
+        The file being read, for the message.
+    what : str
+        Which header field holds the unit, for the message.
+
+    Returns
+    -------
+    float
+        Millimetres per unit.
+
+    Raises
+    ------
+    VolumeEVMError
+        If the unit is not a known length unit.
+    """
+    key = str(unit).strip().lower()
+    if key not in MM_PER_UNIT:
+        raise VolumeEVMError(
+            f"{path}: unknown length unit {unit!r} in {what}; known units: "
+            f"{', '.join(sorted(MM_PER_UNIT))}"
+        )
+    return MM_PER_UNIT[key]
+
+
+def check_ndim(shape, path):
+    """Refuse data whose ``shape`` is not 3-D, before a reader spends time decoding it.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``len(shape) != 3``.
+    """
+    if len(shape) != 3:
+        raise VolumeEVMError(
+            f"{path}: the data has {len(shape)} dimension(s) (shape {tuple(shape)}); "
+            f"a volume needs exactly 3"
+        )
+
+
+def checked_array(array, path):
+    """Check that ``array`` is a usable density grid and return it in the core's layout.
+
+    Parameters
+    ----------
+    array : ndarray
+        Decoded densities, already indexed ``[x, y, z]``.
+    path : str
+        The file the array came from, for the message.
+
+    Returns
+    -------
+    (X, Y, Z) ndarray
+        The same values, C-contiguous and in native byte order (a copy only if needed).
+
+    Raises
+    ------
+    VolumeEVMError
+        If the array is not 3-D, is empty, has a dtype other than integer or real floating
+        point, or (float data) holds NaN or Inf.
+    """
+    array = np.asarray(array)
+    if array.dtype.kind not in "uif":
+        raise VolumeEVMError(
+            f"{path}: unsupported data type {array.dtype}; densities must be integers or real "
+            f"floating point numbers"
+        )
+    check_ndim(array.shape, path)
+    if array.size == 0:
+        raise VolumeEVMError(f"{path}: the volume is empty (shape {array.shape})")
+    if array.dtype.kind == "f":
+        finite = np.isfinite(array)
+        if not finite.all():
+            bad = np.argwhere(~finite)
+            first = tuple(int(i) for i in bad[0])
+            raise VolumeEVMError(
+                f"{path}: {len(bad)} densities are NaN or Inf (first at voxel {first}, value "
+                f"{array[first]}); densities must be finite"
+            )
+    return np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("="))
+
+
+def checked_volume(
+    array, path, *, spacing=None, origin=(0.0, 0.0, 0.0), orientation=None, units=""
+):
+    """Validate decoded data and geometry and build the :class:`Volume`.
+
+    Parameters
+    ----------
+    array : ndarray
+        Decoded densities indexed ``[x, y, z]``.
+    path : str
+        The file or folder read, stored as ``Volume.source`` and named in messages.
+    spacing : sequence of 3 float, optional
+        Voxel size in mm along x, y, z. ``None`` means the file gives none: 1 mm is used and
+        ``spacing_known`` is False.
+    origin : sequence of 3 float
+        Physical position (mm, LPS) of the centre of voxel ``(0, 0, 0)``.
+    orientation : (3, 3) array_like, optional
+        Column ``i`` is the direction of index axis ``i`` in LPS; columns are normalised here.
+        ``None`` means the identity (index axes along L, P, S).
+    units : str
+        Data units ("HU", ...), "" when unknown.
+
+    Returns
+    -------
+    Volume
+
+    Raises
+    ------
+    VolumeEVMError
+        If the array fails :func:`checked_array`, or the geometry is not finite, a spacing is
+        not positive, or the orientation is singular: signs of a corrupt header.
+    """
+    path = str(path)
+    array = checked_array(array, path)
+    spacing_known = spacing is not None
+    spacing = np.ones(3) if spacing is None else np.asarray(spacing, dtype=np.float64)
+    origin = np.asarray(origin, dtype=np.float64)
+    rot = np.eye(3) if orientation is None else np.asarray(orientation, dtype=np.float64)
+    if spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise VolumeEVMError(
+            f"{path}: corrupt header: voxel spacing {spacing.tolist()} is not three positive "
+            f"finite numbers"
+        )
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        raise VolumeEVMError(
+            f"{path}: corrupt header: origin {origin.tolist()} is not three finite numbers"
+        )
+    norms = np.linalg.norm(rot, axis=0) if rot.shape == (3, 3) else np.zeros(1)
+    if not np.all(np.isfinite(rot)) or np.any(norms == 0):
+        raise VolumeEVMError(
+            f"{path}: corrupt header: axis directions {rot.tolist()} are not three non-zero "
+            f"finite 3-vectors"
+        )
+    rot = rot / norms
+    if abs(np.linalg.det(rot)) < 1e-6:
+        raise VolumeEVMError(
+            f"{path}: corrupt header: axis directions {rot.tolist()} are linearly dependent"
+        )
+    return Volume(
+        array=array,
+        spacing=tuple(float(s) for s in spacing),
+        origin=tuple(float(o) for o in origin),
+        orientation=rot,
+        units=units,
+        source=path,
+        spacing_known=spacing_known,
+    )

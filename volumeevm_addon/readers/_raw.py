@@ -1,0 +1,86 @@
+"""Headerless raw volumes (``.raw``, ``.bin``): the user gives the layout.
+
+A raw file is ``header_bytes`` bytes to skip, then ``X * Y * Z`` samples of one dtype with x
+varying fastest, then y, then z (the layout of most volume tools' raw exports). Nothing in the
+file can confirm the layout, so the one check possible is made strictly: the file length must
+equal ``header_bytes + X * Y * Z * itemsize`` exactly, which catches most wrong shapes, dtypes
+and truncated downloads.
+"""
+
+import os
+
+import numpy as np
+
+from .._errors import VolumeEVMError
+from ._checks import checked_volume
+
+_BYTE_ORDERS = {"little": "<", "big": ">"}
+
+
+def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=0, spacing=None):
+    """Read a headerless raw volume with x fastest in the file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The raw file.
+    shape : sequence of 3 int
+        Grid size ``(X, Y, Z)``. Required.
+    dtype : str or numpy dtype
+        Sample type, e.g. ``np.uint16`` or ``"int16"``. Required. Its own byte-order mark, if
+        any, is replaced by ``byte_order``.
+    byte_order : {"little", "big"}
+        Byte order of multi-byte samples.
+    header_bytes : int
+        Bytes to skip at the start of the file.
+    spacing : sequence of 3 float, optional
+        Voxel size in mm (x, y, z); without it 1 mm is used and ``spacing_known`` is False.
+
+    Returns
+    -------
+    Volume
+        The samples as an ``(X, Y, Z)`` array in native byte order; identity orientation and
+        zero origin (the file has no patient frame).
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``shape`` or ``dtype`` is missing or invalid, ``byte_order`` or ``header_bytes`` is
+        invalid, or the file length does not match the layout.
+    """
+    if shape is None or dtype is None:
+        raise VolumeEVMError(
+            f"{path}: a raw file has no header; give its layout with shape=(X, Y, Z) and "
+            f"dtype=... (and byte_order=, header_bytes= if needed)"
+        )
+    try:
+        sample = np.dtype(dtype)
+    except TypeError as exc:
+        raise VolumeEVMError(f"{path}: unknown dtype {dtype!r} ({exc})") from exc
+    if sample.kind not in "uif":
+        raise VolumeEVMError(
+            f"{path}: unsupported dtype {sample}; raw samples must be integers or real floats"
+        )
+    if byte_order not in _BYTE_ORDERS:
+        raise VolumeEVMError(
+            f"{path}: byte_order must be 'little' or 'big', got {byte_order!r}"
+        )
+    sample = sample.newbyteorder(_BYTE_ORDERS[byte_order])
+    shape = tuple(shape)
+    if len(shape) != 3 or not all(isinstance(n, (int, np.integer)) and n > 0 for n in shape):
+        raise VolumeEVMError(f"{path}: shape must be 3 positive integers (X, Y, Z), got {shape}")
+    if not isinstance(header_bytes, (int, np.integer)) or header_bytes < 0:
+        raise VolumeEVMError(
+            f"{path}: header_bytes must be a non-negative integer, got {header_bytes!r}"
+        )
+    count = int(np.prod(shape))
+    expected = header_bytes + count * sample.itemsize
+    size = os.path.getsize(path)
+    if size != expected:
+        raise VolumeEVMError(
+            f"{path}: file has {size} bytes but shape {shape} of {sample.name} after "
+            f"{header_bytes} header bytes needs exactly {expected}; the file is truncated or "
+            f"the layout is wrong"
+        )
+    flat = np.fromfile(path, dtype=sample, count=count, offset=header_bytes)
+    return checked_volume(flat.reshape(shape[::-1]).transpose(), path, spacing=spacing)
