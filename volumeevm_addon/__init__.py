@@ -1,0 +1,12 @@
+"""VolumeEVM core: the Extreme Vertices Model of voxel regions and volumes built on it.
+
+NumPy only; never imports ``bpy``, so it works in plain Python as well as inside Blender.
+"""
+
+from ._errors import VolumeEVMError
+from ._evm import EVM
+from ._mesh import Polygons
+from ._volume import BLENDER_UNITS_PER_MM, Volume
+from ._volumeevm import VolumeEVM
+
+__all__ = ["BLENDER_UNITS_PER_MM", "EVM", "Polygons", "Volume", "VolumeEVM", "VolumeEVMError"]

@@ -1,0 +1,234 @@
+"""VolumeEVM: the EVM of a region of interest plus the densities of its voxels.
+
+Only the region is stored: its extreme vertices and one densities table, the region's voxels in
+slice-major order along x (table order "xyz", the C order of an ``[x, y, z]`` array). Tables for
+the other principal axes are made from it when a view asks for them, and cached. The relation v
+(voxel -> table index) comes from the EVM alone (:mod:`._densities`).
+
+Files: one ``.vevm`` file is a NumPy ``.npz`` archive of plain arrays (never pickled objects),
+with a format name and version, the geometry as JSON, and SHA-256 checksums of the vertices and
+the table; it is written atomically (temporary file, then rename).
+"""
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ._densities import TABLE_ORDERS, TableIndex
+from ._errors import VolumeEVMError
+from ._evm import EVM
+from ._volume import index_to_physical
+
+FORMAT = "volumeevm"
+VERSION = 1
+
+
+class VolumeEVM:
+    """A region of interest of a volume: its EVM and the densities of its voxels.
+
+    Parameters
+    ----------
+    evm : EVM
+        The region (lattice coordinates of the volume's grid).
+    table : (N,) ndarray
+        Densities of the region's N voxels in table order "xyz", in data units.
+    shape : tuple of 3 int
+        The grid the region lives in.
+    spacing, origin, orientation, units
+        Grid geometry and data units, as in :class:`Volume`.
+    threshold, upper : float or None
+        The density interval that selected the region (``None`` for regions made otherwise).
+    """
+
+    def __init__(self, evm, table, *, shape, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
+                 orientation=None, units="", threshold=None, upper=None):
+        table = np.asarray(table)
+        if table.ndim != 1:
+            raise ValueError(f"table must be 1-D, got shape {table.shape}")
+        count = evm.volume()
+        if count != len(table):
+            raise ValueError(f"the region has {count} voxels but the table {len(table)} densities")
+        self.evm = evm
+        self.shape = tuple(int(s) for s in shape)
+        self.spacing = tuple(float(s) for s in spacing)
+        self.origin = tuple(float(o) for o in origin)
+        self.orientation = np.eye(3) if orientation is None else np.array(orientation, float)
+        self.units = units
+        self.threshold = threshold
+        self.upper = upper
+        self._tables = {0: table}
+        self._indices = {}
+
+    # ------------------------------------------------------------------ building
+    @classmethod
+    def from_array(cls, array, threshold, upper=None, *, spacing=(1.0, 1.0, 1.0),
+                   origin=(0.0, 0.0, 0.0), orientation=None, units="", source="array"):
+        """Build the VolumeEVM of the voxels with ``threshold <= density`` (``<= upper``).
+
+        Raises :class:`VolumeEVMError` for NaN/Inf densities, a threshold that is not a number,
+        or an empty region; ``source`` names the data in those messages.
+        """
+        array = np.asarray(array)
+        if array.ndim != 3:
+            raise VolumeEVMError(f"{source}: expected a 3-D array, got shape {array.shape}")
+        if not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
+            raise VolumeEVMError(f"{source}: densities must be numbers, got dtype {array.dtype}")
+        if np.issubdtype(array.dtype, np.floating) and not np.isfinite(array).all():
+            bad = int(np.count_nonzero(~np.isfinite(array)))
+            raise VolumeEVMError(f"{source}: {bad} densities are NaN or infinite")
+        for name, value in (("threshold", threshold), ("upper", upper)):
+            if value is not None and not np.isfinite(value):
+                raise VolumeEVMError(f"{source}: {name} must be a finite number, got {value!r}")
+        mask = array >= threshold
+        if upper is not None:
+            mask &= array <= upper
+        if not mask.any():
+            band = f">= {threshold}" if upper is None else f"in [{threshold}, {upper}]"
+            raise VolumeEVMError(
+                f"{source}: the region is empty: no density is {band} "
+                f"(data range {array.min()} .. {array.max()})"
+            )
+        return cls(EVM.from_mask(mask), array[mask], shape=array.shape, spacing=spacing,
+                   origin=origin, orientation=orientation, units=units,
+                   threshold=float(threshold), upper=None if upper is None else float(upper))
+
+    @classmethod
+    def from_volume(cls, volume, threshold, upper=None):
+        """Build from a :class:`Volume` (a reader's result), keeping its geometry and units."""
+        return cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
+                              origin=volume.origin, orientation=volume.orientation,
+                              units=volume.units, source=volume.source or "volume")
+
+    # ------------------------------------------------------------------ densities
+    @property
+    def voxel_count(self):
+        """Number of voxels in the region."""
+        return len(self._tables[0])
+
+    def table(self, axis=0):
+        """Densities of the region's voxels in slice-major order along ``axis`` (0, 1, 2).
+
+        Axis 0 is the stored table; the others are made on first use and cached.
+        """
+        if axis not in (0, 1, 2):
+            raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+        if axis not in self._tables:
+            axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
+            mask = np.transpose(self.evm.to_mask(self.shape), axes)
+            voxels = np.empty((self.voxel_count, 3), np.int64)
+            voxels[:, axes] = np.argwhere(mask)
+            self._tables[axis] = self._tables[0][self.index(voxels)]
+        return self._tables[axis]
+
+    def index(self, voxels, axis=0):
+        """The relation v: table indices (in ``table(axis)``) of voxels ``(m, 3)``; -1 outside."""
+        if axis not in self._indices:
+            self._indices[axis] = TableIndex(self.evm, TABLE_ORDERS[axis])
+        return self._indices[axis](voxels)
+
+    def to_dense(self, background=0):
+        """The full grid: the region's densities, ``background`` everywhere else."""
+        table = self._tables[0]
+        dense = np.full(self.shape, background, dtype=table.dtype)
+        dense[self.evm.to_mask(self.shape)] = table
+        return dense
+
+    # ------------------------------------------------------------------ geometry
+    def index_to_physical(self):
+        """4x4 matrix from voxel-centre indices to physical mm (LPS); see :mod:`._volume`."""
+        return index_to_physical(self.spacing, self.origin, self.orientation)
+
+    def mesh(self):
+        """The region's boundary mesh in physical mm (LPS): ``(vertices (n, 3), Polygons)``."""
+        vertices, polygons = self.evm.mesh()
+        # Lattice point p is the corner at voxel-centre index p - 0.5.
+        matrix = self.index_to_physical()
+        return (vertices - 0.5) @ matrix[:3, :3].T + matrix[:3, 3], polygons
+
+    def size_report(self):
+        """Bytes of the vertices and the tables built so far, against the dense array."""
+        vertices = self.evm.vertices.nbytes
+        tables = sum(t.nbytes for t in self._tables.values())
+        dense = int(np.prod(self.shape)) * self._tables[0].dtype.itemsize
+        return {
+            "vertices_bytes": vertices,
+            "tables_bytes": tables,
+            "total_bytes": vertices + tables,
+            "dense_bytes": dense,
+            "ratio": (vertices + tables) / dense,
+        }
+
+    def __repr__(self):
+        return (f"VolumeEVM({self.voxel_count} voxels, {len(self.evm)} vertices, "
+                f"grid {self.shape}, spacing {self.spacing})")
+
+    # ------------------------------------------------------------------ files
+    def _meta(self):
+        return {
+            "shape": list(self.shape),
+            "spacing": list(self.spacing),
+            "origin": list(self.origin),
+            "orientation": self.orientation.tolist(),
+            "units": self.units,
+            "threshold": self.threshold,
+            "upper": self.upper,
+            "voxels": self.voxel_count,
+            "vertices_sha256": _sha256(self.evm.vertices),
+            "table_sha256": _sha256(self._tables[0]),
+        }
+
+    def save(self, path, *, overwrite=False):
+        """Write one ``.vevm`` file atomically; refuses to replace a file unless ``overwrite``."""
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(handle, "wb") as file:
+                np.savez(file, format=np.array(FORMAT), version=np.array(VERSION),
+                         meta=np.array(json.dumps(self._meta())),
+                         vertices=self.evm.vertices, table=self._tables[0])
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(temporary, path)
+        except BaseException:
+            Path(temporary).unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def load(cls, path):
+        """Read a ``.vevm`` file; a corrupt or foreign file raises :class:`VolumeEVMError`."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as archive:
+                if "format" not in archive or str(archive["format"]) != FORMAT:
+                    raise VolumeEVMError(f"{path}: not a VolumeEVM file")
+                version = int(archive["version"])
+                if version != VERSION:
+                    raise VolumeEVMError(f"{path}: format version {version}, this add-on reads {VERSION}")
+                meta = json.loads(str(archive["meta"]))
+                vertices, table = archive["vertices"], archive["table"]
+        except FileNotFoundError:
+            raise VolumeEVMError(f"{path}: file not found") from None
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
+            if isinstance(error, VolumeEVMError):
+                raise
+            raise VolumeEVMError(f"{path}: not a readable VolumeEVM file ({error})") from None
+        if _sha256(vertices) != meta.get("vertices_sha256") or _sha256(table) != meta.get("table_sha256"):
+            raise VolumeEVMError(f"{path}: checksum mismatch, the file is corrupt")
+        try:
+            evm = EVM(vertices)
+            return cls(evm, table, shape=meta["shape"], spacing=meta["spacing"],
+                       origin=meta["origin"], orientation=meta["orientation"],
+                       units=meta["units"], threshold=meta["threshold"], upper=meta["upper"])
+        except (ValueError, KeyError) as error:
+            raise VolumeEVMError(f"{path}: inconsistent VolumeEVM file ({error})") from None
+
+
+def _sha256(array):
+    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
