@@ -1,0 +1,346 @@
+"""A plain camera record that reproduces Blender's camera projection exactly.
+
+Conventions
+-----------
+- World coordinates are Blender units. The camera looks down its local ``-Z`` axis with ``+Y``
+  up and ``+X`` to the right (Blender's camera frame). Like Blender, the camera's
+  ``matrix_world`` is used *without scale*: its three axis columns are normalised.
+- **Image size** is ``resolution × percentage // 100`` per axis (integer division, as Blender's
+  ``BKE_render_resolution`` does).
+- **View plane** (Blender's ``BKE_camera_params_compute_viewplane``): with ``ycor =
+  pixel_aspect_y / pixel_aspect_x``, the fit is horizontal for ``sensor_fit='HORIZONTAL'``,
+  vertical for ``'VERTICAL'``, and for ``'AUTO'`` horizontal iff ``W·aspect_x >= H·aspect_y``.
+  ``viewfac = W`` (horizontal) or ``ycor·H`` (vertical). The plane spans
+  ``[-W/2, W/2] × [-ycor·H/2, ycor·H/2]`` shifted by ``(shift_x, shift_y)·viewfac``, all scaled
+  by ``size / viewfac`` where ``size`` is ``ortho_scale`` (orthographic, in Blender units) or
+  ``sensor / lens`` (perspective, at unit distance in front of the camera); the sensor is
+  ``sensor_height`` for ``'VERTICAL'`` and ``sensor_width`` otherwise (also for ``'AUTO'``).
+- **Pixels.** Pixel coordinates ``(u, v)`` are continuous: ``u`` from 0 at the left edge to ``W``
+  at the right edge, ``v`` from 0 at the **top** edge to ``H`` at the bottom. Pixel ``(row,
+  col)`` of an image array (row 0 at the top) has its centre at ``(col + 0.5, row + 0.5)``.
+  Blender stores images bottom row first: flip rows (``np.flipud``) to go to or from an
+  ``Image`` datablock.
+- **Depth** is *axial*: the distance along the view axis (``-Z`` of the camera) from the
+  camera's position, what Blender's Z pass holds (background ``1e10``). Rays run from the near
+  clip plane (axial depth ``clip_start``) to the far clip plane (``clip_end``), as in Cycles,
+  for both projections.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._errors import VolumeEVMError
+
+__all__ = ["Camera", "BACKGROUND_DEPTH"]
+
+BACKGROUND_DEPTH = 1e10
+"""Axial depth Blender's Z pass writes where no geometry is hit."""
+
+_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
+
+
+def _positive(name, value):
+    v = float(value)
+    if not np.isfinite(v) or v <= 0:
+        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
+    return v
+
+
+def _finite(name, value):
+    v = float(value)
+    if not np.isfinite(v):
+        raise VolumeEVMError(f"{name}: must be finite, got {value!r}")
+    return v
+
+
+def _positive_int(name, value):
+    try:
+        v = int(value)
+    except (TypeError, ValueError):
+        raise VolumeEVMError(f"{name}: expected an integer, got {value!r}") from None
+    if v != value or v < 1:
+        raise VolumeEVMError(f"{name}: must be an integer >= 1, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """Blender's camera projection as a frozen record (build with :meth:`orthographic` or
+    :meth:`perspective`).
+
+    Attributes
+    ----------
+    projection : str
+        ``"ORTHO"`` or ``"PERSP"``.
+    matrix_world : (4, 4) ndarray
+        Camera-to-world matrix, axis columns normalised (read-only, float64).
+    ortho_scale : float
+        Orthographic: width of the fitted image dimension in Blender units.
+    lens_mm, sensor_width, sensor_height : float
+        Perspective: focal length and sensor size (mm).
+    sensor_fit : str
+        ``"AUTO"``, ``"HORIZONTAL"`` or ``"VERTICAL"``.
+    shift_x, shift_y : float
+        Lens shift in units of the fitted dimension (Blender's ``shift_x/y``).
+    clip_start, clip_end : float
+        Near and far clip, axial depth in Blender units.
+    resolution_x, resolution_y, resolution_percentage : int
+        Render resolution and percentage.
+    pixel_aspect_x, pixel_aspect_y : float
+        Pixel aspect ratio.
+    """
+
+    projection: str
+    matrix_world: np.ndarray
+    ortho_scale: float = 6.0
+    lens_mm: float = 50.0
+    sensor_width: float = 36.0
+    sensor_height: float = 24.0
+    sensor_fit: str = "AUTO"
+    shift_x: float = 0.0
+    shift_y: float = 0.0
+    clip_start: float = 0.1
+    clip_end: float = 100.0
+    resolution_x: int = 1920
+    resolution_y: int = 1080
+    resolution_percentage: int = 100
+    pixel_aspect_x: float = 1.0
+    pixel_aspect_y: float = 1.0
+
+    def __post_init__(self):
+        if self.projection not in ("ORTHO", "PERSP"):
+            raise VolumeEVMError(f"projection: 'ORTHO' or 'PERSP', got {self.projection!r}")
+        m = np.array(self.matrix_world, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise VolumeEVMError(f"matrix_world: expected a finite 4x4 matrix, got shape {m.shape}")
+        if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0)):
+            raise VolumeEVMError(f"matrix_world: last row must be (0, 0, 0, 1), got {m[3]}")
+        norms = np.linalg.norm(m[:3, :3], axis=0)
+        if np.any(norms == 0):
+            raise VolumeEVMError("matrix_world: an axis column is zero (scale 0)")
+        m[:3, :3] /= norms
+        if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+            raise VolumeEVMError("matrix_world: axes are degenerate (determinant 0)")
+        m.setflags(write=False)
+        object.__setattr__(self, "matrix_world", m)
+        if self.sensor_fit not in _FITS:
+            raise VolumeEVMError(f"sensor_fit: one of {_FITS}, got {self.sensor_fit!r}")
+        for name in ("ortho_scale", "lens_mm", "sensor_width", "sensor_height", "clip_end",
+                     "pixel_aspect_x", "pixel_aspect_y"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+        for name in ("shift_x", "shift_y"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+        cs = _finite("clip_start", self.clip_start)
+        if cs < 0 or (self.projection == "PERSP" and cs == 0):
+            raise VolumeEVMError(f"clip_start: must be > 0 (>= 0 orthographic), got {cs!r}")
+        object.__setattr__(self, "clip_start", cs)
+        if self.clip_end <= cs:
+            raise VolumeEVMError(
+                f"clip_end: must be greater than clip_start ({cs!r}), got {self.clip_end!r}")
+        for name in ("resolution_x", "resolution_y", "resolution_percentage"):
+            object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+        if self.width < 1 or self.height < 1:
+            raise VolumeEVMError(
+                f"resolution_percentage: {self.resolution_percentage}% of "
+                f"{self.resolution_x}x{self.resolution_y} leaves an empty image")
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def orthographic(cls, matrix_world, ortho_scale, *, sensor_fit="AUTO", shift_x=0.0,
+                     shift_y=0.0, clip_start=0.1, clip_end=100.0, resolution_x=1920,
+                     resolution_y=1080, resolution_percentage=100, pixel_aspect_x=1.0,
+                     pixel_aspect_y=1.0):
+        """An orthographic camera; ``ortho_scale`` spans the fitted image dimension (BU).
+
+        Examples
+        --------
+        >>> cam = Camera.orthographic(np.eye(4), 2.0, resolution_x=4, resolution_y=2)
+        >>> cam.shape
+        (2, 4)
+        >>> uv, depth = cam.project([[0.75, 0.0, -3.0]])
+        >>> uv.tolist(), depth.tolist()
+        ([[3.5, 1.0]], [3.0])
+        """
+        return cls("ORTHO", matrix_world, ortho_scale=ortho_scale, sensor_fit=sensor_fit,
+                   shift_x=shift_x, shift_y=shift_y, clip_start=clip_start, clip_end=clip_end,
+                   resolution_x=resolution_x, resolution_y=resolution_y,
+                   resolution_percentage=resolution_percentage,
+                   pixel_aspect_x=pixel_aspect_x, pixel_aspect_y=pixel_aspect_y)
+
+    @classmethod
+    def perspective(cls, matrix_world, lens_mm, sensor_width=36.0, sensor_height=24.0,
+                    sensor_fit="AUTO", shift_x=0.0, shift_y=0.0, clip_start=0.1,
+                    clip_end=100.0, resolution_x=1920, resolution_y=1080,
+                    resolution_percentage=100, pixel_aspect_x=1.0, pixel_aspect_y=1.0):
+        """A perspective camera with Blender's lens, sensor and fit rules."""
+        return cls("PERSP", matrix_world, lens_mm=lens_mm, sensor_width=sensor_width,
+                   sensor_height=sensor_height, sensor_fit=sensor_fit, shift_x=shift_x,
+                   shift_y=shift_y, clip_start=clip_start, clip_end=clip_end,
+                   resolution_x=resolution_x, resolution_y=resolution_y,
+                   resolution_percentage=resolution_percentage,
+                   pixel_aspect_x=pixel_aspect_x, pixel_aspect_y=pixel_aspect_y)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def is_ortho(self):
+        return self.projection == "ORTHO"
+
+    @property
+    def width(self):
+        """Image width in pixels: ``resolution_x * resolution_percentage // 100``."""
+        return self.resolution_x * self.resolution_percentage // 100
+
+    @property
+    def height(self):
+        """Image height in pixels: ``resolution_y * resolution_percentage // 100``."""
+        return self.resolution_y * self.resolution_percentage // 100
+
+    @property
+    def shape(self):
+        """``(H, W)``, the shape of an image array."""
+        return self.height, self.width
+
+    @property
+    def position(self):
+        """Camera position in world space, (3,) float64."""
+        return self.matrix_world[:3, 3].copy()
+
+    @property
+    def forward(self):
+        """Unit view direction (camera ``-Z``) in world space."""
+        return -self.matrix_world[:3, 2]
+
+    @property
+    def right(self):
+        """Unit image-right direction (camera ``+X``) in world space."""
+        return self.matrix_world[:3, 0].copy()
+
+    @property
+    def up(self):
+        """Unit image-up direction (camera ``+Y``) in world space."""
+        return self.matrix_world[:3, 1].copy()
+
+    @property
+    def fit(self):
+        """The fit actually used: ``"HORIZONTAL"`` or ``"VERTICAL"``."""
+        if self.sensor_fit != "AUTO":
+            return self.sensor_fit
+        sx = self.width * self.pixel_aspect_x
+        sy = self.height * self.pixel_aspect_y
+        return "HORIZONTAL" if sx >= sy else "VERTICAL"
+
+    @property
+    def viewplane(self):
+        """``(xmin, xmax, ymin, ymax)`` of the image in camera space: in Blender units for an
+        orthographic camera, on the plane at unit distance (``z = -1``) for a perspective one."""
+        w, h = float(self.width), float(self.height)
+        ycor = self.pixel_aspect_y / self.pixel_aspect_x
+        if self.is_ortho:
+            size = self.ortho_scale
+        else:
+            sensor = self.sensor_height if self.sensor_fit == "VERTICAL" else self.sensor_width
+            size = sensor / self.lens_mm
+        viewfac = w if self.fit == "HORIZONTAL" else ycor * h
+        pix = size / viewfac
+        dx = self.shift_x * viewfac
+        dy = self.shift_y * viewfac
+        return ((-0.5 * w + dx) * pix, (0.5 * w + dx) * pix,
+                (-0.5 * ycor * h + dy) * pix, (0.5 * ycor * h + dy) * pix)
+
+    def matrix_projection(self):
+        """4x4 OpenGL-style projection matrix, as ``Object.calc_matrix_camera`` returns for the
+        rendered size and pixel aspect (float64)."""
+        xmin, xmax, ymin, ymax = self.viewplane
+        n, f = self.clip_start, self.clip_end
+        p = np.zeros((4, 4))
+        if self.is_ortho:
+            p[0, 0] = 2.0 / (xmax - xmin)
+            p[1, 1] = 2.0 / (ymax - ymin)
+            p[2, 2] = -2.0 / (f - n)
+            p[0, 3] = -(xmax + xmin) / (xmax - xmin)
+            p[1, 3] = -(ymax + ymin) / (ymax - ymin)
+            p[2, 3] = -(f + n) / (f - n)
+            p[3, 3] = 1.0
+        else:
+            # Blender builds it from the view plane at the near clip: the same frustum.
+            xmin, xmax, ymin, ymax = (c * n for c in (xmin, xmax, ymin, ymax))
+            p[0, 0] = 2.0 * n / (xmax - xmin)
+            p[1, 1] = 2.0 * n / (ymax - ymin)
+            p[0, 2] = (xmax + xmin) / (xmax - xmin)
+            p[1, 2] = (ymax + ymin) / (ymax - ymin)
+            p[2, 2] = -(f + n) / (f - n)
+            p[2, 3] = -2.0 * f * n / (f - n)
+            p[3, 2] = -1.0
+        return p
+
+    def world_to_camera(self, points):
+        """Points ``(..., 3)`` in world space to camera space (float64)."""
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape[-1:] != (3,):
+            raise VolumeEVMError(f"points: expected shape (..., 3), got {pts.shape}")
+        m = self.matrix_world
+        # The inverse of the (normalised) camera matrix, as Blender's view matrix is.
+        return (pts - m[:3, 3]) @ np.linalg.inv(m[:3, :3]).T
+
+    def project(self, points):
+        """Pixel coordinates and axial depth of world points.
+
+        Parameters
+        ----------
+        points : (..., 3) array_like
+            World positions (Blender units).
+
+        Returns
+        -------
+        uv : (..., 2) ndarray of np.float64
+            ``(u, v)`` pixel coordinates: ``u`` from the left edge, ``v`` from the **top**
+            edge; pixel ``(row, col)`` covers ``[col, col+1] × [row, row+1]``. NaN for points
+            at or behind the plane of a perspective camera (axial depth ``<= 0``).
+        depth : (...) ndarray of np.float64
+            Axial depth (distance along the view axis) in Blender units.
+        """
+        c = self.world_to_camera(points)
+        depth = -c[..., 2]
+        xmin, xmax, ymin, ymax = self.viewplane
+        if self.is_ortho:
+            x, y = c[..., 0], c[..., 1]
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x = np.where(depth > 0, c[..., 0] / depth, np.nan)
+                y = np.where(depth > 0, c[..., 1] / depth, np.nan)
+        uv = np.empty(c.shape[:-1] + (2,))
+        uv[..., 0] = (x - xmin) / (xmax - xmin) * self.width
+        uv[..., 1] = (ymax - y) / (ymax - ymin) * self.height
+        return uv, depth
+
+    def rays(self):
+        """World-space rays through the pixel centres.
+
+        Returns
+        -------
+        origins : (H, W, 3) ndarray of np.float64
+            Perspective: the camera position for every pixel. Orthographic: the pixel centre on
+            the camera plane (axial depth 0).
+        directions : (H, W, 3) ndarray of np.float64
+            Unit directions. Row 0 is the top of the image. A point at ray parameter ``t`` has
+            axial depth ``t · (directions · forward)`` (orthographic: ``t``).
+        """
+        h, w = self.shape
+        xmin, xmax, ymin, ymax = self.viewplane
+        x = xmin + (np.arange(w) + 0.5) * ((xmax - xmin) / w)
+        y = ymax - (np.arange(h) + 0.5) * ((ymax - ymin) / h)
+        m = self.matrix_world
+        rx, uy, fz = m[:3, 0], m[:3, 1], m[:3, 2]
+        if self.is_ortho:
+            origins = (m[:3, 3] + x[None, :, None] * rx + y[:, None, None] * uy)
+            directions = np.broadcast_to(-fz, (h, w, 3)).copy()
+        else:
+            origins = np.broadcast_to(m[:3, 3], (h, w, 3)).copy()
+            d = x[None, :, None] * rx + y[:, None, None] * uy - fz
+            directions = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        return origins, directions
+
+    def axial_depth(self, points):
+        """Axial depth (Blender units) of world points ``(..., 3)``."""
+        return -self.world_to_camera(points)[..., 2]
