@@ -53,7 +53,7 @@ def read_nrrd(path):
     nrrd = import_reader_package("nrrd", "pynrrd", path)
     try:
         data, header = nrrd.read(str(path))
-    except (nrrd.NRRDError, ValueError, OSError, EOFError) as exc:
+    except (nrrd.NRRDError, KeyError, ValueError, OSError, EOFError) as exc:
         raise VolumeEVMError(f"{path}: corrupt NRRD file ({exc})") from exc
     check_ndim(data.shape, path)
 

@@ -44,6 +44,8 @@ def read_tiff(path):
     tifffile = import_reader_package("tifffile", "tifffile", path)
     try:
         with tifffile.TiffFile(str(path)) as tif:
+            if not tif.series:
+                raise VolumeEVMError(f"{path}: not a readable TIFF file (no image in it)")
             series = tif.series[0]
             if "S" in series.axes or "C" in series.axes:
                 raise VolumeEVMError(
