@@ -104,7 +104,7 @@ def _merge_runs(group, lo, hi):
         & (lo[1:, 0] == hi[:-1, 0])
     )
     first = np.flatnonzero(~continues)
-    last = np.append(first[1:], len(group)) - 1
+    last = np.append(first[1:], len(group))[: len(first)] - 1
     merged_hi = hi[first].copy()
     merged_hi[:, 0] = hi[last, 0]
     return group[first], lo[first], merged_hi

@@ -1,0 +1,146 @@
+"""VolumeEVM: densities tables, the relation v, dense round trip, files, bad input."""
+
+import zipfile
+
+import numpy as np
+import pytest
+
+from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError
+from volumeevm_addon._densities import TABLE_ORDERS
+
+
+@pytest.fixture(scope="module")
+def head(data_dir):
+    return np.load(data_dir / "ct_head_invesalius.npy")
+
+
+@pytest.fixture(scope="module")
+def bone(head):
+    return VolumeEVM.from_array(head, 300, spacing=(0.9570312, 0.9570312, 1.5), origin=(-120, -130, 10),
+                                units="HU")
+
+
+def test_region_and_table_match_the_dense_volume(head, bone):
+    mask = head >= 300
+    assert bone.evm == EVM.from_mask(mask)
+    assert bone.voxel_count == np.count_nonzero(mask)
+    assert np.array_equal(bone.table(0), head[mask])
+    assert bone.table(0).dtype == head.dtype
+
+
+def test_band_threshold(head):
+    band = VolumeEVM.from_array(head, 0, upper=80)
+    mask = (head >= 0) & (head <= 80)
+    assert np.array_equal(band.to_dense(background=-1000), np.where(mask, head, -1000))
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_tables_for_each_principal_axis(head, bone, axis):
+    axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
+    moved_mask = np.transpose(head >= 300, axes)
+    assert np.array_equal(bone.table(axis), np.transpose(head, axes)[moved_mask])
+
+
+def test_other_tables_are_made_only_when_asked(head):
+    region = VolumeEVM.from_array(head[:64, :64, :40], 0)
+    before = region.size_report()["tables_bytes"]
+    region.table(2)
+    assert region.size_report()["tables_bytes"] == 2 * before
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_relation_v_agrees_with_a_dense_lookup(head, bone, axis):
+    rng = np.random.default_rng(axis)
+    voxels = np.c_[rng.integers(-2, 258, 20000), rng.integers(-2, 258, 20000), rng.integers(-2, 110, 20000)]
+    inside = np.all((voxels >= 0) & (voxels < head.shape), axis=1)
+    index = bone.index(voxels, axis=axis)
+    expected_in = np.zeros(len(voxels), bool)
+    expected_in[inside] = head[tuple(voxels[inside].T)] >= 300
+    assert np.array_equal(index >= 0, expected_in)
+    found = voxels[index >= 0]
+    assert np.array_equal(bone.table(axis)[index[index >= 0]], head[tuple(found.T)])
+
+
+def test_to_dense_round_trip(head, bone):
+    assert np.array_equal(bone.to_dense(background=-2000), np.where(head >= 300, head, -2000))
+
+
+def test_mesh_is_in_physical_millimetres(bone):
+    vertices, polygons = bone.mesh()
+    lattice, _ = bone.evm.mesh()
+    expected = (lattice - 0.5) * np.array(bone.spacing) + np.array(bone.origin)
+    np.testing.assert_allclose(vertices, expected)
+
+
+def test_size_report_against_dense(bone, head):
+    report = bone.size_report()
+    assert report["dense_bytes"] == head.nbytes
+    assert report["total_bytes"] == report["vertices_bytes"] + report["tables_bytes"]
+    assert report["ratio"] < 0.35
+
+
+def test_save_load_round_trip(tmp_path, bone):
+    path = tmp_path / "bone.vevm"
+    bone.save(path)
+    again = VolumeEVM.load(path)
+    assert again.evm == bone.evm
+    assert np.array_equal(again.table(0), bone.table(0)) and again.table(0).dtype == bone.table(0).dtype
+    assert (again.shape, again.spacing, again.origin, again.units, again.threshold) == (
+        bone.shape, bone.spacing, bone.origin, bone.units, bone.threshold)
+    np.testing.assert_array_equal(again.orientation, bone.orientation)
+    assert list(tmp_path.iterdir()) == [path], "no temporary file left behind"
+
+
+def test_save_never_overwrites_unasked(tmp_path, bone):
+    path = tmp_path / "user.vevm"
+    path.write_bytes(b"the user's own file")
+    with pytest.raises(FileExistsError):
+        bone.save(path)
+    assert path.read_bytes() == b"the user's own file"
+    bone.save(path, overwrite=True)
+    assert VolumeEVM.load(path).evm == bone.evm
+
+
+def test_corrupt_and_foreign_files(tmp_path, bone):
+    good = tmp_path / "good.vevm"
+    bone.save(good)
+    truncated = tmp_path / "truncated.vevm"
+    truncated.write_bytes(good.read_bytes()[:5000])
+    with pytest.raises(VolumeEVMError, match="truncated.vevm: not a readable VolumeEVM file"):
+        VolumeEVM.load(truncated)
+    foreign = tmp_path / "foreign.vevm"
+    np.savez(foreign.open("wb"), data=np.arange(3))
+    with pytest.raises(VolumeEVMError, match="foreign.vevm: not a VolumeEVM file"):
+        VolumeEVM.load(foreign)
+    pickled = tmp_path / "pickled.vevm"
+    np.savez(pickled.open("wb"), format=np.array("volumeevm"), version=np.array(1),
+             meta=np.array([{"evil": 1}], dtype=object), vertices=np.zeros((0, 3)), table=np.zeros(0))
+    with pytest.raises(VolumeEVMError, match="pickled.vevm: not a readable"):
+        VolumeEVM.load(pickled)
+    # Flip one density inside the archive: the checksum catches it.
+    tampered = tmp_path / "tampered.vevm"
+    with np.load(good) as archive:
+        parts = {k: archive[k] for k in archive.files}
+    parts["table"] = parts["table"].copy()
+    parts["table"][0] += 1
+    np.savez(tampered.open("wb"), **parts)
+    with pytest.raises(VolumeEVMError, match="checksum mismatch"):
+        VolumeEVM.load(tampered)
+    with pytest.raises(VolumeEVMError, match="missing.vevm: file not found"):
+        VolumeEVM.load(tmp_path / "missing.vevm")
+    assert zipfile.is_zipfile(good)
+
+
+def test_bad_input_names_the_source_and_problem():
+    array = np.zeros((4, 4, 4), np.float32)
+    with pytest.raises(VolumeEVMError, match=r"scan: the region is empty: no density is >= 5 \(data range 0.0 .. 0.0\)"):
+        VolumeEVM.from_array(array, 5, source="scan")
+    array[1, 1, 1] = np.nan
+    with pytest.raises(VolumeEVMError, match="scan: 1 densities are NaN or infinite"):
+        VolumeEVM.from_array(array, 0, source="scan")
+    with pytest.raises(VolumeEVMError, match="expected a 3-D array"):
+        VolumeEVM.from_array(np.zeros((4, 4)), 0)
+    with pytest.raises(VolumeEVMError, match="threshold must be a finite number"):
+        VolumeEVM.from_array(np.zeros((2, 2, 2)), float("nan"))
+    with pytest.raises(ValueError, match="the region has 8 voxels but the table 3"):
+        VolumeEVM(EVM.from_mask(np.ones((2, 2, 2), bool)), np.zeros(3), shape=(2, 2, 2))
