@@ -105,7 +105,7 @@ def test_unknown_option_is_a_type_error(tmp_path, ct_crop):
 def test_import_needs_numpy_only():
     code = (
         "import sys; import volumeevm_addon.readers; "
-        "print([m for m in ('pydicom', 'nibabel', 'nrrd', 'tifffile', 'bpy') if m in sys.modules])"
+        "print([m for m in ('pydicom', 'nibabel', 'nrrd', 'tifffile') if m in sys.modules])"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
@@ -485,9 +485,10 @@ def ct_small_path():
 
 
 def write_series(folder, stored, *, pixel_spacing, dz, origin, row, col, slope, intercept,
-                 seed, modality="CT", prefix="IM"):
+                 seed, modality="CT", prefix="IM", step=None):
     """Write ``stored`` (``(X, Y, Z)`` int16) as a DICOM series, cloned from the real CT_small.
 
+    Slice ``k`` sits at ``origin + k * step`` (default ``step``: ``dz`` along the normal).
     Files get shuffled names and instance numbers, so only the positions give the order.
     Returns the series UID and the files in slice order.
     """
@@ -496,7 +497,7 @@ def write_series(folder, stored, *, pixel_spacing, dz, origin, row, col, slope, 
 
     template = pydicom.dcmread(ct_small_path())
     uid = generate_uid()
-    normal = np.cross(row, col)
+    step = dz * np.cross(row, col) if step is None else np.asarray(step)
     shuffled = np.random.default_rng(seed).permutation(stored.shape[2])
     files = []
     for k in range(stored.shape[2]):
@@ -509,7 +510,7 @@ def write_series(folder, stored, *, pixel_spacing, dz, origin, row, col, slope, 
         ds.Rows, ds.Columns = stored.shape[1], stored.shape[0]
         ds.PixelSpacing = [pixel_spacing[1], pixel_spacing[0]]  # (between rows, between columns)
         ds.ImageOrientationPatient = [float(v) for v in (*row, *col)]
-        ds.ImagePositionPatient = [round(float(v), 6) for v in origin + k * dz * normal]
+        ds.ImagePositionPatient = [round(float(v), 6) for v in origin + k * step]
         ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
         ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
         ds.PixelData = np.ascontiguousarray(stored[:, :, k].T, dtype="<i2").tobytes()
@@ -583,6 +584,21 @@ def test_dicom_series_stacked_against_the_normal(tmp_path, ct_crop):
     assert_volume(vol, ct_crop, spacing=(0.5, 0.5, 2.0),
                   origin=(0.0, 0.0, 100.0 - 2.0 * (ct_crop.shape[2] - 1)), orientation=np.eye(3),
                   units="HU", spacing_known=True, source=tmp_path)
+
+
+def test_dicom_gantry_tilt_gives_the_stacking_direction(tmp_path, ct_crop):
+    # Each slice is axial but shifted 0.5 mm in y (gantry tilt): the grid is sheared, and the
+    # third orientation column must follow the real stacking direction, not the normal.
+    step = np.array([0.0, 0.5, 2.0])
+    write_series(tmp_path, ct_crop + 1024, pixel_spacing=(0.5, 0.5), dz=None, step=step,
+                 origin=np.array([1.0, 2.0, 3.0]), row=(1.0, 0.0, 0.0), col=(0.0, 1.0, 0.0),
+                 slope=1, intercept=-1024, seed=5)
+    vol = read_volume(tmp_path)
+    orientation = np.column_stack([(1, 0, 0), (0, 1, 0), step / np.linalg.norm(step)])
+    assert_volume(vol, ct_crop, spacing=(0.5, 0.5, np.linalg.norm(step)), origin=(1, 2, 3),
+                  orientation=orientation, units="HU", spacing_known=True, source=tmp_path)
+    last = vol.index_to_physical() @ np.array([0, 0, ct_crop.shape[2] - 1, 1.0])
+    np.testing.assert_allclose(last[:3], (1, 2 + 0.5 * 11, 3 + 2.0 * 11))
 
 
 def test_dicom_two_series(tmp_path, axial_series, ct_crop):
@@ -659,9 +675,9 @@ def test_dicom_duplicate_position(axial_series):
 
 
 def test_dicom_slice_without_position(axial_series):
-    folder, _, files = axial_series
     import pydicom
 
+    folder, _, files = axial_series
     ds = pydicom.dcmread(files[0])
     del ds.ImagePositionPatient
     ds.save_as(files[0])

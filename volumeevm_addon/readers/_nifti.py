@@ -6,9 +6,9 @@ frame with x and y reversed, so the LPS affine is the RAS one with its first two
 Column ``i`` of the 3x3 part is the voxel step along index axis ``i``: its length is the spacing,
 its direction the orientation column. The translation is the centre of voxel ``(0, 0, 0)``.
 
-``scl_slope`` / ``scl_inter`` are applied when they are not the identity (the result is float,
-as nibabel's scaled ``dataobj`` gives it); with identity scaling the stored dtype is kept, so an
-``int16`` file stays ``int16``. Trailing axes of length 1 (``(X, Y, Z, 1)`` files) are dropped.
+``scl_slope`` / ``scl_inter`` are applied when they are not the identity (the result is
+``float64``, as nibabel's scaled ``dataobj`` gives it); with identity scaling the stored dtype
+is kept, so an ``int16`` file stays ``int16``. Trailing axes of length 1 (``(X, Y, Z, 1)`` files) are dropped.
 """
 
 import numpy as np
