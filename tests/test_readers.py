@@ -634,6 +634,16 @@ def test_dicom_explicit_non_dicom_file(tmp_path, axial_series):
         read_volume([*files, bad])
 
 
+def test_dicom_truncated_and_foreign_file(tmp_path):
+    path = tmp_path / "slice.dcm"
+    path.write_bytes(ct_small_path().read_bytes()[:20000])  # header intact, pixels cut
+    with raises(path, r"cannot decode the pixel data \(The number of bytes of pixel data"):
+        read_volume(path)
+    path.write_bytes(b"\x89PNG\r\n" + b"\0" * 200)
+    with raises(path, "not a readable DICOM file"):
+        read_volume(path)
+
+
 def _edit(path, **changes):
     import pydicom
 

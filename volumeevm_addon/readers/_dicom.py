@@ -76,9 +76,7 @@ def read_dicom(source, *, series_uid=None):
         if ds is not None and "SeriesInstanceUID" in ds and "Rows" in ds:
             series.setdefault(str(ds.SeriesInstanceUID), []).append((path, ds))
     if not series:
-        raise VolumeEVMError(
-            f"{label}: no DICOM image series found among {len(files)} file(s)"
-        )
+        raise VolumeEVMError(f"{label}: no DICOM image series found among {len(files)} file(s)")
     if series_uid is None and len(series) > 1:
         raise VolumeEVMError(
             f"{label}: holds {len(series)} DICOM series; choose one with series_uid=:\n"
@@ -91,8 +89,7 @@ def read_dicom(source, *, series_uid=None):
             + _describe(series)
         )
     slices = series[uid]
-    geometry = _grid_geometry(slices, label)
-    order = geometry.pop("order")
+    order, geometry = _grid_geometry(slices, label)
     slices = [slices[i] for i in order]
     raw = np.stack([_pixels(path, pydicom).T for path, _ in slices], axis=2)
     array = _rescale(raw, [ds for _, ds in slices])
@@ -146,7 +143,7 @@ def _floats(slices, keyword, label):
 
 
 def _grid_geometry(slices, label):
-    """Slice order, spacing, origin and orientation of a series, refusing irregular grids."""
+    """Slice order and the spacing, origin and orientation of a series; refuses irregular grids."""
     for path, ds in slices:
         if int(ds.get("NumberOfFrames", 1) or 1) > 1:
             raise VolumeEVMError(f"{label}: {path.name} is a multi-frame image (not supported)")
@@ -192,8 +189,7 @@ def _grid_geometry(slices, label):
         first = slices[0][1]
         z_spacing = float(first.get("SpacingBetweenSlices") or first.get("SliceThickness") or 1.0)
         z_dir = normal
-    return {
-        "order": order,
+    return order, {
         "spacing": (pixel_spacing[0, 1], pixel_spacing[0, 0], z_spacing),
         "origin": positions[0],
         "orientation": np.column_stack([row_dir, col_dir, z_dir]),

@@ -8,7 +8,8 @@ its direction the orientation column. The translation is the centre of voxel ``(
 
 ``scl_slope`` / ``scl_inter`` are applied when they are not the identity (the result is
 ``float64``, as nibabel's scaled ``dataobj`` gives it); with identity scaling the stored dtype
-is kept, so an ``int16`` file stays ``int16``. Trailing axes of length 1 (``(X, Y, Z, 1)`` files) are dropped.
+is kept, so an ``int16`` file stays ``int16``. Trailing axes of length 1 (``(X, Y, Z, 1)``
+files) are dropped.
 """
 
 import numpy as np

@@ -54,7 +54,7 @@ def read_npy(path):
 
 
 def _read_sidecar(sidecar, array):
-    """Spacing (mm or ``None``) and units from ``sidecar`` if it exists, checked against ``array``."""
+    """Spacing (mm, or ``None``) and units from ``sidecar`` if it exists, checked on ``array``."""
     if not sidecar.is_file():
         return None, ""
     try:
