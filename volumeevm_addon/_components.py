@@ -72,7 +72,7 @@ def face_components(evm):
     u, v = r[n], q
 
     labels = _connect(len(lo), u, v)
-    component = np.unique(labels, return_inverse=True)[1].ravel()
+    component = _sweep.unique_inverse(labels)[1]
     sizes = np.bincount(component, weights=np.prod(hi - lo, axis=1))
     rank = np.empty(len(sizes), np.int64)
     rank[np.argsort(-sizes, kind="stable")] = np.arange(len(sizes))

@@ -68,7 +68,7 @@ def boundary_rectangles(evm):
     for order in _CYCLIC:
         axes = ["xyz".index(a) for a in order]
         keys = evm.keys(order)
-        planes = np.unique(_sweep.leading(keys, 3))
+        planes = _sweep.unique_sorted(_sweep.leading(keys, 3))
         after = _sweep.sections(keys, 3, planes)  # section after plane i has group i
         before = after + (np.int64(1) << (2 * _sweep.BITS))  # the same, as group i + 1
         for faces, flip in (
@@ -124,7 +124,7 @@ def boundary_mesh(evm):
     if len(corners) == 0:
         empty = np.zeros(0, np.int32)
         return np.zeros((0, 3)), Polygons(empty, empty, empty)
-    keys, corner_index = np.unique(_sweep.pack(corners.reshape(-1, 3)), return_inverse=True)
+    keys, corner_index = _sweep.unique_inverse(_sweep.pack(corners.reshape(-1, 3)))
     vertices = _sweep.unpack(keys, 3)[1]
     corner_index = corner_index.reshape(-1, 4)
     start = corner_index.ravel()

@@ -62,9 +62,30 @@ def coordinate(keys, d, j):
     return ((keys >> (BITS * (d - 1 - j))) & MASK) - OFFSET
 
 
-def parity(keys):
-    """The keys that occur an odd number of times, sorted: XOR of point multisets."""
-    keys = np.sort(keys)
+def unique_sorted(keys):
+    """Distinct values of an already sorted array (no sort; ``np.unique`` would sort again)."""
+    if keys.size < 2:
+        return keys
+    return keys[np.r_[True, keys[1:] != keys[:-1]]]
+
+
+def unique_inverse(keys):
+    """``(distinct sorted values, index of each key's value)``, by one argsort."""
+    order = np.argsort(keys)
+    ordered = keys[order]
+    first = np.r_[True, ordered[1:] != ordered[:-1]] if keys.size else np.zeros(0, bool)
+    inverse = np.empty(keys.size, np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return ordered[first], inverse
+
+
+def parity(keys, runs=False):
+    """The keys that occur an odd number of times, sorted: XOR of point multisets.
+
+    ``runs=True`` says ``keys`` is a concatenation of a few sorted runs, which a stable sort
+    merges in linear time.
+    """
+    keys = np.sort(keys, kind="stable" if runs else None)
     if keys.size < 2:
         return keys
     first = np.empty(keys.size, bool)
@@ -81,7 +102,7 @@ def xor(a, b):
         return b
     if b.size == 0:
         return a
-    return parity(np.concatenate([a, b]))
+    return parity(np.concatenate([a, b]), runs=True)
 
 
 def leading(keys, d):
@@ -134,7 +155,9 @@ def extrude(keys, d, slabs):
     shift = BITS * (d - 1)
     slab = keys >> shift
     rest = keys & ((1 << shift) - 1)
-    return parity(np.concatenate([(slabs[slab] << shift) | rest, (slabs[slab + 1] << shift) | rest]))
+    # Both halves are sorted (slab starts grow with the slab index): a two-run merge.
+    return parity(np.concatenate([(slabs[slab] << shift) | rest, (slabs[slab + 1] << shift) | rest]),
+                  runs=True)
 
 
 def combine_1d(a, b, operation):
@@ -172,7 +195,7 @@ def boolean(a, b, d, operation):
     """
     if d == 1:
         return combine_1d(a, b, operation)
-    slabs = np.union1d(leading(a, d), leading(b, d))
+    slabs = unique_sorted(np.sort(np.concatenate([leading(a, d), leading(b, d)]), kind="stable"))
     result = boolean(sections(a, d, slabs), sections(b, d, slabs), d - 1, operation)
     return extrude(result, d, slabs)
 
@@ -192,7 +215,7 @@ def boxes(keys, d):
     """
     levels = []
     for level in range(d, 1, -1):
-        slabs = np.unique(leading(keys, level))
+        slabs = unique_sorted(leading(keys, level))
         levels.append(slabs)
         keys = sections(keys, level, slabs)
     group = keys[0::2] >> BITS
