@@ -699,13 +699,16 @@ def test_dicom_slice_without_position(axial_series):
 # TIFF
 
 
-def test_tiff_imagej_spacing(tmp_path, data_dir):
+@pytest.mark.parametrize("unit", ["micron", "\\u00B5m", "um"])  # ImageJ escapes the µ
+def test_tiff_imagej_spacing(tmp_path, data_dir, unit):
     import tifffile
 
     array, _ = load(data_dir, "micro_nuclei3d_stardist")
     path = tmp_path / "nuclei.tif"
     tifffile.imwrite(path, array.T, imagej=True, resolution=(1 / 0.25, 1 / 0.5),
-                     metadata={"spacing": 2.0, "unit": "micron", "axes": "ZYX"})
+                     metadata={"spacing": 2.0, "unit": unit, "axes": "ZYX"})
+    with tifffile.TiffFile(path) as tif:
+        assert tif.imagej_metadata["unit"] == unit  # as ImageJ and tifffile store it
     vol = read_volume(path)
     assert_volume(vol, array, spacing=(2.5e-4, 5e-4, 2e-3), origin=(0, 0, 0),
                   orientation=np.eye(3), units="", spacing_known=True, source=path)

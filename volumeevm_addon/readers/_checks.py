@@ -27,6 +27,7 @@ MM_PER_UNIT = {
     "um": 1e-3,
     "µm": 1e-3,
     "\u03bcm": 1e-3,
+    "\\u00b5m": 1e-3,  # ImageJ writes the micro sign escaped: unit=\u00B5m
     "micron": 1e-3,
     "micrometer": 1e-3,
     "nm": 1e-6,
