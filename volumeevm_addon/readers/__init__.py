@@ -11,6 +11,7 @@ orientation columns in LPS. Bad input raises :class:`~volumeevm_addon._errors.Vo
 with the file and the problem in the message.
 """
 
+import os
 from pathlib import Path
 
 from .._errors import VolumeEVMError
@@ -81,7 +82,7 @@ def read_volume(path, **options):
     >>> vol.array.shape, vol.spacing  # doctest: +SKIP
     ((256, 256, 108), (0.957, 0.957, 1.5))
     """
-    if not isinstance(path, (str, Path)):
+    if not isinstance(path, (str, os.PathLike)):
         return read_dicom(list(path), **options)
     path = Path(path)
     if not path.exists():

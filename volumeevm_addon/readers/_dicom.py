@@ -25,6 +25,7 @@ Refused with a message rather than guessed: several series in one folder (unless
 at one position, unevenly spaced slices (missing files), multi-frame and colour images.
 """
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +68,7 @@ def read_dicom(source, *, series_uid=None):
     """
     files, label, explicit = _candidate_files(source)
     pydicom = import_reader_package("pydicom", "pydicom", label)
-    if series_uid is None and isinstance(source, (str, Path)) and Path(source).is_file():
+    if series_uid is None and isinstance(source, (str, os.PathLike)) and Path(source).is_file():
         series_uid = _read_header(pydicom, Path(source), explicit=True).get("SeriesInstanceUID")
 
     series = {}
@@ -99,7 +100,7 @@ def read_dicom(source, *, series_uid=None):
 
 def _candidate_files(source):
     """Files to scan, the label used in messages and whether the files were named explicitly."""
-    if isinstance(source, (str, Path)):
+    if isinstance(source, (str, os.PathLike)):
         source = Path(source)
         folder = source if source.is_dir() else source.parent
         files = sorted(p for p in folder.iterdir() if p.is_file())
