@@ -4,6 +4,7 @@ import zipfile
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError
 from volumeevm_addon._densities import TABLE_ORDERS
@@ -144,3 +145,72 @@ def test_bad_input_names_the_source_and_problem():
         VolumeEVM.from_array(np.zeros((2, 2, 2)), float("nan"))
     with pytest.raises(ValueError, match="the region has 8 voxels but the table 3"):
         VolumeEVM(EVM.from_mask(np.ones((2, 2, 2), bool)), np.zeros(3), shape=(2, 2, 2))
+
+
+# ---------------------------------------------------------------------- editing with densities
+@pytest.fixture(scope="module")
+def tools(head):
+    x, y, z = np.ogrid[: head.shape[0], : head.shape[1], : head.shape[2]]
+    sphere = (x - 128) ** 2 + (y - 100) ** 2 + ((z - 54) * 1.5) ** 2 < 60 ** 2
+    slab = np.zeros(head.shape, bool)
+    slab[:, 120:136, :] = True
+    small = np.zeros(head.shape, bool)
+    small[60:70, 60:75, 40:44] = True
+    return {"sphere": sphere, "slab": slab, "small": small}
+
+
+@pytest.mark.parametrize("name", ["sphere", "slab", "small"])
+def test_cut_keep_add_equal_voxel_by_voxel(head, bone, tools, name):
+    tool = tools[name]
+    mask = head >= 300
+    background = -4000
+    cut = bone.cut(EVM.from_mask(tool))
+    assert np.array_equal(cut.to_dense(background), np.where(mask & ~tool, head, background))
+    kept = bone.keep(EVM.from_mask(tool))
+    assert np.array_equal(kept.to_dense(background), np.where(mask & tool, head, background))
+    added = bone.add(EVM.from_mask(tool), density=2500)
+    expected = np.where(tool, 2500, np.where(mask, head, background))
+    assert np.array_equal(added.to_dense(background), expected)
+    assert added.evm == EVM.from_mask(mask | tool)
+    # The original is unchanged.
+    assert np.array_equal(bone.to_dense(background), np.where(mask, head, background))
+
+
+def test_add_defaults_to_the_largest_density(head, bone, tools):
+    added = bone.add(EVM.from_mask(tools["small"]))
+    assert (added.to_dense()[tools["small"]] == head[head >= 300].max()).all()
+
+
+def test_largest_component_and_clip(head, bone):
+    mask = head >= 300
+    labels, _ = ndimage.label(mask)
+    biggest = labels == np.argmax(np.bincount(labels.ravel())[1:]) + 1
+    assert np.array_equal(bone.largest_component().to_dense(-1), np.where(biggest, head, -1))
+    clipped = bone.clip((50, 40, 10), (200, 180, 90))
+    box = np.zeros_like(mask)
+    box[50:200, 40:180, 10:90] = True
+    assert np.array_equal(clipped.to_dense(-1), np.where(mask & box, head, -1))
+
+
+def test_editing_on_mri_with_a_tool_sticking_out_of_the_grid(data_dir):
+    mri = np.load(data_dir / "mr_t1_itk_kmeans.npy")
+    region = VolumeEVM.from_array(mri, 60)
+    tool_mask = np.zeros((140, 140, 70), bool)
+    tool_mask[100:140, 20:90, 30:70] = True
+    tool = EVM.from_mask(tool_mask, offset=(0, 0, 0))
+    inside = tool_mask[: mri.shape[0], : mri.shape[1], : mri.shape[2]]
+    added = region.add(tool, density=255)
+    assert np.array_equal(added.to_dense(-1), np.where(inside, 255, np.where(mri >= 60, mri, -1)))
+    assert np.array_equal(region.cut(tool).to_dense(-1), np.where((mri >= 60) & ~inside, mri, -1))
+
+
+def test_editing_errors(bone, tools):
+    with pytest.raises(VolumeEVMError, match="keep inside: the result would be empty"):
+        bone.keep(EVM.from_mask(np.zeros((3, 3, 3), bool)))
+    with pytest.raises(TypeError, match="tool must be an EVM"):
+        bone.cut(tools["small"])
+    with pytest.raises(VolumeEVMError, match="does not fit the data type int16"):
+        bone.add(EVM.from_mask(tools["small"]), density=40000)
+    outside = EVM.from_mask(np.ones((2, 2, 2), bool)).translate(np.array([400, 0, 0]))
+    with pytest.raises(VolumeEVMError, match="no voxel inside the volume's grid"):
+        bone.add(outside)

@@ -8,5 +8,18 @@ from ._evm import EVM
 from ._mesh import Polygons
 from ._volume import BLENDER_UNITS_PER_MM, Volume
 from ._volumeevm import VolumeEVM
+from ._voxelize import check_closed_mesh, voxelize_mesh
+from .readers import SUPPORTED_EXTENSIONS, read_volume
 
-__all__ = ["BLENDER_UNITS_PER_MM", "EVM", "Polygons", "Volume", "VolumeEVM", "VolumeEVMError"]
+__all__ = [
+    "BLENDER_UNITS_PER_MM",
+    "EVM",
+    "Polygons",
+    "SUPPORTED_EXTENSIONS",
+    "Volume",
+    "VolumeEVM",
+    "VolumeEVMError",
+    "check_closed_mesh",
+    "read_volume",
+    "voxelize_mesh",
+]

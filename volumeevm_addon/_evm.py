@@ -273,6 +273,20 @@ class EVM:
         out_lo[:, axes], out_hi[:, axes] = lo, hi
         return out_lo, out_hi
 
+    def voxels(self):
+        """The region's voxels ``(n, 3)`` (int64), box by box: for lookups, not in table order."""
+        lo, hi = self.boxes()
+        size = hi - lo
+        count = np.prod(size, axis=1)
+        box = np.repeat(np.arange(len(lo)), count)
+        local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+        out = np.empty((len(local), 3), np.int64)
+        out[:, 2] = local % size[box, 2]
+        local //= size[box, 2]
+        out[:, 1] = local % size[box, 1]
+        out[:, 0] = local // size[box, 1]
+        return out + lo[box]
+
     def volume(self):
         """Number of voxels in the region (content of the slabs' sections)."""
         lo, hi = self.boxes()

@@ -138,6 +138,74 @@ class VolumeEVM:
         dense[self.evm.to_mask(self.shape)] = table
         return dense
 
+    # ------------------------------------------------------------------ editing
+    def cut(self, tool):
+        """Remove the tool's voxels: a new VolumeEVM of ``region - tool``, densities kept."""
+        return self._subset(self.evm - _check_tool(tool), "cut")
+
+    def keep(self, tool):
+        """Keep only the voxels inside the tool: ``region & tool``, densities kept."""
+        return self._subset(self.evm & _check_tool(tool), "keep inside")
+
+    def clip(self, lo, hi):
+        """Keep only the voxels inside the box ``[lo, hi)`` (lattice corners)."""
+        return self._subset(self.evm.clip(lo, hi), "clip")
+
+    def largest_component(self):
+        """Keep only the largest face-connected part of the region."""
+        return self._subset(self.evm.components()[0], "keep largest part")
+
+    def add(self, tool, density=None):
+        """Add the tool's voxels as material: ``region | tool``; every tool voxel gets ``density``.
+
+        ``density`` defaults to the largest density of the region (the report gives geometric
+        models the maximum grey value). The tool is clipped to the grid.
+        """
+        tool = _check_tool(tool).clip((0, 0, 0), self.shape)
+        if tool.is_empty():
+            raise VolumeEVMError("add: the tool has no voxel inside the volume's grid")
+        table = self._tables[0]
+        density = table.max() if density is None else density
+        if not np.isfinite(density):
+            raise VolumeEVMError(f"add: density {density!r} is not a finite number")
+        if np.issubdtype(table.dtype, np.integer):
+            info = np.iinfo(table.dtype)
+            if not info.min <= density <= info.max:
+                raise VolumeEVMError(f"add: density {density} does not fit the data type {table.dtype}")
+        region = self.evm | tool
+        result = self._derived(region, np.empty(region.volume(), table.dtype))
+        # Both tables list voxels in the same (C) order, so the old voxels the tool leaves alone
+        # keep their relative order: fill them in one masked copy.
+        from_tool = np.zeros(result.voxel_count, bool)
+        from_tool[result.index(tool.voxels())] = True
+        covered = np.zeros(self.voxel_count, bool)
+        covered[self.index((self.evm & tool).voxels())] = True
+        result._tables[0][from_tool] = density
+        result._tables[0][~from_tool] = table[~covered]
+        return result
+
+    def _subset(self, region, what):
+        """The VolumeEVM of ``region``, a subset of this region, with the densities it keeps.
+
+        Tables list voxels in C order, and a subset keeps that order, so the new table is the old
+        one masked: the mask is made from whichever of ``region`` or the removed part is smaller.
+        """
+        if region.is_empty():
+            raise VolumeEVMError(f"{what}: the result would be empty")
+        kept = region.volume()
+        if kept <= self.voxel_count - kept:
+            keep = np.zeros(self.voxel_count, bool)
+            keep[self.index(region.voxels())] = True
+        else:
+            keep = np.ones(self.voxel_count, bool)
+            keep[self.index((self.evm ^ region).voxels())] = False
+        return self._derived(region, self._tables[0][keep])
+
+    def _derived(self, region, table):
+        return VolumeEVM(region, table, shape=self.shape, spacing=self.spacing, origin=self.origin,
+                         orientation=self.orientation, units=self.units, threshold=self.threshold,
+                         upper=self.upper)
+
     # ------------------------------------------------------------------ geometry
     def index_to_physical(self):
         """4x4 matrix from voxel-centre indices to physical mm (LPS); see :mod:`._volume`."""
@@ -228,6 +296,12 @@ class VolumeEVM:
                        units=meta["units"], threshold=meta["threshold"], upper=meta["upper"])
         except (ValueError, KeyError) as error:
             raise VolumeEVMError(f"{path}: inconsistent VolumeEVM file ({error})") from None
+
+
+def _check_tool(tool):
+    if not isinstance(tool, EVM):
+        raise TypeError(f"tool must be an EVM (e.g. EVM.from_mask(voxelize_mesh(...))), got {type(tool).__name__}")
+    return tool
 
 
 def _sha256(array):
