@@ -11,7 +11,8 @@ from the image-plane attributes (DICOM PS3.3 C.7.6.2):
   ``InstanceNumber`` are not reliable), the origin is the first sorted slice's position and the
   z step is the mean step between consecutive positions. Its direction is normally the normal;
   for a gantry-tilted series it is the actual (oblique) stacking direction, so the grid is
-  sheared rather than misplaced.
+  sheared rather than misplaced. A single slice takes its z spacing from
+  ``SpacingBetweenSlices``, else ``SliceThickness``, else 1 mm.
 - ``PixelSpacing`` is (between rows, between columns) = (y, x) spacing.
 - ``pixel_array`` is ``[row, column]`` = ``[y, x]``; it is transposed into ``[x, y, z]``.
 
@@ -140,6 +141,8 @@ def _floats(slices, keyword, label):
                 f"{label}: {path.name} has no {keyword}; cannot place the slice in a volume"
             )
         values.append([float(v) for v in np.atleast_1d(ds[keyword].value)])
+    if len({len(v) for v in values}) > 1:
+        raise VolumeEVMError(f"{label}: corrupt header: {keyword} has different lengths in files")
     return np.asarray(values, dtype=np.float64)
 
 
