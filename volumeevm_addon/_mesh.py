@@ -71,18 +71,22 @@ def boundary_rectangles(evm):
         planes = _sweep.unique_sorted(_sweep.leading(keys, 3))
         after = _sweep.sections(keys, 3, planes)  # section after plane i has group i
         before = after + (np.int64(1) << (2 * _sweep.BITS))  # the same, as group i + 1
-        for faces, flip in (
-            (_sweep.boolean(before, after, 2, "difference"), False),  # solid ends: normal +A
-            (_sweep.boolean(after, before, 2, "difference"), True),  # solid starts: normal -A
-        ):
-            plane, lo, hi = _merge_runs(*_sweep.boxes(faces, 2))
+        # One sweep of the consecutive sections gives both face sets as runs on the merged
+        # lines: solid ends (before - after, normal +A) and starts (after - before, normal -A).
+        lines = _sweep.merged_slabs(before, after, 2)
+        ends, starts = _sweep.combine_1d(_sweep.sections(before, 2, lines),
+                                         _sweep.sections(after, 2, lines),
+                                         ["difference", "reverse difference"])
+        for runs, flip in ((ends, False), (starts, True)):
+            line = runs[0::2] >> _sweep.BITS
+            lo = np.stack([lines[line] & _sweep.MASK, runs[0::2] & _sweep.MASK], axis=1) - _sweep.OFFSET
+            hi = np.stack([lines[line + 1] & _sweep.MASK, runs[1::2] & _sweep.MASK], axis=1) - _sweep.OFFSET
+            plane, lo, hi = _merge_runs(lines[line] >> _sweep.BITS, lo, hi)
             a = (planes[plane] & _sweep.MASK) - _sweep.OFFSET
             corners = np.empty((len(a), 4, 3), np.int64)
             corners[:, :, axes[0]] = a[:, None]
-            b = np.stack([lo[:, 0], hi[:, 0], hi[:, 0], lo[:, 0]], axis=1)
-            c = np.stack([lo[:, 1], lo[:, 1], hi[:, 1], hi[:, 1]], axis=1)
-            corners[:, :, axes[1]] = b
-            corners[:, :, axes[2]] = c
+            corners[:, :, axes[1]] = np.stack([lo[:, 0], hi[:, 0], hi[:, 0], lo[:, 0]], axis=1)
+            corners[:, :, axes[2]] = np.stack([lo[:, 1], lo[:, 1], hi[:, 1], hi[:, 1]], axis=1)
             rectangles.append(corners[:, ::-1] if flip else corners)
     return np.concatenate(rectangles)
 

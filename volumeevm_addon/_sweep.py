@@ -34,6 +34,7 @@ OPERATIONS = {
     "intersection": lambda a, b: a & b,
     "difference": lambda a, b: a & (1 - b),
     "xor": lambda a, b: a ^ b,
+    "reverse difference": lambda a, b: b & (1 - a),
 }
 
 
@@ -160,16 +161,17 @@ def extrude(keys, d, slabs):
                   runs=True)
 
 
-def combine_1d(a, b, operation):
-    """A Boolean operation on grouped 1-D EVMs (sorted breakpoints per group), all groups at once.
+def combine_1d(a, b, operations):
+    """Boolean operations on grouped 1-D EVMs (sorted breakpoints per group), all groups at once.
 
     Inside/outside of each operand is the parity of the breakpoints passed so far. Every group of
     an EVM has an even number of breakpoints, so a running count over all groups restarts at
-    "outside" at each group's end, and a single cumulative sum serves every group.
+    "outside" at each group's end, and a single cumulative sum serves every group. Returns one
+    result per name in ``operations``, from a single merge of the operands.
     """
     keys = np.concatenate([a, b])
     if keys.size == 0:
-        return keys
+        return [keys for _ in operations]
     source = np.concatenate([np.ones(a.size, np.int8), np.full(b.size, 2, np.int8)])
     order = np.argsort(keys, kind="stable")
     keys = keys[order]
@@ -179,11 +181,20 @@ def combine_1d(a, b, operation):
     np.not_equal(keys[1:], keys[:-1], out=first[1:])
     starts = np.flatnonzero(first)
     toggles = np.bitwise_or.reduceat(source, starts)
+    keys = keys[starts]
     inside_a = np.cumsum(toggles & 1, dtype=np.int64) & 1
     inside_b = np.cumsum(toggles >> 1, dtype=np.int64) & 1
-    result = OPERATIONS[operation](inside_a, inside_b)
-    before = np.concatenate([[0], result[:-1]])
-    return keys[starts[result != before]]
+    results = []
+    for operation in operations:
+        result = OPERATIONS[operation](inside_a, inside_b)
+        before = np.concatenate([[0], result[:-1]])
+        results.append(keys[result != before])
+    return results
+
+
+def merged_slabs(a, b, d):
+    """The union of the planes of two grouped d-D EVMs, as sorted slab keys."""
+    return unique_sorted(np.sort(np.concatenate([leading(a, d), leading(b, d)]), kind="stable"))
 
 
 def boolean(a, b, d, operation):
@@ -194,8 +205,8 @@ def boolean(a, b, d, operation):
     consecutive sections.
     """
     if d == 1:
-        return combine_1d(a, b, operation)
-    slabs = unique_sorted(np.sort(np.concatenate([leading(a, d), leading(b, d)]), kind="stable"))
+        return combine_1d(a, b, [operation])[0]
+    slabs = merged_slabs(a, b, d)
     result = boolean(sections(a, d, slabs), sections(b, d, slabs), d - 1, operation)
     return extrude(result, d, slabs)
 
