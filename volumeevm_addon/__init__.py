@@ -6,6 +6,7 @@ NumPy only; never imports ``bpy``, so it works in plain Python as well as inside
 from ._errors import VolumeEVMError
 from ._evm import EVM
 from ._mesh import Polygons
+from ._stack import EditStack, ToolOperation
 from ._volume import BLENDER_UNITS_PER_MM, Volume
 from ._volumeevm import VolumeEVM
 from ._voxelize import check_closed_mesh, voxelize_mesh
@@ -14,8 +15,10 @@ from .readers import SUPPORTED_EXTENSIONS, read_volume
 __all__ = [
     "BLENDER_UNITS_PER_MM",
     "EVM",
+    "EditStack",
     "Polygons",
     "SUPPORTED_EXTENSIONS",
+    "ToolOperation",
     "Volume",
     "VolumeEVM",
     "VolumeEVMError",
