@@ -110,12 +110,14 @@ def test_corrupt_and_foreign_files(tmp_path, bone):
     with pytest.raises(VolumeEVMError, match="truncated.vevm: not a readable VolumeEVM file"):
         VolumeEVM.load(truncated)
     foreign = tmp_path / "foreign.vevm"
-    np.savez(foreign.open("wb"), data=np.arange(3))
+    with foreign.open("wb") as file:
+        np.savez(file, data=np.arange(3))
     with pytest.raises(VolumeEVMError, match="foreign.vevm: not a VolumeEVM file"):
         VolumeEVM.load(foreign)
     pickled = tmp_path / "pickled.vevm"
-    np.savez(pickled.open("wb"), format=np.array("volumeevm"), version=np.array(1),
-             meta=np.array([{"evil": 1}], dtype=object), vertices=np.zeros((0, 3)), table=np.zeros(0))
+    with pickled.open("wb") as file:
+        np.savez(file, format=np.array("volumeevm"), version=np.array(1),
+                 meta=np.array([{"evil": 1}], dtype=object), vertices=np.zeros((0, 3)), table=np.zeros(0))
     with pytest.raises(VolumeEVMError, match="pickled.vevm: not a readable"):
         VolumeEVM.load(pickled)
     # Flip one density inside the archive: the checksum catches it.
@@ -124,7 +126,8 @@ def test_corrupt_and_foreign_files(tmp_path, bone):
         parts = {k: archive[k] for k in archive.files}
     parts["table"] = parts["table"].copy()
     parts["table"][0] += 1
-    np.savez(tampered.open("wb"), **parts)
+    with tampered.open("wb") as file:
+        np.savez(file, **parts)
     with pytest.raises(VolumeEVMError, match="checksum mismatch"):
         VolumeEVM.load(tampered)
     with pytest.raises(VolumeEVMError, match="missing.vevm: file not found"):
