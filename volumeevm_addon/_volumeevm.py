@@ -273,7 +273,8 @@ class VolumeEVM:
         """Read a ``.vevm`` file; a corrupt or foreign file raises :class:`VolumeEVMError`."""
         path = Path(path)
         try:
-            with np.load(path, allow_pickle=False) as archive:
+            # Open the file here so that it is closed even when NumPy fails half-way.
+            with open(path, "rb") as file, np.load(file, allow_pickle=False) as archive:
                 if "format" not in archive or str(archive["format"]) != FORMAT:
                     raise VolumeEVMError(f"{path}: not a VolumeEVM file")
                 version = int(archive["version"])
