@@ -3,11 +3,11 @@ real Blender (``bpy``) for orthographic and perspective cameras."""
 
 import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import REPO
 from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
 
@@ -142,7 +142,9 @@ def test_invalid_camera(kwargs, match):
 
 
 # ---------------------------------------------------------------------------- against Blender
-bpy = pytest.importorskip("bpy")
+import bpy  # noqa: E402  (the real wheel; both pinned environments have it)
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _operators_camera():

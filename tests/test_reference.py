@@ -238,6 +238,35 @@ def _random_scene(seed=0, shape=(9, 8, 7), sp=(0.9, 1.1, 1.6)):
     return dens, mask, g, np.array(sp), cam, tf
 
 
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_shading_of_a_linear_ramp(kind):
+    """f = 3 i - 2 k on a rotated grid with anisotropic voxels: the gradient is constant, its
+    world direction is R · (3/sx, 0, -2/sz); every sample gets the same Blinn–Phong factor."""
+    shape, sp = (6, 5, 7), np.array([0.6, 1.0, 1.5])
+    i, j, k = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
+    dens = 3.0 * i - 2.0 * k
+    rot = rotation((1, 1, 0.3), 0.6)
+    g = grid_matrix(sp, rot=rot)
+    centre = g[:3, 3] + g[:3, :3] @ ((np.array(shape) - 1) / 2)
+    cam_m = look_at(centre + np.array([0.2, -1.0, 0.5]) * 0.03, centre)
+    cam = (Camera.orthographic(cam_m, 0.012, resolution_x=12, resolution_y=10, clip_start=1e-3)
+           if kind == "ORTHO" else
+           Camera.perspective(cam_m, 120.0, resolution_x=12, resolution_y=10, clip_start=1e-3))
+    rgb = np.array([0.8, 0.5, 0.2])
+    tf = constant_tf(alpha=0.3, rgb=tuple(rgb))
+    shade = Shading(ambient=0.2, diffuse=0.6, specular=0.25, shininess=8.0)
+    rgba, _ = render_reference(dens, None, g, sp, cam, tf, step_mm=0.5, shading=shade)
+    normal = rot @ (np.array([3.0, 0.0, -2.0]) / sp)
+    normal /= np.linalg.norm(normal)
+    _, d = cam.rays()
+    cos = np.abs(d @ normal)
+    want = np.minimum(rgb * (0.2 + 0.6 * cos[..., None]) + 0.25 * cos[..., None] ** 8, 1.0)
+    seen = rgba[..., 3] > 0.1
+    assert seen.sum() > 40
+    np.testing.assert_allclose(rgba[seen][:, :3] / rgba[seen][:, 3:], want[seen], rtol=1e-5)
+    assert np.ptp(cos[seen]) > 0.01 or kind == "ORTHO"
+
+
 @pytest.mark.parametrize("shading", [None, Shading()])
 def test_over_equals_under(shading):
     dens, mask, g, sp, cam, tf = _random_scene()

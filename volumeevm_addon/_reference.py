@@ -2,9 +2,9 @@
 
 It renders a dense grid of densities with a region-of-interest mask through a :class:`Camera`
 and a :class:`TransferFunction`, as exactly as a sampled method can: float64 throughout, exact
-ray–box clipping, a tiny fixed step, trilinear reconstruction, post-classification, no early
-termination. Speed is not its job; NumPy vectorises over rays and Python loops over ray steps
-(and chunks of rays).
+ray–box clipping, rays split exactly where the reconstruction changes, a tiny step, trilinear
+reconstruction, post-classification, no early termination. Speed is not its job; NumPy
+vectorises over rays, Python loops over ray steps and chunks of rays.
 
 Boundary policy (the region of interest, VoI)
 ---------------------------------------------
@@ -12,41 +12,49 @@ The VoI is the union of its voxels' **cells** (voxel ``(i, j, k)`` is the cell o
 around the index point ``(i, j, k)``; the volume's box spans ``-0.5 .. n - 0.5`` per axis), the
 same solid the EVM describes.
 
-- A sample at index-space point ``p`` lies in the cell ``round(p)`` (``floor(p + 0.5)``). If that
-  voxel is outside the VoI (or outside the grid) the sample is **transparent** (zero opacity, no
-  colour, no X-ray attenuation, ignored by MIP).
-- Inside the VoI the density is the trilinear interpolation of the **VoI's voxels only**: the
-  weights of the 8 neighbours that lie outside the VoI are dropped and the remaining weights
-  renormalised (at least 1/8 of the weight always remains: the sample's own voxel). At a flat
-  boundary, e.g. the grid's own faces, this is exactly clamp-to-edge interpolation.
-- Gradients (shading) are central differences per voxel, one-sided where one neighbour along an
-  axis is outside the VoI, zero where both are; they are interpolated like the densities.
+- A sample at index-space point ``p`` lies in the cell ``floor(p + 0.5)``. If that voxel is
+  outside the VoI (or the grid) the sample is **transparent**: no opacity, no colour, no X-ray
+  attenuation, ignored by MIP. The VoI's surface is where the EVM's mesh is.
+- Inside, the density is trilinearly interpolated from the voxels the policy may read, with the
+  weights of the others dropped and the rest renormalised (the sample's own voxel always keeps
+  at least 1/8 of the weight). At a flat boundary, e.g. the grid's own faces, this is exactly
+  clamp-to-edge interpolation.
 
-Why: the rendered field reads nothing but the VoI's voxels, so rendering a VolumeEVM (which stores
-only those densities) and rendering the dense volume with the outside transparent are the same
-function — the exactness contract holds with no one-voxel shell of outside densities. Cutting a
-volume with a mask gives exactly the image of the volume cropped to the mask's box, the VoI's
-surface is where the EVM mesh is (opaque DVR silhouettes match the mesh), and a homogeneous region
-is homogeneous up to its cell boundary, so closed forms (``1 - (1 - a)^(L/Δ0)`` with the exact
-chord ``L``) hold. The price: at the VoI's surface, post-classified interpolation does not see the
-outside densities a full dense render would blend in (a thin difference at the surface, measured
-on real data by the renderers' benchmark).
+  * ``boundary="clamp"`` (default): only the VoI's voxels are read. This is what a VolumeEVM
+    storing only the VoI's densities renders, so the exactness contract (VolumeEVM render ==
+    dense render with the outside transparent) needs nothing more; masking a volume gives
+    exactly the image of the volume cropped to the mask; a homogeneous region is homogeneous up
+    to its cell boundary, so closed forms hold with the exact chord. The price, measured on the
+    CT head (ct_bone, VoI = voxels above -300 HU): a mean absolute difference to the full dense
+    render of 0.04-0.08 (premultiplied RGBA), because isolated bright voxels and thin
+    structures in air keep their full density and show as opaque cells.
+  * ``boundary="shell"``: also the one-voxel shell around the VoI (its 26-neighbourhood) is
+    read, with its true densities, as a VolumeEVM that stores that shell (a second EVM with its
+    own densities table) could. Interpolation in the VoI then equals the full dense render's;
+    measured on the same case the difference is 0.0000 mean.
+- Gradients (shading) are central differences per voxel over readable voxels, one-sided where
+  one neighbour along an axis is not readable, zero where neither is; they are interpolated
+  like the densities.
 
 Sampling
 --------
 Each ray is clipped to the volume's box, to the camera's clip range (axial depths ``clip_start ..
-clip_end``) and to ``depth_in``; the remaining segment (``L`` mm long, measured in physical mm:
-``|diag(spacing) · δ|`` for an index-space step ``δ``) is split into ``N = ceil(L / step_mm)``
-equal parts of ``Δ = L / N <= step_mm`` mm, each sampled at its midpoint and classified with the
-opacity corrected for ``Δ``. A homogeneous segment therefore gets exactly ``1 - (1 - a)^(L/Δ0)``.
+clip_end``) and to ``depth_in``. The remaining segment is split at every crossing of a cell
+boundary (index ``m + 0.5``: where the VoI can start or stop) and of a voxel-centre plane (index
+``m``: where the trilinear weights change cell), so each piece lies in one cell and sees one
+smooth polynomial. Each piece of ``L`` mm (physical: ``|diag(spacing) · δ|`` for an index-space
+step ``δ``) is cut into ``ceil(L / step_mm)`` equal parts of ``Δ <= step_mm`` sampled at their
+midpoints, with the opacity corrected for ``Δ``. Hence a homogeneous VoI gets exactly
+``1 - (1 - a)^(L/Δ0)`` for its exact chord ``L`` (any mask, any view), and masks and ``depth_in``
+cut rays exactly. MIP also evaluates both ends of each part (nudged into it): along an axis-
+parallel ray the field is linear between breakpoints, so the maximum is found exactly.
 
 Depth out
 ---------
-Axial depth (Blender units, float32) of the **front end of the first segment with non-zero
-opacity** (over, under, X-ray: non-zero attenuation); for MIP, of the sample that holds the
-maximum, if its classified opacity is non-zero. ``1e10`` where there is none (Blender's
-background). For an opaque surface this is the surface to within one step; at the volume's box and
-at ``depth_in`` it is exact.
+Axial depth (Blender units, float32) of the **front end of the first part with non-zero
+opacity** (over, under; X-ray: non-zero attenuation); for MIP, of the frontmost point holding
+the maximum, if its classified opacity is non-zero. ``1e10`` where there is none (Blender's
+background). At the VoI's surface, the volume's box, the near clip and ``depth_in`` this is exact.
 """
 
 from dataclasses import dataclass
