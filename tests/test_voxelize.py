@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import DATA
 
+from volumeevm_addon import _voxelize
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._voxelize import MeshCheck, check_closed_mesh, voxelize_mesh
 
@@ -347,6 +348,53 @@ def test_tetrahedron_corner_on_centres():
     np.testing.assert_array_equal(mask, i + j + k < 6)
 
 
+def lattice_polyhedra(rng, count, shape):
+    """Random integer images of an octahedron, a cube and a tetrahedron, merged.
+
+    Vertices are lattice points and face normals are small integer vectors, so many voxel
+    centres lie exactly on faces, edges and vertices, and rays graze edges and vertices.
+    Overlapping parts and coplanar faces of different parts occur.
+    """
+    octahedron = (np.concatenate([np.eye(3), -np.eye(3)]),
+                  np.array([[0, 1, 2], [1, 3, 2], [3, 4, 2], [4, 0, 2],
+                            [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]]))
+    cube = box([-1, -1, -1], [1, 1, 1])
+    tetrahedron = (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float),
+                   np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    parts = []
+    while len(parts) < count:
+        linear = rng.integers(-2, 3, size=(3, 3)).astype(float)
+        if abs(np.linalg.det(linear)) < 0.5:
+            continue
+        v, f = (octahedron, cube, tetrahedron)[len(parts) % 3]
+        offset = rng.integers(2, np.asarray(shape) - 2).astype(float)
+        # A negative determinant turns the part inside out: reverse its faces to keep it outward.
+        f = f if np.linalg.det(linear) > 0 else f[:, ::-1]
+        parts.append((v @ linear.T + offset, f))
+    return merge(*parts)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_lattice_polyhedra_match_perturbed_winding_number(seed):
+    # The documented rule says a centre c is inside iff c + (e, e**2, d) is, 0 < e**2 << e << d.
+    # With integer vertices in a small grid every face normal n (cross product of two edges) has |n_i| <= 64 and every
+    # plane offset n.c - n.v0 is an integer, so e = 1e-6, d = 1e-3 realise that order and move
+    # no centre across a face it is not on: the oracle at c + (e, e**2, d) is the rule.
+    rng = np.random.default_rng(seed)
+    shape = (12, 11, 10)
+    vertices, faces = lattice_polyhedra(rng, 6, shape)
+    check_closed_mesh(vertices, faces)
+    mask = voxelize_mesh(vertices, faces, shape, np.eye(4))
+    centres = np.stack(np.unravel_index(np.arange(mask.size), shape), axis=1).astype(float)
+    w = winding_numbers(vertices[faces], centres + [1e-6, 1e-12, 1e-3])
+    assert np.abs(w - np.round(w)).max() < 1e-6
+    np.testing.assert_array_equal(mask, (np.abs(w) > 0.5).reshape(shape))
+    # And the ties really happen: many centres lie exactly on the surface.
+    with np.errstate(invalid="ignore"):  # undefined at a vertex: NaN
+        on_surface = ~(np.abs(winding_numbers(vertices[faces], centres) - np.round(w)) < 1e-6)
+    assert on_surface.sum() > 50
+
+
 # --- topology: genus, nesting, components -----------------------------------------------------
 
 def test_rotor_hole_is_empty():
@@ -385,7 +433,7 @@ def test_nested_shells_of_real_mesh_generic_position():
     centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
     small = centre + 0.3 * (vertices - centre)
     hollow_v, hollow_f = merge((vertices, faces), (small, faces[:, ::-1]))
-    matrix, shape = fit_to_grid(vertices, 20)
+    matrix, shape = fit_to_grid(vertices, 15)
     full = voxelize_mesh(vertices, faces, shape, matrix)
     core = voxelize_mesh(small, faces, shape, matrix)
     hollow = assert_matches_winding_number(hollow_v, hollow_f, shape, matrix)
@@ -413,7 +461,7 @@ def test_many_components():
     nut = ((nut[0] - nut[0].mean(axis=0)) / 46.0, nut[1])
     parts = [rotor, (rotor[0] + [0.6, 0, 0], rotor[1]), (nut[0] + [0.3, 0.2, 0.1], nut[1])]
     vertices, faces = merge(*parts)
-    matrix, shape = fit_to_grid(vertices, 30)
+    matrix, shape = fit_to_grid(vertices, 22)
     mask = assert_matches_winding_number(vertices, faces, shape, matrix)
     union = np.zeros(shape, bool)
     for v, f in parts:
@@ -503,6 +551,32 @@ def test_wholly_outside_raises():
         moved[:3, 3] += shift
         with pytest.raises(VolumeEVMError, match="wholly outside the volume"):
             voxelize_mesh(vertices, faces, shape, moved)
+
+
+def test_chunking_does_not_change_result(monkeypatch):
+    # Small chunks split the (triangle, column) pairs of single big triangles across chunks.
+    vertices, faces = load_mesh("mesh_tool_anchor")
+    matrix, shape = fit_to_grid(vertices, 30, TILT)
+    big_v, big_f = box([1, 1, 1], [shape[0] - 1, shape[1] - 2.5, 9])
+    vertices, faces = merge((apply(matrix, vertices), faces), (big_v, big_f))
+    whole = voxelize_mesh(vertices, faces, shape, np.eye(4))
+    monkeypatch.setattr(_voxelize, "_CHUNK", 97)
+    np.testing.assert_array_equal(voxelize_mesh(vertices, faces, shape, np.eye(4)), whole)
+    assert whole.sum() > 1000
+
+
+def test_extreme_coordinates_stay_exact():
+    # Subnormal and tiny corner coordinates (exact fallback with ~1000-bit integers) and
+    # corners 1e25 voxels away.
+    vertices, faces = box([1e-300, -1e-300, 5e-324], [4, 3 - 2.0**-50, 2 + 1e-15])
+    mask = voxelize_mesh(vertices, faces, (6, 5, 4), np.eye(4))
+    np.testing.assert_array_equal(mask, half_open_box_mask((6, 5, 4), [1, 0, 1], [4, 3, 3]))
+    corners, faces = box([0, 0, 0], [1, 1, 1])
+    vertices = np.where(corners == 0, -1e25, 2.5)
+    mask = voxelize_mesh(vertices, faces, (6, 5, 4), np.eye(4))
+    np.testing.assert_array_equal(mask, half_open_box_mask((6, 5, 4), [0, 0, 0], [2.5, 2.5, 2.5]))
+    with pytest.raises(VolumeEVMError, match="1e\\+40 voxels away"):
+        voxelize_mesh(vertices * 1e15, faces, (6, 5, 4), np.eye(4))
 
 
 def test_small_mesh_between_centres_is_empty():

@@ -26,8 +26,11 @@ _ORIENT2D_BOUND = (3.0 + 16.0 * _EPS) * _EPS
 _ORIENT3D_BOUND = (7.0 + 56.0 * _EPS) * _EPS
 # The bounds above assume no underflow; determinants smaller than this go to the exact path.
 _TINY = 2.0**-900
-# Candidate (triangle, ray) pairs processed per chunk: bounds the working memory (~100 bytes each).
-_CHUNK = 1 << 20
+# Candidate (triangle, ray) pairs processed per chunk: bounds the working memory (~150 bytes each).
+_CHUNK = 1 << 19
+# Largest |coordinate| of the mesh in voxel index space: keeps every product in the predicates
+# (up to the cube of a coordinate) far from float64 overflow.
+_MAX_INDEX = 1e30
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,9 @@ def check_closed_mesh(vertices, faces):
             "in one direction than the other (faces flipped against their neighbours); "
             "recalculate the normals so that they all point outwards"
         )
-    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    # About the bounding box centre: no cancellation for a mesh far from the origin.
+    centred = verts - (verts.min(axis=0) + verts.max(axis=0)) / 2
+    a, b, c = centred[tris[:, 0]], centred[tris[:, 1]], centred[tris[:, 2]]
     volume = float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
     return MeshCheck(
         n_vertices=len(verts),
@@ -141,9 +146,10 @@ def voxelize_mesh(vertices, faces, shape, to_grid):
     ------
     VolumeEVMError
         For the input errors of :func:`check_closed_mesh`; for a bad ``shape`` or
-        ``to_grid``; if the transformed mesh lies wholly outside the volume, i.e. its bounding
+        ``to_grid`` (also one that puts vertices more than 1e30 voxels away from the grid);
+        if the transformed mesh lies wholly outside the volume, i.e. its bounding
         box in index space misses the box ``[-0.5, X - 0.5] x [-0.5, Y - 0.5] x [-0.5, Z - 0.5]``.
-        A mesh inside that box that contains no voxel centre gives an all-False mask.
+        A mesh that meets that box but contains no voxel centre gives an all-False mask.
 
     Notes
     -----
@@ -190,9 +196,11 @@ def voxelize_mesh(vertices, faces, shape, to_grid):
 
     linear = matrix[:3, :3]
     pts = verts @ linear.T + matrix[:3, 3]
-    if not np.isfinite(pts).all():
+    reach = float(np.abs(pts).max())
+    if not reach <= _MAX_INDEX:
         raise VolumeEVMError(
-            "to_grid maps the tool mesh to non-finite voxel coordinates; check its scale"
+            f"to_grid maps the tool mesh {reach:.3g} voxels away from the grid origin "
+            f"(at most {_MAX_INDEX:.0e} is supported); check its scale"
         )
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     extent = np.asarray(shape, np.float64) - 0.5
