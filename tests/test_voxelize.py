@@ -107,7 +107,8 @@ def winding_numbers(tri, points, chunk=1 << 21):
     coeff = np.concatenate([normal, -2 * a, -2 * b, -2 * c, -(a + b), -(b + c), -(c + a)]).T
     const = np.concatenate([
         -np.einsum("fi,fi->f", a, normal),
-        *(np.einsum("fi,fi->f", u, v) for u, v in ((a, a), (b, b), (c, c), (a, b), (b, c), (c, a))),
+        *(np.einsum("fi,fi->f", u, v)
+          for u, v in ((a, a), (b, b), (c, c), (a, b), (b, c), (c, a))),
     ])
     out = np.empty(len(points))
     per = max(1, chunk // n_tri)
@@ -377,9 +378,10 @@ def lattice_polyhedra(rng, count, shape):
 @pytest.mark.parametrize("seed", range(4))
 def test_lattice_polyhedra_match_perturbed_winding_number(seed):
     # The documented rule says a centre c is inside iff c + (e, e**2, d) is, 0 < e**2 << e << d.
-    # With integer vertices in a small grid every face normal n (cross product of two edges) has |n_i| <= 64 and every
-    # plane offset n.c - n.v0 is an integer, so e = 1e-6, d = 1e-3 realise that order and move
-    # no centre across a face it is not on: the oracle at c + (e, e**2, d) is the rule.
+    # With integer vertices in a small grid every face normal n (cross product of two edges)
+    # has |n_i| <= 64 and every plane offset n.c - n.v0 is an integer, so e = 1e-6, d = 1e-3
+    # realise that order and move no centre across a face it is not on: the oracle at
+    # c + (e, e**2, d) is the rule.
     rng = np.random.default_rng(seed)
     shape = (12, 11, 10)
     vertices, faces = lattice_polyhedra(rng, 6, shape)

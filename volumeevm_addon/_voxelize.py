@@ -289,8 +289,9 @@ def _edge_defects(tris):
     low, high = np.minimum(start, end), np.maximum(start, end)
     key = low * (int(tris.max()) + 1) + high
     edges, inverse = np.unique(key, return_inverse=True)
-    forward = np.bincount(inverse.reshape(-1), weights=start < end, minlength=len(edges))
-    uses = np.bincount(inverse.reshape(-1), minlength=len(edges))
+    inverse = inverse.reshape(-1)
+    forward = np.bincount(inverse[start < end], minlength=len(edges))
+    uses = np.bincount(inverse, minlength=len(edges))
     backward = uses - forward
     n_open = int(np.count_nonzero(uses == 1))
     n_unpaired = int(np.count_nonzero((uses >= 2) & (forward != backward)))
@@ -320,7 +321,8 @@ def _winding_mask(tri_pts, shape, orientation):
     width = np.maximum(hi - lo + 1.0, 0.0).astype(np.int64)
     count = width[:, 0] * width[:, 1]
     useful = (count > 0) & (tri_pts[:, :, 2].min(axis=1) <= nz - 1)
-    tri_pts, lo, width, count = tri_pts[useful], lo[useful].astype(np.int64), width[useful], count[useful]
+    tri_pts, width, count = tri_pts[useful], width[useful], count[useful]
+    lo = lo[useful].astype(np.int64)
     ends = np.cumsum(count)
     total = int(ends[-1]) if len(ends) else 0
 
@@ -331,7 +333,7 @@ def _winding_mask(tri_pts, shape, orientation):
         local = pair - (ends[tri] - count[tri])
         i = lo[tri, 0] + local % width[tri, 0]
         j = lo[tri, 1] + local // width[tri, 0]
-        tri, i, j, sign, start = _crossings(tri_pts, tri, i, j, nz)
+        i, j, sign, start = _crossings(tri_pts, tri, i, j, nz)
         columns.append(i * ny + j)
         starts.append(start)
         signs.append(sign)
@@ -348,8 +350,8 @@ def _winding_mask(tri_pts, shape, orientation):
 def _crossings(tri_pts, tri, i, j, nz):
     """Exact crossings of the rays of columns ``(i, j)`` with triangles ``tri``.
 
-    Returns, for the pairs whose (perturbed) ray passes through the triangle: the triangle,
-    i, j, the sign of the triangle's projected orientation (+1 counter-clockwise seen from +z)
+    Returns, for the pairs whose (perturbed) ray passes through the triangle: i, j, the sign
+    of the triangle's projected orientation (+1 counter-clockwise seen from +z)
     and ``start``, the first centre index k with the crossing at or below it (``ceil`` of the
     crossing height, clipped to ``[0, nz]``).
     """
@@ -359,7 +361,7 @@ def _crossings(tri_pts, tri, i, j, nz):
     corners = ((0, 1), (1, 2), (2, 0))
     weights = [None, None, None]
     sign = None
-    for (u, v) in corners:
+    for u, v in corners:
         p_u, p_v = tri_pts[tri, u], tri_pts[tri, v]
         s, det = _orient2d(p_u[:, 0], p_u[:, 1], p_v[:, 0], p_v[:, 1], px, py)
         inside = s != 0 if sign is None else s == sign
@@ -378,8 +380,8 @@ def _crossings(tri_pts, tri, i, j, nz):
         height = np.where(total != 0.0, (w * z_corner).sum(axis=0) / total, a[:, 2])
     height = np.clip(height, z_corner.min(axis=0), z_corner.max(axis=0))
     start = np.clip(np.ceil(height), 0.0, float(nz))
-    # start is right iff (start == nz or crossing <= start) and (start == 0 or crossing > start - 1);
-    # crossing <= q  <=>  sign * orient3d(a, b, c, (i, j, q)) <= 0.
+    # start is right iff (start == nz or crossing <= start) and (start == 0 or
+    # crossing > start - 1), where crossing <= q  <=>  sign * orient3d(a, b, c, (i, j, q)) <= 0.
     det_up, bound_up = _orient3d(a, b, c, px, py, start)
     det_down, bound_down = _orient3d(a, b, c, px, py, start - 1.0)
     ok_up = (start == nz) | ((np.abs(det_up) > bound_up) & (sign * det_up < 0))
@@ -388,7 +390,7 @@ def _crossings(tri_pts, tri, i, j, nz):
     unsure = np.flatnonzero(~(ok_up & ok_down))
     if len(unsure):
         start[unsure] = _exact_start(a[unsure], b[unsure], c[unsure], px[unsure], py[unsure], nz)
-    return tri, i, j, sign, start
+    return i, j, sign, start
 
 
 def _orient2d(ax, ay, bx, by, px, py):
