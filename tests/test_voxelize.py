@@ -446,6 +446,39 @@ def test_nested_shells_of_real_mesh_generic_position():
     assert (core & full).sum() > 0 and (hollow & core).sum() > 0
 
 
+def test_thin_slabs_at_a_centre_plane():
+    # Slabs 1e-12 voxels thick around, above and below the plane of centres k = 3.
+    shape = (6, 5, 7)
+    for z0, z1, expected in [
+        (3 - 1e-12, 3 + 1e-12, [1.5, 0.5, 3, 4.5, 3.5, 4]),
+        (3.0, 3 + 1e-12, [1.5, 0.5, 3, 4.5, 3.5, 4]),
+        (3 - 1e-12, 3.0, None),
+        (3 + 1e-12, 3 + 2e-12, None),
+    ]:
+        vertices, faces = box([1.5, 0.5, z0], [4.5, 3.5, z1])
+        mask = voxelize_mesh(vertices, faces, shape, np.eye(4))
+        if expected is None:
+            assert not mask.any()
+        else:
+            np.testing.assert_array_equal(
+                mask, half_open_box_mask(shape, expected[:3], expected[3:]))
+            assert mask.sum() == 3 * 3
+
+
+def test_parts_sharing_an_edge_and_degenerate_faces():
+    # Two boxes welded along the edge x = y = 3: that edge is used twice in each direction,
+    # which is still a closed, oriented surface. A zero-area face (repeated vertex) is ignored.
+    vertices, faces = merge(box([1, 1, 1], [3, 3, 4]), box([3, 3, 1], [5, 6, 4]))
+    welded, index = np.unique(vertices, axis=0, return_inverse=True)
+    faces = np.concatenate([index.reshape(-1)[faces], [[0, 0, 1]]])
+    info = check_closed_mesh(welded, faces)
+    assert info.n_vertices == 14 and info.signed_volume == pytest.approx(12 + 18)
+    shape = (7, 7, 5)
+    expected = half_open_box_mask(shape, [1, 1, 1], [3, 3, 4]) | half_open_box_mask(
+        shape, [3, 3, 1], [5, 6, 4])
+    np.testing.assert_array_equal(voxelize_mesh(welded, faces, shape, np.eye(4)), expected)
+
+
 def test_many_components():
     rng = np.random.default_rng(7)
     shape = (30, 25, 20)
