@@ -181,19 +181,17 @@ def assert_matches_winding_number(vertices, faces, shape, matrix):
     assert mask.shape == shape and mask.dtype == np.bool_
     tri = apply(matrix, vertices)[faces]
     near = near_surface(tri, shape)
-    label = component_labels(~near)
-    far_ids, far_first = np.unique(label[~near], return_index=True)
-    far_points = np.flatnonzero(~near.reshape(-1))[far_first]
-    points = np.concatenate([np.flatnonzero(near.reshape(-1)), far_points])
+    label = component_labels(~near).reshape(-1)
+    far = np.flatnonzero(~near.reshape(-1))
+    # A region's label is the flat index of its first voxel: that voxel represents it.
+    points = np.concatenate([np.flatnonzero(near.reshape(-1)), np.unique(label[far])])
     w = winding_numbers(tri, np.stack(np.unravel_index(points, shape), axis=1).astype(float))
     # Generic placement: no centre is on or within rounding distance of the surface, where
     # the oracle is not an integer; none is excluded.
     assert np.abs(w - np.round(w)).max() < 1e-6
     expected = np.zeros(mask.size, bool)
     expected[points] = np.abs(w) > 0.5
-    far_value = dict(zip(far_ids.tolist(), expected[far_points].tolist()))
-    far_flat = np.flatnonzero(~near.reshape(-1))
-    expected[far_flat] = [far_value[x] for x in label.reshape(-1)[far_flat].tolist()]
+    expected[far] = expected[label[far]]
     expected = expected.reshape(shape)
     mismatch = np.argwhere(mask != expected)
     assert len(mismatch) == 0, f"{len(mismatch)} voxels differ, first {mismatch[:5].tolist()}"
