@@ -277,6 +277,25 @@ def test_over_equals_under(shading):
     np.testing.assert_array_equal(da, db)
 
 
+@pytest.mark.parametrize("mode", ["over", "under", "xray", "mip"])
+def test_skipping_empty_pieces_changes_nothing(mode, monkeypatch):
+    """Pieces outside the VoI or where the transfer function is transparent are not sampled;
+    sampling them anyway gives the bit-identical image."""
+    from volumeevm_addon import _reference
+
+    dens, mask, g, sp, cam, tf = _random_scene(11)
+    tf = TransferFunction([(0, 0.1, 0.2, 0.9, 0.0), (50, 0.9, 0.3, 0.1, 0.0),
+                           (70, 1.0, 1.0, 0.8, 0.6)])  # transparent below 50
+    kw = dict(mode=mode, step_mm=0.3, shading=mode == "over", xray_offset=40.0, xray_scale=0.05)
+    fast = render_reference(dens, mask, g, sp, cam, tf, **kw)
+    plan = _reference._plan
+    monkeypatch.setattr(_reference, "_plan", lambda *a: plan(*a[:-1], lambda p: np.ones(len(p), bool)))
+    slow = render_reference(dens, mask, g, sp, cam, tf, **kw)
+    assert fast[0][..., 3].max() > 0.1
+    np.testing.assert_array_equal(fast[0], slow[0])
+    np.testing.assert_array_equal(fast[1], slow[1])
+
+
 def test_step_convergence():
     dens, mask, g, sp, cam, tf = _random_scene(1)
     a, _ = render_reference(dens, mask, g, sp, cam, tf, step_mm=0.1)

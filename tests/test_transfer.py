@@ -169,3 +169,16 @@ def test_other_invalid_input():
         tf.table(lo=0)
     with pytest.raises(VolumeEVMError, match="opacity_points: values must be strictly"):
         TransferFunction.from_points([(0, 0, 0, 0)], [(1, 0.5), (1, 0.5)])
+
+
+def test_transparent_between():
+    tf = TransferFunction([(0, 0, 0, 0, 0.0), (10, 0, 0, 0, 0.0), (20, 1, 1, 1, 0.5),
+                           (30, 1, 1, 1, 0.0), (40, 1, 1, 1, 0.0), (45, 1, 1, 1, 0.2)])
+    lo = np.array([-5.0, 0.0, 2.0, 9.0, 10.0, 15.0, 30.0, 31.0, 29.0, 41.0, 39.0, 30.0])
+    hi = np.array([-1.0, 10.0, 8.0, 11.0, 10.0, 16.0, 40.0, 35.0, 31.0, 42.0, 39.5, 40.0])
+    want = [True, True, True, False, True, False, True, True, False, False, True, True]
+    np.testing.assert_array_equal(tf.transparent_between(lo, hi), want)
+    # a positive-opacity control point strictly inside the interval is found
+    spike = TransferFunction([(0, 0, 0, 0, 0.0), (5, 0, 0, 0, 0.3), (6, 0, 0, 0, 0.0)])
+    np.testing.assert_array_equal(spike.transparent_between([0.0, 6.0], [10.0, 10.0]),
+                                  [False, True])

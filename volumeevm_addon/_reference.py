@@ -204,6 +204,21 @@ class _Sampler:
         self.corners = corners  # (8, 3)
         self.offsets = corners @ self.strides  # (8,)
 
+    def corner_range(self, p):
+        """For points ``p`` (m, 3): is the cell visible, and the min and max of the readable
+        densities among the 8 trilinear neighbours (every interpolated value lies between)."""
+        cell = np.floor(p + 0.5)
+        np.clip(cell, -1, self.n, out=cell)
+        inside = self.inside[(cell.astype(np.int64) + 1) @ self.strides]
+        i0 = np.floor(p)
+        np.clip(i0, -1, self.n - 1, out=i0)
+        base = (i0.astype(np.int64) + 1) @ self.strides
+        vals = self.table[base[:, None] + self.offsets[None, :], :2]  # (m, 8, 2)
+        readable = vals[..., 1] > 0
+        lo = np.where(readable, vals[..., 0], np.inf).min(axis=1)
+        hi = np.where(readable, vals[..., 0], -np.inf).max(axis=1)
+        return inside, lo, hi
+
     def __call__(self, p):
         """``p`` (m, 3) index-space points -> (inside (m,), value (m,), grad (m, 3) or None)."""
         cell = np.floor(p + 0.5)
@@ -382,25 +397,34 @@ def _breakpoints(o, d, t0, t1):
     return bp
 
 
-def _plan(o, d, t0, t1, mm_per_t, step):
-    """Samples of each ray: every piece between breakpoints is split into equal parts no
-    longer than ``step`` mm. Returns per-ray counts and flat (front t, dt, dmm) front to back."""
+def _plan(o, d, t0, t1, mm_per_t, step, may_contribute):
+    """Samples of each ray: every piece between breakpoints that may contribute is split into
+    equal parts no longer than ``step`` mm. Returns per-ray counts and flat (front t, dt, dmm),
+    ray by ray, front to back.
+
+    Pieces that cannot contribute (cell outside the VoI; for over/under, densities where the
+    transfer function's opacity is 0 throughout; for X-ray, no attenuation) are skipped: their
+    samples would add exactly nothing, so the image is the same, only faster.
+    """
     bp = _breakpoints(o, d, t0, t1)
     length = np.diff(bp, axis=1)
-    length_mm = length * mm_per_t[:, None]
-    cnt = np.where(length > 0, np.ceil(length_mm / step * (1.0 - 1e-12)), 0).astype(np.int64)
-    cnt[(length > 0) & (cnt == 0)] = 1
-    rows, cols = np.nonzero(cnt)  # row-major: by ray, then front to back
-    c = cnt[rows, cols]
-    piece_dt = length[rows, cols] / c
-    piece_dmm = length_mm[rows, cols] / c
-    piece_t = bp[rows, cols]
+    rows, cols = np.nonzero(length > 0)  # row-major: by ray, then front to back
+    lt = length[rows, cols]
+    start = bp[rows, cols]
+    mid = start + 0.5 * lt
+    keep = may_contribute(o[rows] + mid[:, None] * d[rows])
+    rows, lt, start = rows[keep], lt[keep], start[keep]
+    lmm = lt * mm_per_t[rows]
+    c = np.maximum(np.ceil(lmm / step * (1.0 - 1e-12)), 1).astype(np.int64)
+    piece_dt = lt / c
+    piece_dmm = lmm / c
     total = int(c.sum())
     piece = np.repeat(np.arange(len(c)), c)
     first = np.cumsum(c) - c
     q = np.arange(total) - first[piece]
-    t_front = piece_t[piece] + q * piece_dt[piece]
-    return cnt.sum(axis=1), t_front, piece_dt[piece], piece_dmm[piece]
+    t_front = start[piece] + q * piece_dt[piece]
+    nsamp = np.bincount(rows, weights=c, minlength=len(t0)).astype(np.int64)
+    return nsamp, t_front, piece_dt[piece], piece_dmm[piece]
 
 
 def _shade(rgb, grad, inv_t, view_dirs, shading):
@@ -417,7 +441,18 @@ def _shade(rgb, grad, inv_t, view_dirs, shading):
 
 def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_per_t, a0, k,
            xray_scale, xray_offset):
-    nsamp, t_front, dt, dmm = _plan(o_i, d_i, t0, t1, mm_per_t, step)
+    if mode in ("over", "under"):
+        def may_contribute(p):
+            inside, lo, hi = sampler.corner_range(p)
+            return inside & ~tf.transparent_between(lo, hi)
+    elif mode == "xray":
+        def may_contribute(p):
+            inside, lo, hi = sampler.corner_range(p)
+            return inside & (xray_scale > 0) & (hi > xray_offset)
+    else:
+        def may_contribute(p):
+            return sampler.corner_range(p)[0]
+    nsamp, t_front, dt, dmm = _plan(o_i, d_i, t0, t1, mm_per_t, step, may_contribute)
     offsets = np.cumsum(nsamp) - nsamp
     order = np.argsort(-nsamp, kind="stable")  # longest first: the active rays are a prefix
     nsamp, offsets = nsamp[order], offsets[order]

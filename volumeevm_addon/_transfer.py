@@ -213,6 +213,27 @@ class TransferFunction:
             out[..., ch] = np.interp(v, xp, self.points[:, 1 + ch])
         return out
 
+    def transparent_between(self, lo, hi):
+        """True where the opacity is 0 for every value in ``[lo, hi]`` (exact: the maximum of a
+        piecewise-linear function on an interval is at an end or a control point inside).
+
+        Parameters
+        ----------
+        lo, hi : ndarray
+            Interval ends, ``lo <= hi``, broadcast together.
+
+        Returns
+        -------
+        ndarray of bool
+        """
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        xp, ap = self.points[:, 0], self.points[:, 4]
+        opaque_at = xp[ap > 0]
+        inner = np.searchsorted(opaque_at, hi, side="left") - np.searchsorted(
+            opaque_at, lo, side="right")
+        return (np.interp(lo, xp, ap) == 0) & (np.interp(hi, xp, ap) == 0) & (inner <= 0)
+
     def classify(self, densities, step_mm, *, dtype=np.float32):
         """Premultiplied RGBA of samples that each stand for ``step_mm`` mm of ray.
 
