@@ -47,7 +47,10 @@ step ``δ``) is cut into ``ceil(L / step_mm)`` equal parts of ``Δ <= step_mm`` 
 midpoints, with the opacity corrected for ``Δ``. Hence a homogeneous VoI gets exactly
 ``1 - (1 - a)^(L/Δ0)`` for its exact chord ``L`` (any mask, any view), and masks and ``depth_in``
 cut rays exactly. MIP also evaluates both ends of each part (nudged into it): along an axis-
-parallel ray the field is linear between breakpoints, so the maximum is found exactly.
+parallel ray the field is linear between breakpoints, so the maximum is found exactly. Pieces
+that cannot contribute are not sampled (cell outside the VoI; over/under: the transfer
+function's opacity is 0 on the range of the 8 neighbours' densities; X-ray: no density above
+``xray_offset``): their samples would add exact zeros, so the image is bit-identical.
 
 Depth out
 ---------
@@ -204,20 +207,35 @@ class _Sampler:
         self.corners = corners  # (8, 3)
         self.offsets = corners @ self.strides  # (8,)
 
+    def _block_ranges(self):
+        """Per trilinear block (the 8 voxels from base index b to b + 1, padded indexing):
+        min and max of the readable densities; +inf / -inf where none is readable."""
+        pshape = tuple(self.n + 2)
+        dens = self.table[:, 0].reshape(pshape)
+        readable = self.table[:, 1].reshape(pshape) > 0
+        lo_src = np.where(readable, dens, np.inf)
+        hi_src = np.where(readable, dens, -np.inf)
+        lo = np.full(pshape, np.inf)
+        hi = np.full(pshape, -np.inf)
+        nx, ny, nz = (int(v) + 1 for v in self.n)
+        core = (slice(0, nx), slice(0, ny), slice(0, nz))
+        for a, b, c in self.corners:
+            np.minimum(lo[core], lo_src[a:a + nx, b:b + ny, c:c + nz], out=lo[core])
+            np.maximum(hi[core], hi_src[a:a + nx, b:b + ny, c:c + nz], out=hi[core])
+        self.block_lo, self.block_hi = lo.ravel(), hi.ravel()
+
     def corner_range(self, p):
         """For points ``p`` (m, 3): is the cell visible, and the min and max of the readable
         densities among the 8 trilinear neighbours (every interpolated value lies between)."""
+        if not hasattr(self, "block_lo"):
+            self._block_ranges()
         cell = np.floor(p + 0.5)
         np.clip(cell, -1, self.n, out=cell)
         inside = self.inside[(cell.astype(np.int64) + 1) @ self.strides]
         i0 = np.floor(p)
         np.clip(i0, -1, self.n - 1, out=i0)
         base = (i0.astype(np.int64) + 1) @ self.strides
-        vals = self.table[base[:, None] + self.offsets[None, :], :2]  # (m, 8, 2)
-        readable = vals[..., 1] > 0
-        lo = np.where(readable, vals[..., 0], np.inf).min(axis=1)
-        hi = np.where(readable, vals[..., 0], -np.inf).max(axis=1)
-        return inside, lo, hi
+        return inside, self.block_lo[base], self.block_hi[base]
 
     def __call__(self, p):
         """``p`` (m, 3) index-space points -> (inside (m,), value (m,), grad (m, 3) or None)."""
