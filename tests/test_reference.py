@@ -466,7 +466,12 @@ def test_single_voxel_volume():
     (dict(step_mm=0.0), "step_mm"),
     (dict(shading="phong"), "shading"),
     (dict(shading=dict(ambient=-1.0)), "shading.ambient"),
+    (dict(shading=dict(ambient="bright")), "shading.ambient: expected a number"),
+    (dict(shading=dict(gloss=1.0)), "unknown keys"),
     (dict(boundary="zero"), "boundary"),
+    (dict(xray_scale=-1.0), "xray_scale"),
+    (dict(xray_offset=np.inf), "xray_scale/xray_offset"),
+    (dict(chunk_rays=0), "chunk_rays"),
 ])
 def test_invalid_input(change, match):
     dens, mask, g, sp, cam, tf = _random_scene()

@@ -91,7 +91,11 @@ class Shading:
 
     def __post_init__(self):
         for name in ("ambient", "diffuse", "specular", "shininess"):
-            v = float(getattr(self, name))
+            try:
+                v = float(getattr(self, name))
+            except (TypeError, ValueError):
+                raise VolumeEVMError(
+                    f"shading.{name}: expected a number, got {getattr(self, name)!r}") from None
             if not np.isfinite(v) or v < 0:
                 raise VolumeEVMError(f"shading.{name}: must be finite and >= 0, got {v!r}")
 
@@ -149,6 +153,9 @@ def _check_inputs(densities, mask, grid_to_world, spacing, camera, tf, mode, ste
     elif shading is False:
         shading = None
     elif isinstance(shading, dict):
+        unknown = set(shading) - {"ambient", "diffuse", "specular", "shininess"}
+        if unknown:
+            raise VolumeEVMError(f"shading: unknown keys {sorted(unknown)}")
         shading = Shading(**shading)
     elif shading is not None and not isinstance(shading, Shading):
         raise VolumeEVMError(f"shading: None, True, a dict or a Shading, got {shading!r}")
@@ -317,8 +324,12 @@ def render_reference(densities, mask, grid_to_world, spacing, camera, tf, *, mod
     """
     d, m, g, sp, step, depth_in, shading = _check_inputs(
         densities, mask, grid_to_world, spacing, camera, tf, mode, step_mm, depth_in, shading)
+    try:
+        xray_scale, xray_offset = float(xray_scale), float(xray_offset)
+    except (TypeError, ValueError):
+        xray_scale = np.nan
     if not np.isfinite(xray_scale) or xray_scale < 0 or not np.isfinite(xray_offset):
-        raise VolumeEVMError(f"xray_scale/xray_offset: need finite values, scale >= 0, got "
+        raise VolumeEVMError(f"xray_scale/xray_offset: need finite numbers, scale >= 0, got "
                              f"{xray_scale!r}, {xray_offset!r}")
     if boundary not in BOUNDARIES:
         raise VolumeEVMError(f"boundary: one of {BOUNDARIES}, got {boundary!r}")
