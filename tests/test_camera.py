@@ -322,7 +322,8 @@ def test_silhouette_and_depth_match_a_cycles_render(scene, case, tmp_path):
     grid_to_world = place @ index_to_local
     mesh = bpy.data.meshes.new("box")
     h = 0.1 * shape
-    verts = [(sx * h[0], sy * h[1], sz * h[2]) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+    verts = [(sx * h[0], sy * h[1], sz * h[2])
+             for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
     faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
     mesh.from_pydata(verts, [], faces)
     box = bpy.data.objects.new("box", mesh)

@@ -210,7 +210,8 @@ def test_mip_is_the_maximum_along_rays():
     colmax = np.where(mask, dens, -np.inf).max(axis=2)  # (x, y)
     seen = np.isfinite(colmax)
     st = tf.evaluate(np.where(seen, colmax, -100))
-    expected = np.where(seen[..., None], np.concatenate([st[..., :3] * st[..., 3:], st[..., 3:]], -1), 0)
+    premultiplied = np.concatenate([st[..., :3] * st[..., 3:], st[..., 3:]], -1)
+    expected = np.where(seen[..., None], premultiplied, 0)
     expected = expected.transpose(1, 0, 2)[::-1]  # to image rows (top = +y) and columns (x)
     np.testing.assert_allclose(rgba, expected, rtol=0, atol=1e-6)
     # depth of the (frontmost) maximum: the centre of the voxel that holds it, or the top of
@@ -289,7 +290,8 @@ def test_skipping_empty_pieces_changes_nothing(mode, monkeypatch):
     kw = dict(mode=mode, step_mm=0.3, shading=mode == "over", xray_offset=40.0, xray_scale=0.05)
     fast = render_reference(dens, mask, g, sp, cam, tf, **kw)
     plan = _reference._plan
-    monkeypatch.setattr(_reference, "_plan", lambda *a: plan(*a[:-1], lambda p: np.ones(len(p), bool)))
+    monkeypatch.setattr(_reference, "_plan",
+                        lambda *a: plan(*a[:-1], lambda p: np.ones(len(p), bool)))
     slow = render_reference(dens, mask, g, sp, cam, tf, **kw)
     assert fast[0][..., 3].max() > 0.1
     np.testing.assert_array_equal(fast[0], slow[0])

@@ -24,14 +24,17 @@ same solid the EVM describes.
     storing only the VoI's densities renders, so the exactness contract (VolumeEVM render ==
     dense render with the outside transparent) needs nothing more; masking a volume gives
     exactly the image of the volume cropped to the mask; a homogeneous region is homogeneous up
-    to its cell boundary, so closed forms hold with the exact chord. The price, measured on the
-    CT head (ct_bone, VoI = voxels above -300 HU): a mean absolute difference to the full dense
-    render of 0.04-0.08 (premultiplied RGBA), because isolated bright voxels and thin
-    structures in air keep their full density and show as opaque cells.
+    to its cell boundary, so closed forms hold with the exact chord. The price: isolated bright
+    voxels and thin structures next to outside voxels keep their full density and show as
+    opaque cells. Measured on the CT head (256x256x108, ct_bone, front view 64^2, premultiplied
+    RGBA, mean absolute difference to the full dense render): VoI = voxels above -300 HU:
+    0.006 (max 0.22); VoI above 150 HU (the VoI's surface where the TF turns opaque): 0.019.
+    With 2x or 8x downsampled data (larger voxels) it grows to 0.04-0.08.
   * ``boundary="shell"``: also the one-voxel shell around the VoI (its 26-neighbourhood) is
     read, with its true densities, as a VolumeEVM that stores that shell (a second EVM with its
-    own densities table) could. Interpolation in the VoI then equals the full dense render's;
-    measured on the same case the difference is 0.0000 mean.
+    own densities table: 9 % of the VoI's voxels for the head above -300 HU, 66 % for bone
+    above 150 HU) could. Interpolation in the VoI then equals the full dense render's. Same
+    measurements: 0.0000 (above -300 HU) and 0.004 (above 150 HU).
 - Gradients (shading) are central differences per voxel over readable voxels, one-sided where
   one neighbour along an axis is not readable, zero where neither is; they are interpolated
   like the densities.
@@ -64,13 +67,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._camera import BACKGROUND_DEPTH, Camera
+from ._camera import BACKGROUND_DEPTH, Camera  # noqa: F401  (Camera: doctest)
 from ._errors import VolumeEVMError
-from ._transfer import TransferFunction
+from ._transfer import TransferFunction  # noqa: F401  (doctest)
 
 __all__ = ["render_reference", "Shading", "MODES", "BOUNDARIES"]
 
 MODES = ("over", "under", "xray", "mip")
+_CAMERA_API = ("rays", "axial_depth", "shape", "clip_start", "clip_end")
+_TF_API = ("evaluate", "transparent_between", "unit_length_mm")
 BOUNDARIES = ("clamp", "shell")
 
 
@@ -128,11 +133,13 @@ def _check_inputs(densities, mask, grid_to_world, spacing, camera, tf, mode, ste
     sp = np.asarray(spacing, dtype=np.float64)
     if sp.shape != (3,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
         raise VolumeEVMError(f"spacing: expected 3 positive mm values, got {spacing!r}")
-    if not isinstance(camera, Camera):
+    # Duck-typed, so that records made by another copy of the package (an add-on reloaded in
+    # Blender, or imported under two names) are accepted.
+    if not all(hasattr(camera, a) for a in _CAMERA_API):
         raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
     if mode not in MODES:
         raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
-    if mode != "xray" and not isinstance(tf, TransferFunction):
+    if mode != "xray" and not all(hasattr(tf, a) for a in _TF_API):
         raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
     if step_mm is None:
         step = float(sp.min()) / 16.0
@@ -321,6 +328,20 @@ def render_reference(densities, mask, grid_to_world, spacing, camera, tf, *, mod
     ------
     VolumeEVMError
         For inputs of the wrong shape or type, NaN densities or NaN in ``depth_in``.
+
+    Examples
+    --------
+    A 2x2x2 mm block of 1 mm voxels seen from above; opacity 0.5 per mm over a 2 mm chord:
+
+    >>> BU = 0.001  # Blender units per mm
+    >>> cam_matrix = np.eye(4)
+    >>> cam_matrix[:3, 3] = (0.5 * BU, 0.5 * BU, 1.0)
+    >>> cam = Camera.orthographic(cam_matrix, 2 * BU, resolution_x=2, resolution_y=2)
+    >>> tf = TransferFunction([(0, 1, 1, 1, 0.5), (1, 1, 1, 1, 0.5)])
+    >>> rgba, depth = render_reference(np.zeros((2, 2, 2)), None, np.diag([BU, BU, BU, 1.0]),
+    ...                                (1.0, 1.0, 1.0), cam, tf)
+    >>> rgba[..., 3].astype(float).round(6).tolist(), depth.astype(float).round(6).tolist()
+    ([[0.75, 0.75], [0.75, 0.75]], [[0.9985, 0.9985], [0.9985, 0.9985]])
     """
     d, m, g, sp, step, depth_in, shading = _check_inputs(
         densities, mask, grid_to_world, spacing, camera, tf, mode, step_mm, depth_in, shading)

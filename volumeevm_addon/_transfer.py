@@ -77,7 +77,8 @@ def _check_points(points):
     if np.any(np.diff(values) <= 0):
         bad = int(np.nonzero(np.diff(values) <= 0)[0][0])
         raise VolumeEVMError(
-            f"points: values must be strictly increasing, got {values[bad]!r} then {values[bad + 1]!r}"
+            "points: values must be strictly increasing, "
+            f"got {values[bad]!r} then {values[bad + 1]!r}"
         )
     rgb = pts[:, 1:4]
     if np.any(rgb < 0) or np.any(rgb > 1):
@@ -151,9 +152,11 @@ class TransferFunction:
         except (TypeError, ValueError) as exc:
             raise VolumeEVMError(f"color_points/opacity_points: not numeric ({exc})") from None
         if c.ndim != 2 or c.shape[1] != 4 or len(c) < 1:
-            raise VolumeEVMError(f"color_points: expected rows (value, r, g, b), got shape {c.shape}")
+            raise VolumeEVMError(
+                f"color_points: expected rows (value, r, g, b), got shape {c.shape}")
         if o.ndim != 2 or o.shape[1] != 2 or len(o) < 1:
-            raise VolumeEVMError(f"opacity_points: expected rows (value, alpha), got shape {o.shape}")
+            raise VolumeEVMError(
+                f"opacity_points: expected rows (value, alpha), got shape {o.shape}")
         for label, arr in (("color_points", c), ("opacity_points", o)):
             if not np.all(np.isfinite(arr)):
                 raise VolumeEVMError(f"{label}: NaN or infinite entries")
