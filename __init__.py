@@ -1,0 +1,35 @@
+"""VolumeEVM Blender extension: registration only.
+
+The core (``volumeevm_addon``) is NumPy only; ``operators`` holds the Blender tasks and the
+Python API (``operators.api``); ``ui`` the property groups and the sidebar tab.
+"""
+
+import bpy
+
+from . import operators, ui
+from .operators import import_volume, sidecar
+from .ui import panels, props
+
+
+def register():
+    for cls in ui.CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.volumeevm = bpy.props.PointerProperty(type=props.VolumeEVMSceneSettings)
+    bpy.types.Object.volumeevm = bpy.props.PointerProperty(type=props.VolumeEVMObjectSettings)
+    for cls in operators.CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(import_volume.menu_import)
+    bpy.types.STATUSBAR_HT_header.append(panels.draw_status)
+    sidecar.add_handlers()
+
+
+def unregister():
+    sidecar.remove_handlers()
+    bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)
+    bpy.types.TOPBAR_MT_file_import.remove(import_volume.menu_import)
+    for cls in reversed(operators.CLASSES):
+        bpy.utils.unregister_class(cls)
+    del bpy.types.Object.volumeevm
+    del bpy.types.Scene.volumeevm
+    for cls in reversed(ui.CLASSES):
+        bpy.utils.unregister_class(cls)

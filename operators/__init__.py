@@ -1,0 +1,13 @@
+"""Blender operators, one module per user task, and the Python API for scripts (``api``).
+
+``CLASSES`` lists every class to register, in order. Long work runs as jobs (``_jobs``);
+VolumeEVM files beside the .blend are handled by ``sidecar``.
+"""
+
+from . import build, import_volume, mesh
+
+CLASSES = [
+    *import_volume.CLASSES,
+    *build.CLASSES,
+    *mesh.CLASSES,
+]

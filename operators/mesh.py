@@ -1,0 +1,40 @@
+"""Make the VolumeEVM's boundary a mesh object at physical size and position."""
+
+import bpy
+
+from . import _jobs, api
+from .build import active_volume
+
+
+class VOLUMEEVM_OT_make_mesh(_jobs.JobOperator, bpy.types.Operator):
+    """Make (or refresh) the surface mesh of the active volume's VolumeEVM: exact voxel
+    boundary, merged rectangles, in millimetres (1 mm = 0.001 units)"""
+
+    bl_idname = "volumeevm.make_mesh"
+    bl_label = "Make Mesh"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        obj = active_volume(context)
+        if obj is None:
+            cls.poll_message_set("Select a volume object (File > Import > Volume (VolumeEVM))")
+            return False
+        if not obj.volumeevm.vevm_path:
+            cls.poll_message_set("Build the VolumeEVM first")
+            return False
+        if _jobs.CURRENT is not None:
+            cls.poll_message_set(f"Busy: {_jobs.CURRENT.label}")
+            return False
+        return True
+
+    def job(self, context):
+        return api.mesh_job(context, active_volume(context))
+
+    def finished(self, context, surface):
+        mesh = surface.data
+        self.report({"INFO"}, f"{surface.name}: {len(mesh.vertices)} vertices, "
+                              f"{len(mesh.polygons)} polygons")
+
+
+CLASSES = [VOLUMEEVM_OT_make_mesh]

@@ -1,0 +1,45 @@
+"""Helpers for the Blender tests: load the extension from the source tree, reset Blender.
+
+The repository root is the extension package; tests import it under the name ``volumeevm``
+(installed, Blender names it ``bl_ext.<repo>.volumeevm``; the code uses relative imports only).
+"""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "volumeevm"
+
+
+def addon():
+    """The extension package loaded from the source tree (imported once)."""
+    if PACKAGE not in sys.modules:
+        spec = importlib.util.spec_from_file_location(
+            PACKAGE, REPO / "__init__.py", submodule_search_locations=[str(REPO)])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[PACKAGE] = module
+        spec.loader.exec_module(module)
+    return sys.modules[PACKAGE]
+
+
+def reset_blender():
+    """An empty scene with factory settings (registered classes and properties stay)."""
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+def mesh_arrays(mesh):
+    """Vertices (n, 3) float32, loop vertex indices, loop starts and totals of a Blender mesh."""
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    indices = np.empty(len(mesh.loops), np.int32)
+    mesh.loops.foreach_get("vertex_index", indices)
+    starts = np.empty(len(mesh.polygons), np.int32)
+    mesh.polygons.foreach_get("loop_start", starts)
+    totals = np.empty(len(mesh.polygons), np.int32)
+    mesh.polygons.foreach_get("loop_total", totals)
+    return co.reshape(-1, 3), indices, starts, totals

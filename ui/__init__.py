@@ -1,0 +1,8 @@
+"""User interface: property groups (``props``) and the sidebar panels (``panels``).
+
+``CLASSES`` lists the classes to register, property groups first.
+"""
+
+from . import panels, props
+
+CLASSES = [*props.CLASSES, *panels.CLASSES]

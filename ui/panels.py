@@ -1,0 +1,215 @@
+"""The 3D view sidebar tab "VolumeEVM", and the job progress bar in the status bar."""
+
+import math
+
+import bpy
+import numpy as np
+
+from ..operators import _jobs, _runtime
+from ..operators.build import active_volume
+
+#: Histogram rows drawn in the sidebar (the stored bins are summed in groups).
+HISTOGRAM_ROWS = 16
+
+
+def human_bytes(n):
+    """``1536`` -> ``"1.5 KiB"``."""
+    n = float(n)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def _fmt(value):
+    return f"{value:.4g}"
+
+
+def draw_progress(layout):
+    """Draw the running job's progress bar; True if a job runs."""
+    job = _jobs.CURRENT
+    if job is None:
+        return False
+    layout.progress(factor=job.fraction, type="BAR", text=f"{job.label}: {job.text}")
+    return True
+
+
+class _Sidebar:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "VolumeEVM"
+
+
+class VOLUMEEVM_PT_main(_Sidebar, bpy.types.Panel):
+    """Import a volume; the selected volume's data, region and surface in the sub-panels."""
+
+    bl_label = "VolumeEVM"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.operator("volumeevm.import_volume", text="Import Volume", icon="IMPORT")
+        if draw_progress(layout):
+            layout.label(text="Press Esc to cancel", icon="INFO")
+        obj = active_volume(context)
+        if obj is None:
+            layout.label(text="Select or import a volume", icon="INFO")
+            return
+        layout.label(text=obj.name, icon="MESH_CUBE")
+        problem = _runtime.status(obj.volumeevm.uid)
+        if problem:
+            box = layout.box()
+            box.label(text="VolumeEVM problem:", icon="ERROR")
+            for line in _wrap(problem, 40):
+                box.label(text=line)
+
+
+def _wrap(text, width):
+    words, lines, line = text.split(), [], ""
+    for word in words:
+        if line and len(line) + 1 + len(word) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = f"{line} {word}".strip()
+    return lines + [line] if line else lines
+
+
+class _VolumeSubpanel(_Sidebar):
+    bl_parent_id = "VOLUMEEVM_PT_main"
+
+    @classmethod
+    def poll(cls, context):
+        return active_volume(context) is not None
+
+
+class VOLUMEEVM_PT_volume(_VolumeSubpanel, bpy.types.Panel):
+    """Size, spacing and value range of the selected volume."""
+
+    bl_label = "Volume"
+
+    def draw(self, context):
+        s = active_volume(context).volumeevm
+        col = self.layout.column(align=True)
+        x, y, z = s.shape
+        col.label(text=f"Size: {x} × {y} × {z} voxels")
+        sx, sy, sz = s.spacing
+        col.label(text=f"Spacing: {sx:.4g} × {sy:.4g} × {sz:.4g} mm")
+        col.label(text=f"Extent: {x * sx:.1f} × {y * sy:.1f} × {z * sz:.1f} mm")
+        if not s.spacing_known:
+            col.label(text="Spacing unknown: 1 mm assumed", icon="ERROR")
+        units = f" {s.units}" if s.units else ""
+        col.label(text=f"Values: {_fmt(s.value_min)} .. {_fmt(s.value_max)}{units}")
+        col.label(text=f"Type: {s.dtype}, dense {human_bytes(s.dense_bytes or _dense(s))}")
+        if _runtime.volume(s.uid) is None:
+            col.label(text="Not in memory: Build re-reads the source", icon="FILE_REFRESH")
+        col.prop(s, "source_path", text="")
+
+
+def _dense(s):
+    try:
+        itemsize = np.dtype(s.dtype).itemsize
+    except TypeError:
+        return 0
+    return math.prod(s.shape) * itemsize
+
+
+class VOLUMEEVM_PT_histogram(_VolumeSubpanel, bpy.types.Panel):
+    """Histogram of the densities, with the chosen threshold marked."""
+
+    bl_label = "Histogram"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw_header(self, context):
+        self.layout.prop(context.scene.volumeevm, "histogram_log", text="Log")
+
+    def draw(self, context):
+        s = active_volume(context).volumeevm
+        counts = np.asarray(s.histogram, np.float64)
+        if counts.sum() == 0:
+            self.layout.label(text="No histogram")
+            return
+        counts = counts.reshape(HISTOGRAM_ROWS, -1).sum(axis=1)
+        heights = np.log1p(counts) if context.scene.volumeevm.histogram_log else counts
+        heights = heights / heights.max()
+        edges = np.linspace(s.value_min, s.value_max, HISTOGRAM_ROWS + 1)
+        upper = s.upper if s.use_upper else math.inf
+        col = self.layout.column(align=True)
+        for i in range(HISTOGRAM_ROWS):
+            row = col.row(align=True)
+            row.scale_y = 0.7
+            lo, hi = edges[i], edges[i + 1]
+            inside = hi > s.threshold and lo <= upper
+            marker = lo <= s.threshold < hi or (i == HISTOGRAM_ROWS - 1 and s.threshold >= hi)
+            row.label(text="", icon="TRIA_RIGHT" if marker else
+                      ("CHECKMARK" if inside else "BLANK1"))
+            row.progress(factor=float(heights[i]), type="BAR",
+                         text=f"{_fmt(lo)}: {int(counts[i])}")
+
+
+class VOLUMEEVM_PT_build(_VolumeSubpanel, bpy.types.Panel):
+    """Threshold (data units) and the VolumeEVM built from it."""
+
+    bl_label = "VolumeEVM"
+
+    def draw(self, context):
+        layout = self.layout
+        s = active_volume(context).volumeevm
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        col = layout.column(align=True)
+        col.prop(s, "threshold", text=f"Threshold{' (' + s.units + ')' if s.units else ''}")
+        row = col.row(align=True)
+        row.prop(s, "use_upper", text="Upper Bound")
+        sub = row.row(align=True)
+        sub.active = s.use_upper
+        sub.prop(s, "upper", text="")
+        layout.operator("volumeevm.build_vevm", icon="MOD_REMESH")
+        if not s.vevm_path:
+            layout.label(text="Not built yet")
+            return
+        col = layout.column(align=True)
+        col.label(text=f"Voxels: {s.voxel_count:,}")
+        col.label(text=f"Extreme vertices: {s.ev_count:,}")
+        ratio = s.vevm_bytes / s.dense_bytes if s.dense_bytes else 0.0
+        col.label(text=f"Size: {human_bytes(s.vevm_bytes)} of {human_bytes(s.dense_bytes)} "
+                       f"dense ({100 * ratio:.1f}%)")
+        stale = (s.threshold != s.built_threshold or s.use_upper != s.built_use_upper
+                 or (s.use_upper and s.upper != s.built_upper))
+        if stale:
+            col.label(text=f"Built at {_fmt(s.built_threshold)}: build again", icon="ERROR")
+        path = s.vevm_path
+        col.label(text="Kept beside the .blend" if path.startswith("//")
+                  else "Kept in a temporary folder until the .blend is saved",
+                  icon="FILE")
+
+
+class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
+    """The VolumeEVM's surface as a mesh object."""
+
+    bl_label = "Surface"
+
+    def draw(self, context):
+        layout = self.layout
+        s = active_volume(context).volumeevm
+        layout.operator("volumeevm.make_mesh", icon="MESH_DATA")
+        surface = s.surface
+        if surface is not None and surface.type == "MESH":
+            mesh = surface.data
+            layout.label(text=f"{surface.name}: {len(mesh.vertices):,} vertices, "
+                              f"{len(mesh.polygons):,} faces")
+
+
+def draw_status(self, context):
+    """Status-bar progress of a running job."""
+    if _jobs.CURRENT is not None:
+        draw_progress(self.layout.row())
+
+
+CLASSES = [
+    VOLUMEEVM_PT_main,
+    VOLUMEEVM_PT_volume,
+    VOLUMEEVM_PT_histogram,
+    VOLUMEEVM_PT_build,
+    VOLUMEEVM_PT_mesh,
+]
