@@ -1,6 +1,7 @@
 """Camera record: Blender's projection rules, rays through pixel centres, and agreement with
 real Blender (``bpy``) for orthographic and perspective cameras."""
 
+import importlib
 import sys
 import types
 from pathlib import Path
@@ -148,14 +149,20 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _operators_camera():
-    """Import ``operators/camera.py`` as part of a package rooted at the repo, as Blender does
-    (it imports the core with ``from ..volumeevm_addon``)."""
-    name = "_volumeevm_repo_pkg"
-    if name not in sys.modules:
-        pkg = types.ModuleType(name)
-        pkg.__path__ = [str(REPO)]
-        sys.modules[name] = pkg
-    module = __import__(f"{name}.operators.camera", fromlist=["camera_from_blender"])
+    """``operators/camera.py`` imported as part of the extension package rooted at the repo, as
+    Blender does (it imports the core with ``from ..volumeevm_addon``): through the shared
+    test helper when it is there, else as a bare package (no registration code run)."""
+    try:
+        from blender_helpers import addon
+    except ImportError:
+        name = "_volumeevm_repo_pkg"
+        if name not in sys.modules:
+            pkg = types.ModuleType(name)
+            pkg.__path__ = [str(REPO)]
+            sys.modules[name] = pkg
+    else:
+        name = addon().__name__
+    module = importlib.import_module(f"{name}.operators.camera")
     return module.camera_from_blender, module.VolumeEVMError
 
 
