@@ -33,6 +33,21 @@ test-py313: .venv/py313/.stamp
 demo: .venv/py313/.stamp
 	.venv/py313/bin/python sample_blends/make_demo.py --out out
 
+# The extension zip: the wheels the manifest lists (pure-Python, pinned) from PyPI, then the
+# bpy wheel's own validator (the code of `blender --command extension build/validate`).
+BLENDER_EXT = $(firstword $(wildcard .venv/py313/lib/python3.13/site-packages/bpy/*/scripts/addons_core/bl_pkg/cli/blender_ext.py))
+VERSION = $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
+
+extension: .venv/py313/.stamp
+	.venv/py313/bin/python -c 'import tomllib; print("\n".join(w.rsplit("/", 1)[-1] for w in tomllib.load(open("blender_manifest.toml", "rb"))["wheels"]))' \
+	  | sed -E 's/^([^-]+)-([^-]+)-.*/\1==\2/' \
+	  | xargs .venv/py313/bin/python -m pip download --quiet --disable-pip-version-check --no-deps --only-binary=:all: --dest wheels
+	mkdir -p dist
+	rm -f dist/volumeevm-$(VERSION).zip
+	.venv/py313/bin/python $(BLENDER_EXT) build --source-dir . --output-dir dist
+	.venv/py313/bin/python $(BLENDER_EXT) validate dist/volumeevm-$(VERSION).zip
+	@echo "built dist/volumeevm-$(VERSION).zip"
+
 bench: .venv/py313/.stamp
 	.venv/py313/bin/python bench/bench_evm.py --out bench/results
 
