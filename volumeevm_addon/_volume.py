@@ -72,3 +72,14 @@ def index_to_physical(spacing, origin, orientation=None):
     m[:3, :3] = rot * np.asarray(spacing, dtype=np.float64)[None, :]
     m[:3, 3] = origin
     return m
+
+
+def grid_to_world(spacing, origin, orientation=None, matrix_world=None):
+    """4x4 matrix from voxel-centre indices to Blender world units.
+
+    ``matrix_world`` (the volume object's placement, default identity) after the one unit mapping
+    :data:`BLENDER_UNITS_PER_MM` after :func:`index_to_physical`.
+    """
+    scale = np.diag([BLENDER_UNITS_PER_MM] * 3 + [1.0])
+    placement = np.eye(4) if matrix_world is None else np.asarray(matrix_world, dtype=np.float64)
+    return placement @ scale @ index_to_physical(spacing, origin, orientation)
