@@ -11,7 +11,6 @@ renormalised). Rendering a VolumeEVM therefore equals rendering the dense volume
 everything outside the region transparent, which is the exactness contract every method keeps.
 """
 
-import numpy as np
 
 from ._volume import grid_to_world
 
