@@ -56,8 +56,20 @@ def test_moving_the_last_tool_recomputes_only_it(head, tools):
     assert result.evm == ((EVM.from_mask(mask) & box) | implant) - moved.tool
 
 
+def test_largest_part_entry(head, tools):
+    drill, box, _ = tools
+    base = VolumeEVM.from_array(head, 300)
+    result = EditStack(base).evaluate([ToolOperation(drill, "cut"), ToolOperation(operation="largest")])
+    expected = base.cut(drill).largest_component()
+    assert result.evm == expected.evm and np.array_equal(result.table(0), expected.table(0))
+
+
 def test_bad_entries():
     with pytest.raises(ValueError, match="operation must be one of"):
         ToolOperation(EVM(), "drill")
+    with pytest.raises(ValueError, match="'largest' takes no tool"):
+        ToolOperation(EVM(), "largest")
+    with pytest.raises(ValueError, match="'cut' needs a tool"):
+        ToolOperation(None, "cut")
     with pytest.raises(TypeError, match="tool must be an EVM"):
         ToolOperation(np.zeros((2, 2, 2), bool), "cut")

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from ._evm import EVM
 
-OPERATIONS = ("cut", "keep", "add")
+OPERATIONS = ("cut", "keep", "add", "largest")
 
 
 @dataclass(frozen=True)
@@ -19,31 +19,39 @@ class ToolOperation:
 
     Parameters
     ----------
-    tool : EVM
-        The tool's voxels in the volume's lattice (e.g. ``EVM.from_mask(voxelize_mesh(...))``).
-    operation : {"cut", "keep", "add"}
-        Remove the tool's voxels, keep only them, or add them as material.
+    tool : EVM or None
+        The tool's voxels in the volume's lattice (e.g. ``EVM.from_mask(voxelize_mesh(...))``;
+        a clip box is a box's EVM with "keep"). None for "largest".
+    operation : {"cut", "keep", "add", "largest"}
+        Remove the tool's voxels, keep only them, add them as material, or keep the largest
+        face-connected part of the region.
     enabled : bool
         Disabled entries are skipped.
     density : float or None
         Density of added voxels (``"add"`` only); None means the region's largest density.
     """
 
-    tool: EVM
-    operation: str
+    tool: EVM = None
+    operation: str = "cut"
     enabled: bool = True
     density: float = None
 
     def __post_init__(self):
         if self.operation not in OPERATIONS:
             raise ValueError(f"operation must be one of {OPERATIONS}, got {self.operation!r}")
-        if not isinstance(self.tool, EVM):
+        if self.operation == "largest" and self.tool is not None:
+            raise ValueError("operation 'largest' takes no tool")
+        if self.operation != "largest" and self.tool is None:
+            raise ValueError(f"operation {self.operation!r} needs a tool")
+        if self.tool is not None and not isinstance(self.tool, EVM):
             raise TypeError(f"tool must be an EVM, got {type(self.tool).__name__}")
 
     def apply(self, region):
         """This entry applied to a VolumeEVM (a new VolumeEVM)."""
         if self.operation == "add":
             return region.add(self.tool, self.density)
+        if self.operation == "largest":
+            return region.largest_component()
         return getattr(region, self.operation)(self.tool)
 
 
