@@ -323,6 +323,8 @@ def fill_mesh(mesh, co, polys):
     mesh.loops.foreach_set("vertex_index", np.ascontiguousarray(polys.indices, np.int32))
     mesh.polygons.add(len(polys))
     mesh.polygons.foreach_set("loop_start", np.ascontiguousarray(polys.starts, np.int32))
+    # Flat faces: a voxel boundary has no smooth normals (new meshes shade smooth since 4.1).
+    mesh.polygons.foreach_set("use_smooth", np.zeros(len(polys), bool))
     mesh.update(calc_edges=True)
 
 

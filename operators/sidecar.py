@@ -121,12 +121,19 @@ def save_new(uid, vevm):
     return path
 
 
+def _umask():
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _copy_atomic(src, dst):
     dst.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent)
     os.close(handle)
     try:
         shutil.copyfile(src, temporary)
+        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; use the usual mode
         os.replace(temporary, dst)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)

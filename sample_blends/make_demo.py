@@ -1,0 +1,163 @@
+"""The demo scene: sample skull -> VolumeEVM -> mesh -> Cycles render.
+
+Run with ``make demo`` (or ``python sample_blends/make_demo.py --out out`` in a venv with the bpy
+wheel; or inside Blender: ``blender --background --python sample_blends/make_demo.py -- --out
+out``). Writes ``OUT/demo.png`` and ``OUT/demo.blend`` (with its sidecar
+``OUT/demo_volumeevm/ct_skull_cgal.vevm``) and prints progress lines.
+"""
+
+import argparse
+import importlib.util
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Vector
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = Path(__file__).resolve().parent / "data" / "ct_skull_cgal.npy"
+THRESHOLD = 2.9  # the isovalue CGAL meshes this skull at
+PACKAGE = "volumeevm"
+
+
+def say(text):
+    print(f"[demo] {text}", flush=True)
+
+
+def load_extension():
+    """The extension package from this source tree (Blender names it bl_ext.<repo>.volumeevm)."""
+    if PACKAGE not in sys.modules:
+        spec = importlib.util.spec_from_file_location(
+            PACKAGE, REPO / "__init__.py", submodule_search_locations=[str(REPO)])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[PACKAGE] = module
+        spec.loader.exec_module(module)
+    return sys.modules[PACKAGE]
+
+
+def bone_material():
+    material = bpy.data.materials.new("Bone")
+    if bpy.app.version < (5, 0, 0):
+        material.use_nodes = True  # always on (and deprecated) from 5.0
+    bsdf = material.node_tree.nodes.get("Principled BSDF")
+    bsdf.inputs["Base Color"].default_value = (0.89, 0.85, 0.76, 1.0)
+    bsdf.inputs["Roughness"].default_value = 0.55
+    return material
+
+
+def look_at(obj, target):
+    direction = Vector(target) - obj.location
+    obj.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
+
+
+def stage(scene, surface, size):
+    """Camera, lights and world framing the surface (bounding box from its vertices)."""
+    co = np.empty(len(surface.data.vertices) * 3, np.float32)
+    surface.data.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    lo, hi = co.min(axis=0), co.max(axis=0)
+    centre = Vector(((lo + hi) / 2).tolist())
+    radius = float(np.linalg.norm(hi - lo)) / 2
+
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.data.lens = 50
+    camera.data.clip_start = radius / 100
+    camera.data.clip_end = radius * 20
+    # LPS: the face looks along -Y (anterior), +Z is up: a front-left view from slightly above.
+    camera.location = centre + Vector((-0.2, -1.0, 0.1)).normalized() * radius * 3.6
+    look_at(camera, centre)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+
+    key = bpy.data.objects.new("Key", bpy.data.lights.new("Key", "AREA"))
+    key.data.energy = 6.0 * radius ** 2 / 0.02
+    key.data.size = 3 * radius
+    key.location = centre + Vector((-1.0, -1.2, 1.2)) * radius * 2.5
+    look_at(key, centre)
+    scene.collection.objects.link(key)
+    fill = bpy.data.objects.new("Fill", bpy.data.lights.new("Fill", "SUN"))
+    fill.data.energy = 0.8
+    fill.rotation_euler = (0.9, 0.0, -2.4)
+    scene.collection.objects.link(fill)
+
+    world = bpy.data.worlds.new("World")
+    scene.world = world
+    if bpy.app.version < (5, 0, 0):
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.06, 0.08, 1)
+
+    render = scene.render
+    render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = 32
+    scene.cycles.use_denoising = False
+    render.resolution_x = render.resolution_y = size
+    render.resolution_percentage = 100
+    render.image_settings.file_format = "PNG"
+    render.film_transparent = False
+
+
+def render_png(scene, path):
+    """Render to ``path`` atomically (a temporary file in the same folder, then a rename)."""
+    handle, temporary = tempfile.mkstemp(prefix=".demo.", suffix=".png", dir=path.parent)
+    os.close(handle)
+    try:
+        scene.render.filepath = temporary
+        bpy.ops.render.render(write_still=True)
+        mask = os.umask(0o022)
+        os.umask(mask)
+        os.chmod(temporary, 0o666 & ~mask)  # mkstemp makes 0600
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def main(argv):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="out", help="output folder (made if missing)")
+    parser.add_argument("--size", type=int, default=480, help="render size in pixels")
+    args = parser.parse_args(argv)
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+
+    say(f"Blender {bpy.app.version_string}, NumPy {np.__version__}")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    ext = load_extension()
+    ext.register()
+    try:
+        api = ext.operators.api
+        scene = bpy.context.scene
+        say(f"importing {SAMPLE.name}")
+        volume = api.import_volume(SAMPLE)
+        s = volume.volumeevm
+        say(f"volume {tuple(s.shape)} voxels, spacing {tuple(round(v, 3) for v in s.spacing)} mm, "
+            f"values {s.value_min:.3g} .. {s.value_max:.3g}")
+        say(f"building the VolumeEVM at {THRESHOLD}")
+        vevm = api.build(volume, THRESHOLD)
+        report = vevm.size_report()
+        say(f"{vevm.voxel_count} voxels, {len(vevm.evm)} extreme vertices, "
+            f"{report['total_bytes']} bytes = {100 * report['ratio']:.1f}% of the dense array")
+        surface = api.make_mesh(volume)
+        surface.data.materials.append(bone_material())
+        say(f"mesh {surface.name}: {len(surface.data.vertices)} vertices, "
+            f"{len(surface.data.polygons)} polygons")
+        stage(scene, surface, args.size)
+        say(f"rendering {args.size}x{args.size} with Cycles (CPU, {scene.cycles.samples} samples)")
+        render_png(scene, out / "demo.png")
+        say(f"wrote {out / 'demo.png'}")
+        bpy.context.preferences.filepaths.save_version = 0  # no demo.blend1 backups
+        bpy.ops.wm.save_as_mainfile(filepath=str(out / "demo.blend"))
+        say(f"wrote {out / 'demo.blend'} and its VolumeEVM {volume.volumeevm.vevm_path}")
+    finally:
+        ext.unregister()
+    say(f"done in {time.perf_counter() - start:.1f} s")
+
+
+if __name__ == "__main__":
+    main(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:])
