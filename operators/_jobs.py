@@ -131,9 +131,13 @@ class JobOperator:
 
     # ---------------------------------------------------------------- modal (UI)
     def invoke(self, context, event):
-        global CURRENT
         if bpy.app.background or context.window is None:
             return self.execute(context)
+        return self.start(context)
+
+    def start(self, context):
+        """Start the job from a modal timer (the UI path of ``invoke``)."""
+        global CURRENT
         if CURRENT is not None:
             self.report({"ERROR"}, f"VolumeEVM is busy: {CURRENT.label}; wait or press Esc")
             return {"CANCELLED"}

@@ -1,0 +1,307 @@
+"""The UI side in the real bpy: DICOM import through the operator, the File > Import entry and
+the drag-and-drop handler, the sidebar panels' draw code, and the modal job driver (timer steps,
+Esc) that the UI uses. The bpy module has no window, so panels draw into a recorder whose calls
+are checked against the real ``UILayout`` functions, parameters and icons, and the modal driver
+runs with a minimal window manager that hands out timer events.
+"""
+
+import threading
+import time
+
+import bpy
+import numpy as np
+import pytest
+from blender_helpers import addon, reset_blender
+
+SKULL = "ct_skull_cgal.npy"
+
+
+@pytest.fixture(scope="module")
+def ext():
+    module = addon()
+    module.register()
+    yield module
+    module.unregister()
+
+
+@pytest.fixture(autouse=True)
+def fresh(ext):
+    reset_blender()
+    yield
+    reset_blender()
+
+
+# ---------------------------------------------------------------------------- DICOM, menu, drop
+@pytest.fixture
+def dicom_series(tmp_path, data_dir):
+    from test_readers import write_series  # the readers' own series writer (clones CT_small)
+
+    stored = np.load(data_dir / "ct_head_invesalius.npy")[96:160, 80:150, 40:52] + 1024
+    folder = tmp_path / "series"
+    folder.mkdir()
+    _, files = write_series(folder, stored.astype(np.int16), pixel_spacing=(0.9, 0.8), dz=1.5,
+                            origin=np.array([-30.0, -20.0, 50.0]), row=(1.0, 0.0, 0.0),
+                            col=(0.0, 1.0, 0.0), slope=1, intercept=-1024, seed=3)
+    return folder, files, stored - 1024
+
+
+@pytest.mark.parametrize("how", ["folder", "one_file", "file_list"])
+def test_import_dicom_series(ext, dicom_series, how):
+    folder, files, hu = dicom_series
+    if how == "folder":
+        kwargs = dict(directory=str(folder) + "/")
+    elif how == "one_file":
+        kwargs = dict(filepath=str(files[3]))
+    else:
+        kwargs = dict(directory=str(folder), files=[{"name": f.name} for f in files])
+    assert bpy.ops.volumeevm.import_volume(**kwargs) == {"FINISHED"}
+    obj = bpy.context.active_object
+    s = obj.volumeevm
+    assert tuple(s.shape) == hu.shape
+    np.testing.assert_allclose(tuple(s.spacing), (0.9, 0.8, 1.5), rtol=1e-6)
+    np.testing.assert_allclose(tuple(s.origin), (-30.0, -20.0, 50.0), atol=1e-6)
+    assert (s.value_min, s.value_max) == (hu.min(), hu.max())
+    assert s.units == "HU"
+    assert bpy.ops.volumeevm.build_vevm(use_settings=False, threshold=300.0) == {"FINISHED"}
+    assert s.voxel_count == int(np.count_nonzero(hu >= 300))
+
+
+def test_file_menu_and_drop_handler(ext):
+    draw_funcs = bpy.types.TOPBAR_MT_file_import.draw._draw_funcs
+    assert ext.operators.import_volume.menu_import in draw_funcs
+    handler = bpy.types.FileHandler.bl_rna_get_subclass_py("VOLUMEEVM_FH_import_volume")
+    assert handler.bl_import_operator == "volumeevm.import_volume"
+    extensions = handler.bl_file_extensions.split(";")
+    assert {".npy", ".nrrd", ".nii", ".nii.gz", ".dcm", ".tif", ".den"} <= set(extensions)
+
+
+def test_raw_import_uses_the_operator_options(ext, tmp_path, data_dir):
+    array = np.load(data_dir / SKULL)
+    raw = tmp_path / "skull.raw"
+    raw.write_bytes(b"HDR!" + array.astype(">f4").ravel(order="F").tobytes())
+    assert bpy.ops.volumeevm.import_volume(
+        filepath=str(raw), raw_shape=array.shape, raw_dtype="float32", raw_byte_order="big",
+        raw_header_bytes=4, raw_spacing=(2.0, 2.0, 3.0)) == {"FINISHED"}
+    s = bpy.context.active_object.volumeevm
+    assert tuple(s.shape) == array.shape and tuple(s.spacing) == (2.0, 2.0, 3.0)
+    assert s.value_max == pytest.approx(float(array.max()))
+    with pytest.raises(RuntimeError, match="skull.raw"):
+        bpy.ops.volumeevm.import_volume(filepath=str(raw), raw_shape=(64, 64, 65),
+                                        raw_dtype="float32", raw_header_bytes=4)
+
+
+# ---------------------------------------------------------------------------- panels
+class Recorder:
+    """Stands in for a UILayout: records every call, checks it against the real RNA function."""
+
+    _functions = bpy.types.UILayout.bl_rna.functions
+    _icons = set(_functions["label"].parameters["icon"].enum_items.keys())
+
+    def __init__(self, calls):
+        object.__setattr__(self, "calls", calls)
+
+    def __setattr__(self, name, value):
+        assert name in bpy.types.UILayout.bl_rna.properties, f"UILayout has no {name!r}"
+
+    def __getattr__(self, name):
+        assert name in self._functions, f"UILayout has no function {name!r}"
+        params = self._functions[name].parameters
+
+        def call(*args, **kwargs):
+            for key, value in kwargs.items():
+                assert key in params, f"UILayout.{name}() has no parameter {key!r}"
+                if key == "icon":
+                    assert value in self._icons, f"unknown icon {value!r}"
+            if name == "prop":
+                data, prop = args[:2]
+                assert prop in data.bl_rna.properties, f"{data} has no property {prop!r}"
+            if name == "operator":
+                category, op = args[0].split(".")
+                assert hasattr(getattr(bpy.ops, category), op), args[0]
+            self.calls.append((name, args, kwargs))
+            if name == "panel":
+                return Recorder(self.calls), Recorder(self.calls)
+            return Recorder(self.calls)
+
+        return call
+
+
+class _PanelSelf:
+    def __init__(self):
+        self.calls = []
+        self.layout = Recorder(self.calls)
+
+
+def draw_all(ext, context):
+    """Draw every sidebar panel whose poll passes; returns the recorded calls."""
+    calls = []
+    for cls in ext.ui.panels.CLASSES:
+        if hasattr(cls, "poll") and not cls.poll(context):
+            continue
+        panel = _PanelSelf()
+        if hasattr(cls, "draw_header"):
+            cls.draw_header(panel, context)
+        cls.draw(panel, context)
+        calls += panel.calls
+    return calls
+
+
+def texts(calls):
+    return [kw.get("text", "") for name, _, kw in calls if name in {"label", "progress"}]
+
+
+def test_panels_draw_every_state(ext, data_dir, tmp_path):
+    api = ext.operators.api
+    context = bpy.context
+    assert "Select or import a volume" in texts(draw_all(ext, context))
+
+    obj = api.import_volume(data_dir / SKULL)
+    shown = texts(draw_all(ext, context))
+    assert "Size: 64 × 64 × 64 voxels" in shown
+    assert "Spacing: 3.943 × 3.943 × 3.651 mm" in shown
+    assert "Values: 2.171e-13 .. 5.429" in shown
+    assert "Not built yet" in shown
+    bars = [kw for name, _, kw in draw_all(ext, context) if name == "progress"]
+    assert len(bars) == ext.ui.panels.HISTOGRAM_ROWS
+    assert max(b["factor"] for b in bars) == 1.0
+
+    api.build(obj, 2.9)
+    vevm = api.get_vevm(obj)
+    shown = texts(draw_all(ext, context))
+    assert f"Voxels: {vevm.voxel_count:,}" in shown
+    assert f"Extreme vertices: {len(vevm.evm):,}" in shown
+    assert "Kept in a temporary folder until the .blend is saved" in shown
+    obj.volumeevm.threshold = 3.0
+    assert "Built at 2.9: build again" in texts(draw_all(ext, context))
+
+    surface = api.make_mesh(obj)  # the surface is active now: panels show its volume
+    shown = texts(draw_all(ext, context))
+    assert f"{surface.name}: {len(surface.data.vertices):,} vertices, " \
+           f"{len(surface.data.polygons):,} faces" in shown
+
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    assert "Kept beside the .blend" in texts(draw_all(ext, context))
+    (tmp_path / "scene_volumeevm" / "ct_skull_cgal.vevm").unlink()
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))
+    bpy.context.view_layer.objects.active = bpy.data.objects["ct_skull_cgal"]
+    shown = texts(draw_all(ext, bpy.context))
+    assert "VolumeEVM problem:" in shown
+    assert "Not in memory: Build re-reads the source" in shown
+
+
+# ---------------------------------------------------------------------------- modal driver
+class _WindowManager:
+    def __init__(self):
+        self.timers = []
+        self.handlers = []
+
+    def event_timer_add(self, step, window=None):
+        self.timers.append(step)
+        return step
+
+    def event_timer_remove(self, timer):
+        self.timers.remove(timer)
+
+    def modal_handler_add(self, operator):
+        self.handlers.append(operator)
+
+
+class _Context:
+    def __init__(self):
+        self.window_manager = _WindowManager()
+        self.window = object()
+        self.screen = None
+
+
+class _Event:
+    def __init__(self, kind):
+        self.type = kind
+
+
+def _driver(ext, make_job):
+    class Driver(ext.operators._jobs.JobOperator):
+        reports = []
+
+        def job(self, context):
+            return make_job()
+
+        def report(self, kind, message):
+            self.reports.append((kind, message))
+
+    return Driver()
+
+
+def _ticks(op, context, limit=200):
+    """Send timer events until the modal operator finishes; returns its last result."""
+    for _ in range(limit):
+        result = op.modal(context, _Event("TIMER"))
+        if result != {"RUNNING_MODAL"}:
+            return result
+        time.sleep(0.01)
+    raise AssertionError("the job did not finish")
+
+
+def test_modal_driver_runs_steps_in_a_thread_and_commits(ext, data_dir):
+    api, jobs = ext.operators.api, ext.operators._jobs
+    obj = api.import_volume(data_dir / SKULL)
+    threads = []
+
+    def make_job():
+        job = api.build_job(obj, 2.9)
+
+        def steps():
+            threads.append(threading.current_thread().name)
+            result = yield from job.steps
+            threads.append(threading.current_thread().name)
+            return result
+
+        return jobs.Job(job.label, steps(), job.commit)
+
+    context = _Context()
+    op = _driver(ext, make_job)
+    assert op.start(context) == {"RUNNING_MODAL"}
+    assert context.window_manager.handlers == [op] and jobs.CURRENT.label.startswith("Build")
+    assert op.modal(context, _Event("LEFTMOUSE")) == {"RUNNING_MODAL"}  # held while running
+    assert op.modal(context, _Event("WHEELUPMOUSE")) == {"PASS_THROUGH"}  # navigation passes
+    assert _ticks(op, context) == {"FINISHED"}
+    assert jobs.CURRENT is None and context.window_manager.timers == []
+    assert threads and all(name.startswith("volumeevm") for name in threads)
+    assert obj.volumeevm.voxel_count == api.get_vevm(obj).voxel_count > 0
+    assert op.reports == []
+
+
+def test_modal_driver_escape_leaves_scene_unchanged(ext, data_dir):
+    api, jobs = ext.operators.api, ext.operators._jobs
+    obj = api.import_volume(data_dir / SKULL)
+    release = threading.Event()
+
+    def slow_steps():
+        yield 0.0, "waiting"
+        release.wait(5)
+        yield 0.5, "still waiting"
+        return "never committed"
+
+    committed = []
+    op = _driver(ext, lambda: jobs.Job("Slow", slow_steps(), committed.append))
+    context = _Context()
+    before = (len(bpy.data.objects), obj.volumeevm.vevm_path)
+    assert op.start(context) == {"RUNNING_MODAL"}
+    assert op.start(_Context()) == {"CANCELLED"}  # one job at a time
+    assert op.modal(context, _Event("ESC")) == {"CANCELLED"}
+    release.set()
+    op._executor.shutdown(wait=True)
+    assert committed == [] and jobs.CURRENT is None
+    assert (len(bpy.data.objects), obj.volumeevm.vevm_path) == before
+    assert ({"WARNING"}, "Slow: cancelled, nothing changed") in op.reports
+
+
+def test_modal_driver_reports_errors(ext, data_dir):
+    api, jobs = ext.operators.api, ext.operators._jobs
+    obj = api.import_volume(data_dir / SKULL)
+    op = _driver(ext, lambda: api.build_job(obj, 1000.0))
+    context = _Context()
+    assert op.start(context) == {"RUNNING_MODAL"}
+    assert _ticks(op, context) == {"CANCELLED"}
+    assert jobs.CURRENT is None
+    assert op.reports and "the region is empty" in op.reports[-1][1]
+    assert obj.volumeevm.vevm_path == ""
