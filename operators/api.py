@@ -350,7 +350,9 @@ def mesh_job(context, obj):
         mesh = bpy.data.meshes.new(f"{name}_surface")
         fill_mesh(mesh, co, polys)
         surface = owner.volumeevm.surface
-        if surface is not None and surface.name in bpy.data.objects and surface.type == "MESH":
+        # Refresh the owner's own surface (a duplicated volume still points at the original's).
+        if (surface is not None and surface.type == "MESH"
+                and surface.volumeevm.volume == owner):
             old = surface.data
             for material in old.materials:
                 mesh.materials.append(material)

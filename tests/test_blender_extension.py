@@ -46,6 +46,12 @@ result["voxels"] = settings.voxel_count
 result["evs"] = settings.ev_count
 result["polygons"] = len(surface.data.polygons)
 result["vertices"] = len(surface.data.vertices)
+# The scripting API of the installed package (as README's headless examples use it).
+from bl_ext.vevm_test.volumeevm.operators import api
+vol = api.import_volume(volume, name="by_api")
+vevm = api.build(vol, threshold)
+surface = api.make_mesh(vol)
+result["api"] = [vol.name, vevm.voxel_count, len(surface.data.polygons)]
 addon_utils.disable("bl_ext.vevm_test.volumeevm", default_set=True)
 result["unregistered"] = not hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
 print("RESULT " + json.dumps(result), flush=True)
@@ -134,6 +140,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     assert result["import"] == result["build"] == result["mesh"] == ["FINISHED"]
     assert result["voxels"] == expected.voxel_count and result["evs"] == len(expected.evm)
     assert result["polygons"] == len(polys) and result["vertices"] == len(np.asarray(verts))
+    assert result["api"] == ["by_api", expected.voxel_count, len(polys)]
     assert result["unregistered"]
     # The installed add-on's folder got nothing written into it.
     installed = repo_dir / MANIFEST["id"]

@@ -184,6 +184,15 @@ def test_api_gives_the_operators_result(data_dir, api, core):
     assert again == surface and len(bpy.data.objects) == 2
     _assert_mesh_equals_core(again, core.VolumeEVM.from_volume(core.read_volume(path), 3.5))
 
+    # A duplicated volume object gets its own surface, the original's stays as it is.
+    twin = obj.copy()
+    bpy.context.scene.collection.objects.link(twin)
+    api.build(twin, 4.0)
+    twin_surface = api.make_mesh(twin)
+    assert twin_surface != surface and twin_surface.parent == twin
+    _assert_mesh_equals_core(surface, core.VolumeEVM.from_volume(core.read_volume(path), 3.5))
+    _assert_mesh_equals_core(twin_surface, core.VolumeEVM.from_volume(core.read_volume(path), 4.0))
+
 
 def test_cancelled_job_changes_nothing(data_dir, api):
     obj = api.import_volume(data_dir / "ct_skull_cgal.npy")
