@@ -101,9 +101,12 @@ class VOLUMEEVM_OT_import_volume(_jobs.JobOperator, bpy.types.Operator, ImportHe
                               f"values {s.value_min:g} .. {s.value_max:g} {s.units}")
 
     def invoke(self, context, event):
-        if self.filepath or self.directory:
-            # Drag-and-drop: the path is given. Raw files need their options first.
-            if _is_raw(self.filepath) and hasattr(self, "invoke_popup"):
+        if bpy.app.background:
+            return self.execute(context)
+        if self.directory:
+            # Drag-and-drop (``directory`` is never remembered between calls). Raw files need
+            # their options first.
+            if _is_raw(self.filepath):
                 return self.invoke_popup(context)
             return self.execute(context)
         return ImportHelper.invoke(self, context, event)

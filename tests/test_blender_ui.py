@@ -66,6 +66,14 @@ def test_import_dicom_series(ext, dicom_series, how):
     assert s.voxel_count == int(np.count_nonzero(hu >= 300))
 
 
+def test_invoke_in_background_imports_directly(ext, data_dir):
+    path = str(data_dir / SKULL)
+    assert bpy.ops.volumeevm.import_volume("INVOKE_DEFAULT", filepath=path) == {"FINISHED"}
+    assert bpy.context.active_object.volumeevm.role == "VOLUME"
+    assert bpy.ops.volumeevm.build_vevm("INVOKE_DEFAULT") == {"FINISHED"}
+    assert bpy.ops.volumeevm.make_mesh("INVOKE_DEFAULT") == {"FINISHED"}
+
+
 def test_file_menu_and_drop_handler(ext):
     draw_funcs = bpy.types.TOPBAR_MT_file_import.draw._draw_funcs
     assert ext.operators.import_volume.menu_import in draw_funcs
@@ -119,11 +127,28 @@ class Recorder:
                 category, op = args[0].split(".")
                 assert hasattr(getattr(bpy.ops, category), op), args[0]
             self.calls.append((name, args, kwargs))
+            if name == "operator":
+                return OperatorProperties(args[0], self.calls)
             if name == "panel":
                 return Recorder(self.calls), Recorder(self.calls)
             return Recorder(self.calls)
 
         return call
+
+
+class OperatorProperties:
+    """What ``layout.operator()`` returns: settable operator properties, checked and recorded."""
+
+    def __init__(self, idname, calls):
+        category, op = idname.split(".")
+        rna = getattr(getattr(bpy.ops, category), op).get_rna_type()
+        object.__setattr__(self, "_rna", rna)
+        object.__setattr__(self, "_calls", calls)
+        object.__setattr__(self, "_idname", idname)
+
+    def __setattr__(self, name, value):
+        assert name in self._rna.properties, f"{self._idname} has no property {name!r}"
+        self._calls.append(("operator_property", (self._idname, name, value), {}))
 
 
 class _PanelSelf:
@@ -172,7 +197,12 @@ def test_panels_draw_every_state(ext, data_dir, tmp_path):
     assert f"Extreme vertices: {len(vevm.evm):,}" in shown
     assert "Kept in a temporary folder until the .blend is saved" in shown
     obj.volumeevm.threshold = 3.0
-    assert "Built at 2.9: build again" in texts(draw_all(ext, context))
+    calls = draw_all(ext, context)
+    assert "Built at 2.9: build again" in texts(calls)
+    # The Build button carries the object's settings, so the redo panel can change them.
+    passed = {args[1]: args[2] for name, args, _ in calls if name == "operator_property"}
+    assert passed == {"use_settings": False, "threshold": 3.0, "use_upper": False,
+                      "upper": obj.volumeevm.upper}
 
     surface = api.make_mesh(obj)  # the surface is active now: panels show its volume
     shown = texts(draw_all(ext, context))

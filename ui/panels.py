@@ -164,7 +164,12 @@ class VOLUMEEVM_PT_build(_VolumeSubpanel, bpy.types.Panel):
         sub = row.row(align=True)
         sub.active = s.use_upper
         sub.prop(s, "upper", text="")
-        layout.operator("volumeevm.build_vevm", icon="MOD_REMESH")
+        # The button passes the settings explicitly, so the redo panel can adjust them.
+        op = layout.operator("volumeevm.build_vevm", icon="MOD_REMESH")
+        op.use_settings = False
+        op.threshold = s.threshold
+        op.use_upper = s.use_upper
+        op.upper = s.upper
         if not s.vevm_path:
             layout.label(text="Not built yet")
             return
