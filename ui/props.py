@@ -122,10 +122,5 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     volume: PointerProperty(name="Volume", type=bpy.types.Object,
                             description="The volume object this surface was made from")
 
-    @property
-    def built(self):
-        """True once a VolumeEVM was built (the sidecar path is set)."""
-        return bool(self.vevm_path)
-
 
 CLASSES = [VolumeEVMSceneSettings, VolumeEVMObjectSettings]
