@@ -104,6 +104,8 @@ _MAX_INTERMEDIATE = 1 << 26
 _NEVER = np.iinfo(np.int32).max
 _TIE = 1e-6
 """Relative margin a MIP sample must exceed the maximum by to replace it (float32 ties)."""
+_UNSEEN = -np.finfo(np.float32).max
+"""MIP maximum before any sample (finite, so that the tie margin stays a number)."""
 
 _LAYOUTS = weakref.WeakKeyDictionary()
 """VolumeEVM -> {principal axis: _Layout}: what depends only on the view axis."""
@@ -504,7 +506,7 @@ def _composite(view, layout, camera, g, tf, mode, depth_in, ert_threshold, lut_s
     else:
         image = np.zeros((hi, wi), np.float32)
         if mode == "mip":
-            image.fill(-np.inf)
+            image.fill(_UNSEEN)
     delta = np.float32(view.delta)
     active = [0, hi, 0, wi]
     for n, s in enumerate(order):
@@ -583,7 +585,7 @@ def _composite(view, layout, camera, g, tf, mode, depth_in, ert_threshold, lut_s
         image = rgba
     elif mode == "mip":
         rgba = np.zeros((hi, wi, 4), np.float32)
-        seen = np.isfinite(image)
+        seen = image > _UNSEEN
         straight = tf.evaluate(image[seen])
         rgba[seen, 3] = straight[:, 3]
         rgba[seen, :3] = straight[:, :3] * straight[:, 3:4]
