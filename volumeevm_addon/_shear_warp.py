@@ -47,9 +47,12 @@ Pipeline
    outside voxels are dropped and the others renormalised. Outside voxels are never read: their
    code is 0 and the table row 0 is ``(0, 0, 0, 0, weight 0)``.
 6. **Compositing** into one float32 intermediate image: ``"over"`` front to back,
-   ``C += (1 - A)·c``, with early ray termination (every few slices the bounding box of the
-   pixels with ``A < ert_threshold`` is recomputed, slices are cut to it, the loop stops when it
-   is empty: the error of a pixel is at most ``1 - ert_threshold``); ``"under"`` back to front,
+   ``C += (1 - A)·c``, with early ray termination: a pixel whose opacity reached
+   ``ert_threshold`` takes nothing more (so its error is at most ``1 - ert_threshold``), and
+   every few slices the bounding box of the pixels below it is recomputed; slices are cut to it
+   and the loop stops when it is empty. (The box only shrinks where whole bands of the
+   intermediate image are opaque, e.g. a close-up; around a head seen whole the transparent
+   background keeps it wide.) ``"under"`` back to front,
    ``C = c + (1 - a)·C``; ``"xray"`` sums ``μΔ``; ``"mip"`` keeps the maximum and its slice.
 7. **Warp**: every final pixel's ray (from :meth:`Camera.rays`) meets the reference plane at
    ``(p, q)``; the colour is the bilinear interpolation of the intermediate image there (an
@@ -567,6 +570,8 @@ def _composite(view, layout, camera, g, tf, mode, depth_in, ert_threshold, lut_s
         target = image[box]
         if mode == "over":
             trans = 1.0 - target[..., 3]
+            if ert_threshold < 1.0:  # terminated rays take nothing more
+                np.putmask(trans, target[..., 3] >= ert_threshold, 0.0)
             c *= trans[..., None]
             target += c
             np.copyto(rank_map[box], ranks[n], where=hit & (rank_map[box] == _NEVER))
