@@ -1,0 +1,391 @@
+"""Ray casters (EVM space leaping and the navigation variant): the exactness contract on real
+volumes, closed forms and the reference, modes, depth, shading and degenerate input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
+from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon._evm import EVM
+from volumeevm_addon._raycast import render_raycast, render_raycast_navigate
+from volumeevm_addon._reference import render_reference
+from volumeevm_addon._transfer import TransferFunction
+from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon._volume import grid_to_world
+from volumeevm_addon._volumeevm import VolumeEVM
+
+MODES = ("over", "under", "xray", "mip")
+XRAY = {"xray_scale": 2e-4, "xray_offset": -1024.0}
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)):
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    f = target - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
+    return m
+
+
+def centre(vevm, g):
+    return g[:3, 3] + g[:3, :3] @ ((np.array(vevm.shape) - 1) / 2.0)
+
+
+def camera(kind, g, vevm, offset, scale, res=(36, 30), up=(0.0, 0.0, 1.0), **kw):
+    c = centre(vevm, g)
+    m = look_at(c + np.asarray(offset), c, up)
+    if kind == "ORTHO":
+        return Camera.orthographic(m, scale, resolution_x=res[0], resolution_y=res[1],
+                                   clip_start=1e-4, **kw)
+    return Camera.perspective(m, 50.0, resolution_x=res[0], resolution_y=res[1],
+                              clip_start=1e-4, **kw)
+
+
+def reference(vevm, cam, tf, g, **kw):
+    return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), g, vevm.spacing, cam,
+                            tf, **kw)
+
+
+@pytest.fixture(scope="module")
+def ct(data_dir):
+    """The CT head downsampled 4x4x3 (64x64x36), with its JSON spacing."""
+    meta = json.loads((data_dir / "ct_head_invesalius.json").read_text())
+    a = np.load(data_dir / "ct_head_invesalius.npy")[::4, ::4, ::3]
+    sp = np.array(meta["spacing_mm"]) * (4, 4, 3)
+    return a, tuple(sp)
+
+
+@pytest.fixture(scope="module")
+def brain(data_dir):
+    """brainsmall (VolPack's MR example) cropped to 48x40x32, with its JSON spacing."""
+    meta = json.loads((data_dir / "mr_brainsmall_volpack.json").read_text())
+    a = np.load(data_dir / "mr_brainsmall_volpack.npy")[40:88, 44:84, 26:58]
+    return a, tuple(meta["spacing_mm"])
+
+
+def skin(ct):
+    a, sp = ct
+    v = VolumeEVM.from_array(a, -300, spacing=sp)
+    return v, grid_to_world(v.spacing, v.origin), TransferFunction.preset("ct_skin")
+
+
+def bone(ct):
+    a, sp = ct
+    v = VolumeEVM.from_array(a, 150, spacing=sp)
+    return v, grid_to_world(v.spacing, v.origin), TransferFunction.preset("ct_bone")
+
+
+def const_tf(alpha, rgb=(0.9, 0.6, 0.3)):
+    return TransferFunction([(-1e6, *rgb, alpha), (1e6, *rgb, alpha)])
+
+
+# ---------------------------------------------------------------------------- exactness
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+@pytest.mark.parametrize("mode", MODES)
+def test_skip_empty_equals_dense_and_navigation(ct, kind, mode):
+    v, g, tf = bone(ct)
+    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3)
+    kw = XRAY if mode == "xray" else {}
+    r1, d1 = render_raycast(v, cam, tf, g, mode=mode, **kw)
+    r0, d0 = render_raycast(v, cam, tf, g, mode=mode, skip_empty=False, **kw)
+    assert r1[..., 3].max() > 0.5 and (r1[..., 3] == 0).sum() > 50
+    np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(d1 == BACKGROUND_DEPTH, d0 == BACKGROUND_DEPTH)
+    np.testing.assert_allclose(d1, d0, rtol=1e-6)
+    r2, d2 = render_raycast_navigate(v, cam, tf, g, mode=mode, **kw)
+    np.testing.assert_allclose(r2, r1, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(d2, d1, rtol=1e-6)
+
+
+def test_skip_empty_equals_dense_brain_and_blocks(brain):
+    a, sp = brain
+    v = VolumeEVM.from_array(a, 40, spacing=sp)
+    g = grid_to_world(v.spacing, v.origin)
+    tf = TransferFunction.preset("mri", data_range=(0, 202))
+    cam = camera("PERSP", g, v, (-0.1, -0.12, 0.08), 0.0, shift_x=0.05)
+    r0, d0 = render_raycast(v, cam, tf, g, skip_empty=False, termination=0.95)
+    assert r0[..., 3].max() > 0.5
+    for block in (1, 3, 8):
+        r1, d1 = render_raycast(v, cam, tf, g, termination=0.95, block=block, chunk_rays=97)
+        np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(d1, d0, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------- closed forms
+def box_chords_mm(g, lo, hi, cam):
+    """Chord (mm) of every pixel ray with the index-space box [lo, hi] (world face planes)."""
+    o, d = (x.reshape(-1, 3) for x in cam.rays())
+    a = g[:3, :3]
+    c_lo = g[:3, 3] + a @ np.asarray(lo, float)
+    c_hi = g[:3, 3] + a @ np.asarray(hi, float)
+    tin = np.full(len(o), -np.inf)
+    tout = np.full(len(o), np.inf)
+    for ax in range(3):
+        n = np.cross(a[:, (ax + 1) % 3], a[:, (ax + 2) % 3])
+        p, q = sorted((n @ c_lo, n @ c_hi))
+        po, pd = o @ n, d @ n
+        with np.errstate(divide="ignore"):
+            ta, tb = (p - po) / pd, (q - po) / pd
+        tin = np.maximum(tin, np.minimum(ta, tb))
+        tout = np.minimum(tout, np.maximum(ta, tb))
+    return (np.maximum(tout - tin, 0) / BU).reshape(cam.shape)
+
+
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_homogeneous_box_closed_form(kind):
+    """Region = the whole grid: every segment is inside, the last one is cut at the exit, so the
+    opacity is 1 - (1 - a0)^(L / 1 mm) for the exact chord L."""
+    shape, sp = (7, 9, 5), (0.7, 0.5, 1.3)
+    v = VolumeEVM.from_array(np.full(shape, 5.0), 0, spacing=sp)
+    g = grid_to_world(sp, (0, 0, 0))
+    cam = camera(kind, g, v, (0.012, -0.01, 0.009), 0.012)
+    tf = const_tf(0.15)
+    for step in (0.3, None):
+        rgba, depth = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0)
+        chord = box_chords_mm(g, (-0.5,) * 3, np.array(shape) - 0.5, cam)
+        assert (chord > 0).sum() > 200 and (chord == 0).sum() > 50
+        expected = 1 - 0.85 ** chord
+        np.testing.assert_allclose(rgba[..., 3], expected, rtol=0, atol=2e-5)
+        np.testing.assert_allclose(rgba[..., :3], expected[..., None] * (0.9, 0.6, 0.3),
+                                   atol=2e-5)
+        rr, dr = reference(v, cam, tf, g)
+        hit = chord > 1e-9
+        np.testing.assert_allclose(depth[hit], dr[hit], rtol=1e-6)
+        assert np.all(depth[~hit] == BACKGROUND_DEPTH)
+
+
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_box_region_within_one_step(kind):
+    """A box region inside a larger grid: samples sit on a lattice from the grid's box, so the
+    chord is counted to within one step at each end; the mean error is far smaller."""
+    shape, sp = (12, 10, 9), (0.8, 0.6, 1.1)
+    mask = np.zeros(shape, bool)
+    mask[3:9, 2:8, 2:7] = True
+    dens = np.where(mask, 7.0, -50.0)
+    v = VolumeEVM(EVM.from_mask(mask), dens[mask], shape=shape, spacing=sp)
+    g = grid_to_world(sp, (0, 0, 0))
+    cam = camera(kind, g, v, (0.013, -0.011, 0.01), 0.014)
+    tf = const_tf(0.2)
+    step = 0.25
+    rgba, _ = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0)
+    chord = box_chords_mm(g, (2.5, 1.5, 1.5), (8.5, 7.5, 6.5), cam)
+    expected = 1 - 0.8 ** chord
+    err = np.abs(rgba[..., 3] - expected)
+    one_step = 1 - 0.8 ** step
+    assert (chord > 0).sum() > 200
+    assert err.max() <= 2 * one_step + 1e-6
+    assert err.mean() < 0.2 * one_step
+
+
+def test_gaussian_blob_against_reference():
+    n = 20
+    x = np.arange(n) - (n - 1) / 2
+    blob = 1000 * np.exp(-(x[:, None, None] ** 2 + x[None, :, None] ** 2
+                           + (1.5 * x[None, None, :]) ** 2) / (2 * 4.0 ** 2))
+    v = VolumeEVM.from_array(blob, 0, spacing=(1.0, 1.0, 1.5))
+    g = grid_to_world(v.spacing, v.origin)
+    cam = camera("PERSP", g, v, (0.03, -0.04, 0.025), 0.0)
+    tf = TransferFunction([(0, 0.2, 0.4, 1.0, 0.0), (1000, 1.0, 0.8, 0.2, 0.3)])
+    rgba, _ = render_raycast(v, cam, tf, g, step_mm=0.25, termination=1.0)
+    rr, _ = reference(v, cam, tf, g)
+    assert rr[..., 3].max() > 0.8
+    assert np.abs(rgba - rr).max() < 2e-3
+    rgba, _ = render_raycast(v, cam, None, g, mode="xray", step_mm=0.25, xray_scale=3e-4)
+    rr, _ = reference(v, cam, None, g, mode="xray", xray_scale=3e-4)
+    assert rr[..., 3].max() > 0.5
+    assert np.abs(rgba - rr).max() < 1e-3
+
+
+@pytest.mark.parametrize("which", ["skin", "bone"])
+def test_real_volume_against_reference(ct, which):
+    """CT head, oblique perspective view, default step (half a voxel = 1.9 mm): the mean and
+    99th percentile of the error. A fixed step misses or hits thin pieces of cells whole, so
+    the worst pixel is not bounded tighter than a step's opacity."""
+    v, g, tf = skin(ct) if which == "skin" else bone(ct)
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(48, 40))
+    rgba, depth = render_raycast(v, cam, tf, g, termination=1.0)
+    rr, dr = reference(v, cam, tf, g)
+    err = np.abs(rgba - rr).max(axis=-1)
+    assert rr[..., 3].mean() > 0.15
+    assert err.mean() < 0.008
+    assert np.percentile(err, 99) < 0.12
+    # Depth where both see something: within a step (1.9 mm = 0.0019 BU) for most pixels.
+    both = (depth < 1e9) & (dr < 1e9)
+    assert both.sum() > 0.95 * (dr < 1e9).sum()
+    assert np.percentile(np.abs(depth - dr)[both], 90) < 0.0019
+
+
+# ---------------------------------------------------------------------------- modes
+def axis_scene():
+    """Random densities, an irregular region; an orthographic camera looking down -z whose
+    pixel centres sit on voxel columns (x, y)."""
+    rng = np.random.default_rng(7)
+    shape, sp = (6, 5, 9), (1.0, 1.0, 1.25)
+    dens = rng.uniform(-500, 1500, shape)
+    mask = rng.uniform(size=shape) < 0.6
+    mask[0, 0, 0] = True
+    v = VolumeEVM(EVM.from_mask(mask), dens[mask], shape=shape, spacing=sp)
+    g = grid_to_world(sp, (0, 0, 0))
+    m = np.eye(4)
+    m[:3, 3] = (2.5 * BU, 2.0 * BU, 1.0)
+    cam = Camera.orthographic(m, 6 * BU, resolution_x=6, resolution_y=5)
+    return v, g, cam, dens, mask
+
+
+def test_mip_is_the_maximum_along_rays():
+    v, g, cam, dens, mask = axis_scene()
+    tf = TransferFunction([(-500, 0, 0, 0, 0.0), (1500, 1, 1, 1, 1.0)])
+    # With a step of one voxel the samples are the voxel centres of each column.
+    rgba, _ = render_raycast(v, cam, tf, g, mode="mip", step_mm=1.25)
+    colmax = np.where(mask, dens, -np.inf).max(axis=2)  # (x, y)
+    expected = tf.evaluate(colmax.T[::-1])[..., 3]  # image rows run down y
+    expected = np.where(np.isfinite(colmax.T[::-1]), expected, 0)
+    np.testing.assert_allclose(rgba[..., 3], expected, atol=1e-5)
+    # Finer steps never exceed the column maximum (interpolation is a convex combination).
+    fine, _ = render_raycast(v, cam, tf, g, mode="mip", step_mm=0.1)
+    assert np.all(fine[..., 3] <= expected + 1e-5)
+
+
+def test_xray_is_exp_of_minus_the_sum():
+    v, g, cam, dens, mask = axis_scene()
+    rgba, depth = render_raycast(v, cam, None, g, mode="xray", step_mm=1.25, xray_scale=1e-3,
+                                 xray_offset=-200.0)
+    mu = 1e-3 * np.maximum(dens + 200.0, 0) * mask
+    expected = 1 - np.exp(-(mu.sum(axis=2) * 1.25).T[::-1])
+    np.testing.assert_allclose(rgba[..., 0], expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(rgba[..., 3], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_over_equals_under_and_early_termination_bound(ct):
+    v, g, tf = skin(ct)
+    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3)
+    full, dfull = render_raycast(v, cam, tf, g, termination=1.0)
+    under, dunder = render_raycast(v, cam, tf, g, mode="under")
+    np.testing.assert_allclose(under, full, atol=2e-5)
+    np.testing.assert_allclose(dunder, dfull, rtol=1e-6)
+    for thr in (0.9, 0.5):
+        ert, dert = render_raycast(v, cam, tf, g, termination=thr)
+        diff = np.abs(ert - full)
+        assert diff.max() <= 1 - thr + 1e-6
+        stopped = ert[..., 3] >= thr
+        assert stopped.sum() > 100 and diff[stopped].max() > 1e-3  # it did stop early
+        np.testing.assert_array_equal(dert, dfull)
+
+
+# ---------------------------------------------------------------------------- depth
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_opaque_plane_hides_what_is_behind(kind):
+    shape, sp = (8, 8, 8), (1.0, 1.0, 1.0)
+    v = VolumeEVM.from_array(np.full(shape, 3.0), 0, spacing=sp)
+    g = grid_to_world(sp, (0, 0, 0))
+    cam = camera(kind, g, v, (0.0, 0.0, 0.02), 0.012, up=(0, 1, 0))  # down -z at the top
+    tf = const_tf(0.1)
+    free, dfree = render_raycast(v, cam, tf, g, termination=1.0)
+    top = dfree[dfree < 1e9].min()
+    plane = np.full(cam.shape, top + 0.003)  # 3 mm into the volume (axial)
+    plane[:, : cam.shape[1] // 2] = 1e10  # left half: no geometry
+    rgba, depth = render_raycast(v, cam, tf, g, depth_in=plane, termination=1.0)
+    right = np.s_[:, cam.shape[1] // 2:]
+    left = np.s_[:, : cam.shape[1] // 2]
+    np.testing.assert_array_equal(rgba[left], free[left])
+    # Behind the plane nothing counts: the chord is that of the box cut at z = 7.5 - 3 voxels.
+    chord = box_chords_mm(g, (-0.5, -0.5, 4.5), (7.5, 7.5, 7.5), cam)
+    assert (chord[right] > 2.9).sum() > 100
+    np.testing.assert_allclose(rgba[right][..., 3], 1 - 0.9 ** chord[right], atol=1e-5)
+    np.testing.assert_array_equal(depth, dfree)
+    # A plane in front of the volume hides it all.
+    rgba, depth = render_raycast(v, cam, tf, g, depth_in=np.full(cam.shape, top - 1e-4))
+    assert rgba.max() == 0 and np.all(depth == BACKGROUND_DEPTH)
+
+
+# ---------------------------------------------------------------------------- shading
+def test_shading_against_reference_and_navigation(ct):
+    v, g, tf = bone(ct)
+    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(30, 24))
+    rgba, _ = render_raycast(v, cam, tf, g, shading=True, termination=1.0, step_mm=1.0)
+    plain, _ = render_raycast(v, cam, tf, g, termination=1.0, step_mm=1.0)
+    rr, _ = reference(v, cam, tf, g, shading=True)
+    assert np.abs(rgba - plain)[..., :3].mean() > 0.05  # shading changes the image
+    err = np.abs(rgba - rr).max(axis=-1)
+    assert err.mean() < 0.015  # measured 0.010 (0.005 at a 0.5 mm step)
+    nav, _ = render_raycast_navigate(v, cam, tf, g, shading={"specular": 0.3}, termination=1.0,
+                                     step_mm=1.0)
+    np.testing.assert_allclose(nav, rgba, atol=1e-5)
+    dense, _ = render_raycast(v, cam, tf, g, shading=True, termination=1.0, skip_empty=False,
+                              step_mm=1.0)
+    np.testing.assert_allclose(dense, rgba, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------- degenerate
+def test_empty_and_single_voxel_regions():
+    shape = (5, 4, 3)
+    tf = const_tf(0.5)
+    g = grid_to_world((1.0, 1.0, 1.0), (0, 0, 0))
+    empty = VolumeEVM(EVM(), np.zeros(0), shape=shape)
+    cam = camera("PERSP", g, empty, (0.01, -0.008, 0.006), 0.0, res=(9, 7))
+    for fn in (render_raycast, render_raycast_navigate):
+        rgba, depth = fn(empty, cam, tf, g)
+        assert rgba.shape == (7, 9, 4) and rgba.dtype == np.float32 and rgba.max() == 0
+        assert np.all(depth == BACKGROUND_DEPTH) and depth.dtype == np.float32
+    mask = np.zeros(shape, bool)
+    mask[2, 1, 1] = True
+    one = VolumeEVM(EVM.from_mask(mask), np.array([100.0]), shape=shape)
+    for mode in MODES:
+        rgba, depth = render_raycast(one, cam, tf, g, mode=mode, step_mm=0.05)
+        rr, dr = reference(one, cam, tf, g, mode=mode)
+        assert rr[..., 3].max() > 0.1 and not np.isnan(rgba).any()
+        assert np.abs(rgba - rr).mean() < 0.01
+        np.testing.assert_array_equal(depth < 1e9, dr < 1e9)
+
+
+def test_camera_that_sees_nothing_and_odd_sizes(ct):
+    v, g, tf = skin(ct)
+    c = centre(v, g)
+    m = look_at(c + (0.3, 0, 0), c + (0.6, 0, 0))  # looking away
+    cam = Camera.perspective(m, 50.0, resolution_x=7, resolution_y=5)
+    rgba, depth = render_raycast(v, cam, tf, g)
+    assert rgba.shape == (5, 7, 4) and rgba.max() == 0 and np.all(depth == BACKGROUND_DEPTH)
+    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(13, 1))
+    rgba, depth = render_raycast(v, cam, tf, g)
+    assert rgba.shape == (1, 13, 4) and rgba[..., 3].max() > 0.5
+
+
+def test_camera_inside_the_volume(ct):
+    v, g, tf = skin(ct)
+    c = centre(v, g)
+    cam = Camera.perspective(look_at(c, c + (0.05, 0.1, 0.0)), 20.0, resolution_x=24,
+                             resolution_y=20, clip_start=1e-3)
+    rgba, depth = render_raycast(v, cam, tf, g, step_mm=1.0)
+    rr, dr = reference(v, cam, tf, g)
+    assert not np.isnan(rgba).any() and rr[..., 3].mean() > 0.3
+    assert np.abs(rgba - rr).mean() < 0.02
+    assert np.all(depth[depth < 1e9] >= 1e-3 - 1e-7)  # nothing before the near clip
+
+
+def test_bad_input(ct):
+    v, g, tf = skin(ct)
+    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(6, 4))
+    nan = np.full((4, 6), 1e10)
+    nan[1, 2] = np.nan
+    for fn in (render_raycast, render_raycast_navigate):
+        with pytest.raises(VolumeEVMError, match="depth_in: 1 NaN"):
+            fn(v, cam, tf, g, depth_in=nan)
+    with pytest.raises(VolumeEVMError, match="depth_in: shape"):
+        render_raycast(v, cam, tf, g, depth_in=np.zeros((3, 3)))
+    with pytest.raises(VolumeEVMError, match="mode"):
+        render_raycast(v, cam, tf, g, mode="sum")
+    with pytest.raises(VolumeEVMError, match="step_mm"):
+        render_raycast(v, cam, tf, g, step_mm=0)
+    with pytest.raises(VolumeEVMError, match="termination"):
+        render_raycast(v, cam, tf, g, termination=0)
+    with pytest.raises(VolumeEVMError, match="shading"):
+        render_raycast(v, cam, tf, g, shading={"glow": 1})
+    with pytest.raises(VolumeEVMError, match="tf"):
+        render_raycast(v, cam, "bone", g)
+    with pytest.raises(VolumeEVMError, match="grid_to_world"):
+        render_raycast(v, cam, tf, np.zeros((4, 4)))
