@@ -127,7 +127,7 @@ def _footprint_table(sigma, radius):
 
 
 def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None, skip_empty=True,
-                 termination=0.99, kernel_sigma=0.5, kernel_radius=1.5, max_footprint_px=32,
+                 termination=0.99, kernel_sigma=0.4, kernel_radius=1.5, max_footprint_px=32,
                  xray_scale=1.0, xray_offset=0.0):
     """Render a VolumeEVM by sheet-buffer splatting (module docstring).
 
@@ -212,7 +212,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     C0 = o[:, c_ax] - o[:, axis] * C1
     tA = -o[:, axis] * iA
     mm_per_A = np.linalg.norm(d * spacing, axis=1) * np.abs(iA)
-    half = 0.5 * np.abs(iA)
+    aA = np.abs(iA)  # ray parameter per unit of A
+    sA = np.sign(iA)
 
     # Sheet order: outward from the camera, the side the view faces first (front to back for
     # every ray that sees a sheet; rays see no sheet behind their start).
@@ -299,22 +300,33 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
                 cells, dens, u, col, row = cells[keep], dens[keep], u[keep], col[keep], row[keep]
             if len(cells) == 0:
                 continue
-        bmap = (B0[pix] + a * B1[pix]).astype(np.float32)
-        cmap = (C0[pix] + a * C1[pix]).astype(np.float32)
-        W, WD, N = _scatter(cells, dens, u[:, b_ax], u[:, c_ax], col - c0, row - r0, hu, hv,
-                            bw, bh, bmap, cmap, ftab, fscale)
-        # Part of the slab a - 0.5 .. a + 0.5 the ray really travels (box, clip, depth_in).
+        # Per window pixel: where the ray crosses plane a (B, C), its in-plane drift per unit
+        # of A, and the part of the slab a - 0.5 .. a + 0.5 it travels (box, clip range,
+        # depth_in) as offsets along A from the plane.
+        # Offsets are counted along the ray (sign of dA), so the smallest is the front.
         ta = tA[pix] + a * iA[pix]
-        hp = half[pix]
-        front = np.maximum(ta - hp, t0[pix])
-        frac = (np.minimum(ta + hp, t1[pix]) - front) / np.where(hp > 0, 2 * hp, 1)
-        sees = live & (N > 0) & (frac > 0)
+        span = aA[pix]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s0 = (t0[pix] - ta) / span
+            s1 = (t1[pix] - ta) / span
+        rows = np.empty((len(pix) + 1, 6), np.float32)
+        rows[:-1, 0] = B0[pix] + a * B1[pix]
+        rows[:-1, 1] = C0[pix] + a * C1[pix]
+        rows[:-1, 2] = B1[pix] * sA[pix]
+        rows[:-1, 3] = C1[pix] * sA[pix]
+        rows[:-1, 4] = np.clip(s0, -0.5, 0.5)
+        rows[:-1, 5] = np.clip(s1, -0.5, 0.5)
+        rows[:-1, 4:][~live] = 0  # finished pixels take nothing
+        rows[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
+        W, WD, L, S = _scatter(cells, dens, u[:, b_ax], u[:, c_ax], col - c0, row - r0, hu, hv,
+                               bw, bh, rows, ftab, fscale)
+        sees = (L > 0) & (W > 0)
         if not sees.any():
             continue
         q = pix[sees]
         value = (WD[sees] / W[sees]).astype(np.float32)
-        length = (frac[sees] * mm_per_A[q]).astype(np.float32)
-        first_depth = r["a0"][q] + r["kz"][q] * front[sees]
+        length = (L[sees] * mm_per_A[q]).astype(np.float32)
+        first_depth = r["a0"][q] + r["kz"][q] * (ta[sees] + S[sees] * span[sees])
         if mode == "xray":
             mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
             acc[q, 0] += mu * length
@@ -361,13 +373,20 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     return rgba.reshape(h, w, 4), depth.reshape(h, w)
 
 
-def _scatter(cells, dens, ub, uc, col, row, hu, hv, bw, bh, bmap, cmap, ftab, fscale):
-    """Splat one sheet into its window ``bh × bw``: per pixel ``Σ w``, ``Σ w·density`` and the
-    number of voxels whose cell holds the pixel's crossing point (flat arrays)."""
+def _scatter(cells, dens, ub, uc, col, row, hu, hv, bw, bh, rows, ftab, fscale):
+    """Splat one sheet into its ``bh × bw`` window.
+
+    ``rows`` holds per window pixel (and one last row for pairs outside the window): the
+    crossing point (B, C) of its ray with the sheet's plane, the ray's drift (dB/dA, dC/dA)
+    and the range ``[s0, s1]`` of A-offsets from the plane it travels in the slab. Returns per
+    pixel ``Σ w``, ``Σ w·density``, the length (in units of A) of the ray's path in the slab
+    that lies in the sheet's cells, and the A-offset where that path starts.
+    """
     npix = bw * bh
     W = np.zeros(npix + 1)
     WD = np.zeros(npix + 1)
-    N = np.zeros(npix + 1)
+    L = np.zeros(npix + 1)
+    S = np.full(npix + 1, np.inf)
     ou, ov = np.meshgrid(np.arange(-hu, hu + 1), np.arange(-hv, hv + 1))
     ou, ov = ou.ravel(), ov.ravel()
     fb = cells[:, 0].astype(np.float32)
@@ -381,16 +400,34 @@ def _scatter(cells, dens, ub, uc, col, row, hu, hv, bw, bh, bmap, cmap, ftab, fs
         cc = col[sl][None, :] + ou[:, None]
         rr = row[sl][None, :] + ov[:, None]
         valid = (cc >= 0) & (cc < bw) & (rr >= 0) & (rr < bh)
-        flat = np.where(valid, rr * bw + cc, npix)
-        safe = np.minimum(flat, npix - 1)
-        db = bmap[safe] - fb[sl]
-        dc = cmap[safe] - fc[sl]
-        proj = db * ub[sl] + dc * uc[sl]
+        flat = np.where(valid, rr * bw + cc, npix).ravel()
+        px = rows[flat]
+        db = px[:, 0] - np.broadcast_to(fb[sl], cc.shape).ravel()
+        dc = px[:, 1] - np.broadcast_to(fc[sl], cc.shape).ravel()
+        pub = np.broadcast_to(ub[sl], cc.shape).ravel()
+        puc = np.broadcast_to(uc[sl], cc.shape).ravel()
+        # Footprint: the kernel integrated along the ray, at the crossing point.
+        proj = db * pub + dc * puc
         r2 = np.maximum(db * db + dc * dc - proj * proj, 0)
         wt = ftab[np.minimum((r2 * np.float32(fscale)).astype(np.int64), len(ftab) - 1)]
-        near = (db >= -0.5) & (db < 0.5) & (dc >= -0.5) & (dc < 0.5)
-        flat = flat.ravel()
-        W += np.bincount(flat, wt.ravel(), minlength=npix + 1)
-        WD += np.bincount(flat, (wt * dens[sl]).ravel(), minlength=npix + 1)
-        N += np.bincount(flat, near.ravel(), minlength=npix + 1)
-    return W[:npix], WD[:npix], N[:npix]
+        # The ray's path in the slab, (db, dc) + s (dB/dA, dC/dA) for s in [s0, s1], clipped to
+        # the voxel's cell |.| <= 0.5 in both in-plane axes.
+        lo, hi = px[:, 4], px[:, 5]
+        for delta, drift in ((db, px[:, 2]), (dc, px[:, 3])):
+            drift = np.where(np.abs(drift) < _TINY, _TINY, drift)
+            e0 = (-0.5 - delta) / drift
+            e1 = (0.5 - delta) / drift
+            lo = np.maximum(lo, np.minimum(e0, e1))
+            hi = np.minimum(hi, np.maximum(e0, e1))
+        length = np.maximum(hi - lo, 0)
+        W += np.bincount(flat, wt, minlength=npix + 1)
+        WD += np.bincount(flat, wt * np.broadcast_to(dens[sl], cc.shape).ravel(),
+                          minlength=npix + 1)
+        L += np.bincount(flat, length, minlength=npix + 1)
+        hit = length > 0
+        np.minimum.at(S, flat[hit], lo[hit])
+    return W[:npix], WD[:npix], L[:npix], S[:npix]
+
+
+_FAR = 1e6
+_TINY = 1e-12
