@@ -165,7 +165,8 @@ def test_box_along_each_axis_both_ways(direction):
 def test_box_oblique_opacity_correction(kind, direction):
     """Rays crossing both faces of the box perpendicular to the principal axis get one sample
     per slice, each corrected for the physical step along that ray (anisotropic voxels,
-    perspective: per ray): alpha = 1 - (1 - a0)^(chord/Δ0) exactly, chord in mm."""
+    perspective: per ray): alpha = 1 - (1 - a0)^(chord/Δ0) exactly, chord in mm, up to the
+    box's side faces (clamp policy: renormalised weights)."""
     vevm, box = box_volume(shape=(26, 22, 10), box=((2, 24), (2, 20), (3, 8)),
                            spacing=(0.7, 0.9, 1.6))
     g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
@@ -182,7 +183,9 @@ def test_box_oblique_opacity_correction(kind, direction):
     for a in (0, 1):
         for t in (t_lo, t_hi):
             x = o[..., a] + t * d[..., a]
-            inner &= (x >= box[a, 0] + 1.5) & (x <= box[a, 1] - 2.5)
+            # The warp reads intermediate rays up to 1 voxel away; on those, every sample's
+            # nearest voxel is in the box, so the clamp policy gives it the full opacity.
+            inner &= (x >= box[a, 0] + 0.5) & (x <= box[a, 1] - 1.5 - 1e-6)
     assert inner.sum() > 80
     # Perspective: the warp blends neighbouring rays of slightly different chords (~5e-6).
     atol = 3e-6 if kind == "ORTHO" else 2e-5
