@@ -178,10 +178,9 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         raise VolumeEVMError(f"max_footprint_px: must be >= 1, got {max_footprint_px!r}")
     h, w = camera.shape
     npix = h * w
-    rgba = np.zeros((npix, 4), np.float32)
     depth = np.full(npix, BACKGROUND_DEPTH, np.float32)
     if vevm.evm.is_empty():
-        return rgba.reshape(h, w, 4), depth.reshape(h, w)
+        return np.zeros((h, w, 4), np.float32), depth.reshape(h, w)
 
     spacing = np.asarray(vevm.spacing, dtype=np.float64)
     r = camera_rays(camera, g, vevm.shape, depth_in)
@@ -199,21 +198,32 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     axis = int(np.argmax(np.abs(view * spacing) / np.linalg.norm(view * spacing)))
     b_ax, c_ax = ["xyz".index(ch) for ch in TABLE_ORDERS[axis][1:]]
 
-    # Per pixel: where the ray crosses plane A = a (B = B0 + a·B1, C likewise), its parameter
-    # there (t = (a - oA)·iA), the mm per unit of A, and the axial depth a0 + kz·t.
+    # Per pixel (as (H, W) images): where the ray crosses plane A = a (B = B0 + a·B1, C
+    # likewise), its parameter there (t = tA + a·iA), the mm per unit of A, its axial depth
+    # a0 + kz·t, and the clipped ray range [t0, t1].
     reach = t1 > t0
     with np.errstate(divide="ignore", invalid="ignore"):
         iA = 1.0 / d[:, axis]
     reach &= np.isfinite(iA)
     iA = np.where(reach, iA, 0.0)
-    B1 = d[:, b_ax] * iA
-    C1 = d[:, c_ax] * iA
-    B0 = o[:, b_ax] - o[:, axis] * B1
-    C0 = o[:, c_ax] - o[:, axis] * C1
-    tA = -o[:, axis] * iA
-    mm_per_A = np.linalg.norm(d * spacing, axis=1) * np.abs(iA)
-    aA = np.abs(iA)  # ray parameter per unit of A
-    sA = np.sign(iA)
+    img = {
+        "B1": d[:, b_ax] * iA,
+        "C1": d[:, c_ax] * iA,
+        "tA": -o[:, axis] * iA,
+        "iA": iA,
+        "span": np.abs(iA),  # ray parameter per unit of A
+        "t0": np.where(reach, t0, 0.0),
+        "t1": np.where(reach, t1, 0.0),
+        "mm": np.linalg.norm(d * spacing, axis=1) * np.abs(iA),
+        "a0": r["a0"],
+        "kz": r["kz"],
+    }
+    img["B0"] = o[:, b_ax] - o[:, axis] * img["B1"]
+    img["C0"] = o[:, c_ax] - o[:, axis] * img["C1"]
+    # Drift per unit of path along the ray's own direction (offsets count along the ray).
+    img["dB"] = img["B1"] * np.sign(iA)
+    img["dC"] = img["C1"] * np.sign(iA)
+    img = {k: v.reshape(h, w) for k, v in img.items()}
 
     # Sheet order: outward from the camera, the side the view faces first (front to back for
     # every ray that sees a sheet; rays see no sheet behind their start).
@@ -237,15 +247,21 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         hi = hi if hi > lo else lo + 1.0
         lut = (np.asarray(tf.straight_table(lo, hi, 4096), dtype=np.float32), lo,
                4095.0 / (hi - lo))
-    acc = np.zeros((npix, 4), np.float32)
+    acc = np.zeros((h, w, 4), np.float32)
+    depth = depth.reshape(h, w)
+    done = ~reach.reshape(h, w)  # pixels that take no more contributions
+    # Flat views of the images for scattered updates.
+    acc_f, depth_f, done_f = acc.reshape(-1, 4), depth.reshape(-1), done.reshape(-1)
+    mm_f, a0_f, kz_f = img["mm"].ravel(), img["a0"].ravel(), img["kz"].ravel()
     if mode == "mip":
-        vmax = np.full(npix, -np.inf, np.float32)
-    done = ~reach  # pixels that take no more contributions
+        vmax_f = np.full(npix, -np.inf, np.float32)
     unit = tf.unit_length_mm if lut is not None else 1.0
     fwd_i = camera.forward @ inv[:3, :3].T
     for a, cells, dens in sheets:
-        if done.all():
+        live_rows = np.flatnonzero(~done.all(axis=1))
+        if len(live_rows) == 0:
             break
+        live_cols = np.flatnonzero(~done.all(axis=0))
         n = len(cells)
         vox = np.empty((n, 3), np.float64)
         vox[:, axis] = a
@@ -271,26 +287,29 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         ok &= np.isfinite(hwid).all(axis=1)
         if not ok.all():
             cells, dens, uv, u, hwid = cells[ok], dens[ok], uv[ok], u[ok], hwid[ok]
+            uvb, uvc = uvb[ok], uvc[ok]
         if len(cells) == 0:
             continue
         hu = int(min(np.ceil(hwid[:, 0].max()) + 1, max_px + 1))
         hv = int(min(np.ceil(hwid[:, 1].max()) + 1, max_px + 1))
         col = np.floor(uv[:, 0]).astype(np.int64)
         row = np.floor(uv[:, 1]).astype(np.int64)
-        # The sheet's window in the image.
-        c0, c1 = max(int(col.min()) - hu, 0), min(int(col.max()) + hu + 1, w)
-        r0, r1 = max(int(row.min()) - hv, 0), min(int(row.max()) + hv + 1, h)
+        # The sheet's window in the image, cut to the pixels still taking contributions.
+        c0 = max(int(col.min()) - hu, int(live_cols[0]))
+        c1 = min(int(col.max()) + hu + 1, int(live_cols[-1]) + 1)
+        r0 = max(int(row.min()) - hv, int(live_rows[0]))
+        r1 = min(int(row.max()) + hv + 1, int(live_rows[-1]) + 1)
         if c0 >= c1 or r0 >= r1:
             continue
-        bw, bh = c1 - c0, r1 - r0
-        pix = (np.arange(r0, r1)[:, None] * w + np.arange(c0, c1)[None, :]).ravel()
-        live = ~done[pix]
+        win = np.s_[r0:r1, c0:c1]
+        live = ~done[win]
         if not live.any():
             continue
+        bh, bw = live.shape
         if mode == "over" and termination < 1:
             # Skip voxels whose whole window is finished (summed-area table of live pixels).
-            sat = np.zeros((bh + 1, bw + 1), np.int64)
-            sat[1:, 1:] = live.reshape(bh, bw).cumsum(0).cumsum(1)
+            sat = np.zeros((bh + 1, bw + 1), np.int32)
+            np.cumsum(np.cumsum(live, axis=0, dtype=np.int32), axis=1, out=sat[1:, 1:])
             ra = np.clip(row - hv - r0, 0, bh)
             rb = np.clip(row + hv + 1 - r0, 0, bh)
             ca = np.clip(col - hu - c0, 0, bw)
@@ -298,45 +317,47 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
             keep = (sat[rb, cb] - sat[ra, cb] - sat[rb, ca] + sat[ra, ca]) > 0
             if not keep.all():
                 cells, dens, u, col, row = cells[keep], dens[keep], u[keep], col[keep], row[keep]
+                uv, uvb, uvc = uv[keep], uvb[keep], uvc[keep]
             if len(cells) == 0:
                 continue
-        # Per window pixel: where the ray crosses plane a (B, C), its in-plane drift per unit
-        # of A, and the part of the slab a - 0.5 .. a + 0.5 it travels (box, clip range,
-        # depth_in) as offsets along A from the plane.
-        # Offsets are counted along the ray (sign of dA), so the smallest is the front.
-        ta = tA[pix] + a * iA[pix]
-        span = aA[pix]
+        offsets = _window_offsets(uv, uvb, uvc, u[:, b_ax], u[:, c_ax], hu, hv, radius,
+                                  not camera.is_ortho)
+        # Per window pixel: the crossing point, the drift, and the part of the slab
+        # a - 0.5 .. a + 0.5 the ray travels (box, clip range, depth_in) as offsets from the
+        # plane along the ray.
+        span = img["span"][win]
+        ta = img["tA"][win] + a * img["iA"][win]
         with np.errstate(divide="ignore", invalid="ignore"):
-            s0 = (t0[pix] - ta) / span
-            s1 = (t1[pix] - ta) / span
-        rows = np.empty((len(pix) + 1, 6), np.float32)
-        rows[:-1, 0] = B0[pix] + a * B1[pix]
-        rows[:-1, 1] = C0[pix] + a * C1[pix]
-        rows[:-1, 2] = B1[pix] * sA[pix]
-        rows[:-1, 3] = C1[pix] * sA[pix]
-        rows[:-1, 4] = np.clip(s0, -0.5, 0.5)
-        rows[:-1, 5] = np.clip(s1, -0.5, 0.5)
-        rows[:-1, 4:][~live] = 0  # finished pixels take nothing
-        rows[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
-        W, WD, L, S = _scatter(cells, dens, u[:, b_ax], u[:, c_ax], col - c0, row - r0, hu, hv,
-                               bw, bh, rows, ftab, fscale)
-        sees = (L > 0) & (W > 0)
-        if not sees.any():
+            s0 = np.clip((img["t0"][win] - ta) / span, -0.5, 0.5)
+            s1 = np.clip((img["t1"][win] - ta) / span, -0.5, 0.5)
+        s1[~live] = s0[~live]  # finished pixels take nothing
+        pixel = np.empty((bh * bw + 1, 6), np.float32)
+        pixel[:-1, 0] = (img["B0"][win] + a * img["B1"][win]).ravel()
+        pixel[:-1, 1] = (img["C0"][win] + a * img["C1"][win]).ravel()
+        pixel[:-1, 2] = img["dB"][win].ravel()
+        pixel[:-1, 3] = img["dC"][win].ravel()
+        pixel[:-1, 4] = s0.ravel()
+        pixel[:-1, 5] = s1.ravel()
+        pixel[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
+        W, WD, L, S = _scatter(cells, dens, u[:, b_ax], u[:, c_ax], col - c0, row - r0,
+                               offsets, bw, bh, pixel, ftab, fscale)
+        sees = np.flatnonzero((L > 0) & (W > 0))
+        if len(sees) == 0:
             continue
-        q = pix[sees]
+        q = (sees // bw + r0) * w + sees % bw + c0  # flat image indices
         value = (WD[sees] / W[sees]).astype(np.float32)
-        length = (L[sees] * mm_per_A[q]).astype(np.float32)
-        first_depth = r["a0"][q] + r["kz"][q] * (ta[sees] + S[sees] * span[sees])
+        length = (L[sees] * mm_f[q]).astype(np.float32)
+        first_depth = a0_f[q] + kz_f[q] * (ta.ravel()[sees] + S[sees] * span.ravel()[sees])
         if mode == "xray":
             mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-            acc[q, 0] += mu * length
-            hit = (mu > 0) & (depth[q] == BACKGROUND_DEPTH)
-            depth[q[hit]] = first_depth[hit]
+            acc_f[q, 0] += mu * length
+            hit = (mu > 0) & (depth_f[q] == BACKGROUND_DEPTH)
+            depth_f[q[hit]] = first_depth[hit]
             continue
         if mode == "mip":
-            better = value > vmax[q]
-            vmax[q[better]] = value[better]
-            depth[q[better]] = first_depth[better]
+            better = value > vmax_f[q]
+            vmax_f[q[better]] = value[better]
+            depth_f[q[better]] = first_depth[better]
             continue
         tab, lo, scale = lut
         x = np.clip((value - np.float32(lo)) * np.float32(scale), 0, len(tab) - 1)
@@ -347,36 +368,36 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         c = st[:, :3] * alpha[:, None]
         hit = alpha > 0
         if mode == "over":
-            trans = 1 - acc[q, 3]
-            acc[q, :3] += trans[:, None] * c
-            acc[q, 3] += trans * alpha
-            first = hit & (depth[q] == BACKGROUND_DEPTH)
-            depth[q[first]] = first_depth[first]
+            trans = 1 - acc_f[q, 3]
+            acc_f[q, :3] += trans[:, None] * c
+            acc_f[q, 3] += trans * alpha
+            first = hit & (depth_f[q] == BACKGROUND_DEPTH)
+            depth_f[q[first]] = first_depth[first]
             if termination < 1:
-                done[q] |= acc[q, 3] >= termination
+                done_f[q] |= acc_f[q, 3] >= termination
         else:  # under: back to front
             keep = 1 - alpha
-            acc[q, :3] = c + keep[:, None] * acc[q, :3]
-            acc[q, 3] = alpha + keep * acc[q, 3]
-            depth[q[hit]] = first_depth[hit]
+            acc_f[q, :3] = c + keep[:, None] * acc_f[q, :3]
+            acc_f[q, 3] = alpha + keep * acc_f[q, 3]
+            depth_f[q[hit]] = first_depth[hit]
     if mode == "xray":
-        acc[:] = 1 - np.exp(-acc[:, :1])
+        acc_f[:] = 1 - np.exp(-acc_f[:, :1])
     elif mode == "mip":
-        seen = np.isfinite(vmax)
-        acc[:] = 0
+        seen = np.isfinite(vmax_f)
+        acc_f[:] = 0
         if seen.any():
-            st = tf.evaluate(vmax[seen])
-            acc[seen, 3] = st[:, 3]
-            acc[seen, :3] = st[:, :3] * st[:, 3:4]
-        depth[~(seen & (acc[:, 3] > 0))] = BACKGROUND_DEPTH
-    rgba[:] = acc
-    return rgba.reshape(h, w, 4), depth.reshape(h, w)
+            st = tf.evaluate(vmax_f[seen])
+            acc_f[seen, 3] = st[:, 3]
+            acc_f[seen, :3] = st[:, :3] * st[:, 3:4]
+        depth_f[~(seen & (acc_f[:, 3] > 0))] = BACKGROUND_DEPTH
+    return acc, depth
 
 
-def _scatter(cells, dens, ub, uc, col, row, hu, hv, bw, bh, rows, ftab, fscale):
+def _scatter(cells, dens, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale):
     """Splat one sheet into its ``bh × bw`` window.
 
-    ``rows`` holds per window pixel (and one last row for pairs outside the window): the
+    Each voxel goes to the pixels ``(col, row) + offsets`` (window coordinates). ``rows``
+    holds per window pixel (and one last row for pairs outside the window): the
     crossing point (B, C) of its ray with the sheet's plane, the ray's drift (dB/dA, dC/dA)
     and the range ``[s0, s1]`` of A-offsets from the plane it travels in the slab. Returns per
     pixel ``Σ w``, ``Σ w·density``, the length (in units of A) of the ray's path in the slab
@@ -387,8 +408,7 @@ def _scatter(cells, dens, ub, uc, col, row, hu, hv, bw, bh, rows, ftab, fscale):
     WD = np.zeros(npix + 1)
     L = np.zeros(npix + 1)
     S = np.full(npix + 1, np.inf)
-    ou, ov = np.meshgrid(np.arange(-hu, hu + 1), np.arange(-hv, hv + 1))
-    ou, ov = ou.ravel(), ov.ravel()
+    ou, ov = offsets[:, 0], offsets[:, 1]
     fb = cells[:, 0].astype(np.float32)
     fc = cells[:, 1].astype(np.float32)
     ub = ub.astype(np.float32)
@@ -430,4 +450,33 @@ def _scatter(cells, dens, ub, uc, col, row, hu, hv, bw, bh, rows, ftab, fscale):
 
 
 _FAR = 1e6
+
+
+def _window_offsets(uv, uvb, uvc, ub, uc, hu, hv, radius, perspective):
+    """Pixel offsets ``(k, 2)`` (column, row) from a voxel's pixel that its footprint can reach.
+
+    The footprint is the in-plane set ``|q_⊥| <= radius`` (which also holds every cell the
+    ray's path in the slab can cross); a pixel offset ``δ`` maps to ``q = J⁻¹ δ`` with ``J``
+    the local projection of the plane (columns: image motion per unit B and C). A pixel
+    reaches it if its centre, anywhere within half a pixel of ``δ`` (the voxel's sub-pixel
+    position), does; the seminorm's triangle inequality bounds that. Perspective: ``J`` and
+    ``u`` of the voxel with the largest footprint, one pixel of margin.
+    """
+    big = np.argmax(np.abs((uvb - uv)[:, 0] * (uvc - uv)[:, 1]
+                           - (uvb - uv)[:, 1] * (uvc - uv)[:, 0]))
+    jac = np.stack([uvb[big] - uv[big], uvc[big] - uv[big]], axis=1)  # (2, 2)
+    inv = np.linalg.pinv(jac)
+    ud = np.array([ub[big], uc[big]])
+
+    def perp(q):  # |q_⊥| for in-plane offsets q (..., 2)
+        along = q @ ud
+        return np.sqrt(np.maximum((q * q).sum(axis=-1) - along * along, 0))
+
+    ou, ov = np.meshgrid(np.arange(-hu, hu + 1), np.arange(-hv, hv + 1))
+    cand = np.stack([ou.ravel(), ov.ravel()], axis=1).astype(np.float64)
+    # The pixel centre relative to the voxel's projection lies within half a pixel of delta.
+    corners = np.array([(-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5)])
+    slack = perp(corners @ inv.T).max() * (3.0 if perspective else 1.0)
+    keep = perp(cand @ inv.T) <= radius + slack
+    return cand[keep].astype(np.int64)
 _TINY = 1e-12
