@@ -138,7 +138,7 @@ def test_box_along_each_axis_both_ways(direction):
     length = (box[axis, 1] - box[axis, 0]) * vevm.spacing[axis]
     expected = 1 - (1 - 0.12) ** (length / 2.0)
     for mode in ("over", "under"):
-        rgba, depth = render_shear_warp(vevm, cam, tf, g, mode=mode, ert_threshold=1.0)
+        rgba, depth = render_shear_warp(vevm, cam, tf, g, mode=mode, termination=1.0)
         o, _ = index_rays(cam, g)
         others = [a for a in range(3) if a != axis]
         interior = np.ones(cam.shape, bool)
@@ -173,7 +173,7 @@ def test_box_oblique_opacity_correction(kind, direction):
     tf = constant_tf(0.2)
     cam = orbit_camera(g, vevm.shape, vevm.spacing, direction, kind, res=(50, 42), zoom=1.1,
                        distance=2.5, lens=60.0)
-    rgba, _ = render_shear_warp(vevm, cam, tf, g, ert_threshold=1.0)
+    rgba, _ = render_shear_warp(vevm, cam, tf, g, termination=1.0)
     o, d = index_rays(cam, g)
     c = 2  # the principal axis for both directions
     t_lo = (box[c, 0] - 0.5 - o[..., c]) / d[..., c]
@@ -215,7 +215,7 @@ def test_gaussian_blob_against_reference(mode, kind):
     g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
     cam = orbit_camera(g, vevm.shape, vevm.spacing, (0.5, -1.0, 0.35), kind)
     opts = xray_options(mode, 0.01)
-    rgba, depth = render_shear_warp(vevm, cam, BLOB_TF, g, mode=mode, ert_threshold=1.0, **opts)
+    rgba, depth = render_shear_warp(vevm, cam, BLOB_TF, g, mode=mode, termination=1.0, **opts)
     ref, ref_depth = reference(vevm, g, cam, BLOB_TF, mode, **opts)
     assert ref[..., 3].max() > 0.2
     assert np.abs(rgba - ref).mean() < BLOB_MAE[mode]
@@ -232,7 +232,7 @@ def test_brain_against_reference(brain_half, mode, kind, direction):
     g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
     cam = orbit_camera(g, vevm.shape, vevm.spacing, direction, kind, res=(52, 44))
     opts = xray_options(mode, 0.002)
-    rgba, depth = render_shear_warp(vevm, cam, MRI, g, mode=mode, ert_threshold=1.0, **opts)
+    rgba, depth = render_shear_warp(vevm, cam, MRI, g, mode=mode, termination=1.0, **opts)
     ref, ref_depth = reference(vevm, g, cam, MRI, mode, **opts)
     assert ref[..., 3].mean() > 0.01
     assert np.abs(rgba - ref).mean() < BRAIN_MAE[mode]
@@ -245,7 +245,7 @@ def test_brain_against_reference(brain_half, mode, kind, direction):
 def test_over_equals_under(brain):
     g = grid_to_world(brain.spacing, (0.0, 0.0, 0.0))
     cam = orbit_camera(g, brain.shape, brain.spacing, (-0.3, 1.0, 0.6), "PERSP", res=(61, 47))
-    over, d_over = render_shear_warp(brain, cam, MRI, g, mode="over", ert_threshold=1.0)
+    over, d_over = render_shear_warp(brain, cam, MRI, g, mode="over", termination=1.0)
     under, d_under = render_shear_warp(brain, cam, MRI, g, mode="under")
     assert over[..., 3].max() > 0.5
     assert np.abs(over - under).max() < 2e-5
@@ -307,8 +307,8 @@ def test_early_termination_error_bound(ct_head, threshold):
     cam = orbit_camera(g, ct_head.shape, ct_head.spacing, (0.2, -1.0, 0.1), "ORTHO",
                        res=(64, 64))
     tf = TransferFunction.preset("ct_skin")
-    full, full_depth = render_shear_warp(ct_head, cam, tf, g, ert_threshold=1.0)
-    ert, ert_depth = render_shear_warp(ct_head, cam, tf, g, ert_threshold=threshold)
+    full, full_depth = render_shear_warp(ct_head, cam, tf, g, termination=1.0)
+    ert, ert_depth = render_shear_warp(ct_head, cam, tf, g, termination=threshold)
     diff = np.abs(full - ert).max(axis=-1)
     assert (full[..., 3] > threshold).sum() > 500
     assert diff.max() > 1e-4  # termination happened
@@ -354,9 +354,9 @@ def test_depth_in_slanted_against_reference(brain_half):
     centre_depth = cam.axial_depth(centre_of(g, vevm.shape))
     cols = np.arange(cam.shape[1])
     depth_in = np.broadcast_to(centre_depth + (cols - cols.mean()) * 0.0015, cam.shape).copy()
-    rgba, _ = render_shear_warp(vevm, cam, MRI, g, depth_in=depth_in, ert_threshold=1.0)
+    rgba, _ = render_shear_warp(vevm, cam, MRI, g, depth_in=depth_in, termination=1.0)
     ref, _ = reference(vevm, g, cam, MRI, "over", depth_in=depth_in)
-    unclipped, _ = render_shear_warp(vevm, cam, MRI, g, ert_threshold=1.0)
+    unclipped, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
     assert np.abs(unclipped - ref).mean() > 0.02
     assert np.abs(rgba - ref).mean() < 0.008
 
@@ -376,7 +376,7 @@ def test_perspective_eye_inside_or_beside(brain_half, where):
         m = look_at(centre + (-0.029, 0.001, -0.037), centre + (0.001, 0.001, 0.001))
     cam = Camera.perspective(m, 30.0 if where == "inside" else 12.0, resolution_x=48,
                              resolution_y=40, clip_start=0.001)
-    rgba, _ = render_shear_warp(vevm, cam, MRI, g, ert_threshold=1.0)
+    rgba, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
     ref, _ = reference(vevm, g, cam, MRI, "over")
     assert ref[..., 3].mean() > 0.1
     # measured 0.016 and 0.0075; choosing the axis from the eye-to-centre vector alone gives
@@ -392,7 +392,7 @@ def test_single_voxel_and_odd_sizes():
     g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
     tf = constant_tf(0.3)
     cam, _, _ = aligned_camera(g, vevm.shape, vevm.spacing, 0, 1)
-    rgba, depth = render_shear_warp(vevm, cam, tf, g, ert_threshold=1.0)
+    rgba, depth = render_shear_warp(vevm, cam, tf, g, termination=1.0)
     lit = rgba[..., 3] > 0
     assert lit.sum() == 1
     np.testing.assert_allclose(rgba[..., 3].max(), 0.3, atol=1e-6)  # 1 mm along x
@@ -439,8 +439,8 @@ def test_bad_input(brain_half):
         depth_in = np.ones(cam.shape)
         depth_in[2, 3] = np.nan
         render_shear_warp(brain_half, cam, MRI, g, depth_in=depth_in)
-    with pytest.raises(VolumeEVMError, match="ert_threshold"):
-        render_shear_warp(brain_half, cam, MRI, g, ert_threshold=0.0)
+    with pytest.raises(VolumeEVMError, match="termination"):
+        render_shear_warp(brain_half, cam, MRI, g, termination=0.0)
     with pytest.raises(VolumeEVMError, match="lut_size"):
         render_shear_warp(brain_half, cam, MRI, g, lut_size=1)
     with pytest.raises(VolumeEVMError, match="xray_scale"):

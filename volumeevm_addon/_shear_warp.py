@@ -48,7 +48,7 @@ Pipeline
    code is 0 and the table row 0 is ``(0, 0, 0, 0, weight 0)``.
 6. **Compositing** into one float32 intermediate image: ``"over"`` front to back,
    ``C += (1 - A)·c``, with early ray termination: a pixel whose opacity reached
-   ``ert_threshold`` takes nothing more (so its error is at most ``1 - ert_threshold``), and
+   ``termination`` takes nothing more (so its error is at most ``1 - termination``), and
    every few slices the bounding box of the pixels below it is recomputed; slices are cut to it
    and the loop stops when it is empty. (The box only shrinks where whole bands of the
    intermediate image are opaque, e.g. a close-up; around a head seen whole the transparent
@@ -234,7 +234,7 @@ def _window(codes, box, a0, a1, b0, b1):
     return out
 
 
-def _check(vevm, camera, tf, grid_to_world, mode, depth_in, ert_threshold, lut_size, xray_scale,
+def _check(vevm, camera, tf, grid_to_world, mode, depth_in, termination, lut_size, xray_scale,
            xray_offset):
     if mode not in MODES:
         raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
@@ -258,18 +258,18 @@ def _check(vevm, camera, tf, grid_to_world, mode, depth_in, ert_threshold, lut_s
             raise VolumeEVMError(
                 f"depth_in: {int(np.isnan(depth_in).sum())} NaN values; use 1e10 for no geometry")
     try:
-        ert_threshold = float(ert_threshold)
+        termination = float(termination)
         xray_scale, xray_offset = float(xray_scale), float(xray_offset)
     except (TypeError, ValueError):
-        raise VolumeEVMError("ert_threshold/xray_scale/xray_offset: expected numbers") from None
-    if not 0.0 < ert_threshold <= 1.0:
-        raise VolumeEVMError(f"ert_threshold: must be in (0, 1], got {ert_threshold!r}")
+        raise VolumeEVMError("termination/xray_scale/xray_offset: expected numbers") from None
+    if not 0.0 < termination <= 1.0:
+        raise VolumeEVMError(f"termination: must be in (0, 1], got {termination!r}")
     if not np.isfinite(xray_scale) or xray_scale < 0 or not np.isfinite(xray_offset):
         raise VolumeEVMError(f"xray_scale/xray_offset: need finite numbers, scale >= 0, got "
                              f"{xray_scale!r}, {xray_offset!r}")
     if int(lut_size) != lut_size or not 2 <= lut_size < 32767:
         raise VolumeEVMError(f"lut_size: an integer in [2, 32767), got {lut_size!r}")
-    return g, depth_in, ert_threshold, int(lut_size), xray_scale, xray_offset
+    return g, depth_in, termination, int(lut_size), xray_scale, xray_offset
 
 
 class _View:
@@ -431,7 +431,7 @@ class _View:
 
 
 def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
-                      skip_empty=True, ert_threshold=0.99, lut_size=4096, xray_scale=1.0,
+                      skip_empty=True, termination=0.99, lut_size=4096, xray_scale=1.0,
                       xray_offset=0.0):
     """Render a VolumeEVM by shear-warp (module docstring: factorization, policy, depth).
 
@@ -454,9 +454,9 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         the box of its voxels the transfer function does not make transparent) from the EVM
         and the densities table. False: the same algorithm over every voxel of the dense grid,
         with the region as a mask (the dense side of the exactness contract; slower).
-    ert_threshold : float
+    termination : float
         Early ray termination for ``"over"``: pixels whose opacity reached it stop receiving
-        slices (error at most ``1 - ert_threshold`` per pixel); 1.0 composites every slice.
+        slices (error at most ``1 - termination`` per pixel); 1.0 composites every slice.
     lut_size : int
         Rows of the classification table over the transfer function's control-point range.
     xray_scale, xray_offset : float
@@ -475,8 +475,8 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         For a bad mode, camera, transfer function, matrix, ``depth_in`` or option, and for a
         perspective camera so close that the intermediate image would be unreasonably large.
     """
-    g, depth_in, ert_threshold, lut_size, xray_scale, xray_offset = _check(
-        vevm, camera, tf, grid_to_world, mode, depth_in, ert_threshold, lut_size, xray_scale,
+    g, depth_in, termination, lut_size, xray_scale, xray_offset = _check(
+        vevm, camera, tf, grid_to_world, mode, depth_in, termination, lut_size, xray_scale,
         xray_offset)
     h, w = camera.shape
     rgba_out = np.zeros((h, w, 4), np.float32)
@@ -488,13 +488,13 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     view = _View(vevm, camera, g, layout)
     if view.empty:
         return rgba_out, depth_out
-    image, rank, front = _composite(view, layout, camera, g, tf, mode, depth_in, ert_threshold,
+    image, rank, front = _composite(view, layout, camera, g, tf, mode, depth_in, termination,
                                     lut_size, xray_scale, xray_offset)
     _warp(view, camera, image, rank, front, rgba_out, depth_out)
     return rgba_out, depth_out
 
 
-def _composite(view, layout, camera, g, tf, mode, depth_in, ert_threshold, lut_size, xray_scale,
+def _composite(view, layout, camera, g, tf, mode, depth_in, termination, lut_size, xray_scale,
                xray_offset):
     """The slice loop: returns the intermediate premultiplied RGBA, the front-to-back rank of
     the depth sample per pixel (``_NEVER`` where none) and, per rank, the slice coordinate of
@@ -584,13 +584,13 @@ def _composite(view, layout, camera, g, tf, mode, depth_in, ert_threshold, lut_s
         target = image[box]
         if mode == "over":
             trans = 1.0 - target[..., 3]
-            if ert_threshold < 1.0:  # terminated rays take nothing more
-                np.putmask(trans, target[..., 3] >= ert_threshold, 0.0)
+            if termination < 1.0:  # terminated rays take nothing more
+                np.putmask(trans, target[..., 3] >= termination, 0.0)
             c *= trans[..., None]
             target += c
             np.copyto(rank_map[box], ranks[n], where=hit & (rank_map[box] == _NEVER))
             if (n + 1) % _ERT_EVERY == 0:
-                active = _active_box(image, ert_threshold, active)
+                active = _active_box(image, termination, active)
                 if active is None:
                     break
         else:
