@@ -252,6 +252,23 @@ def test_over_equals_under(brain):
     np.testing.assert_array_equal(d_over, d_under)
 
 
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_shading_against_reference(brain_half, kind):
+    """Pre-classified Blinn–Phong headlight: close to the reference's shaded image (measured
+    0.006 / 0.003), far closer than the unshaded image is (0.030 / 0.017); dense = EVM."""
+    vevm = brain_half
+    g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
+    cam = orbit_camera(g, vevm.shape, vevm.spacing, (0.5, -1.0, 0.35), kind, res=(52, 44))
+    shaded, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0, shading=True)
+    plain, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
+    dense, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0, skip_empty=False,
+                                 shading={"ambient": 0.3, "diffuse": 0.7})
+    ref, _ = reference(vevm, g, cam, MRI, "over", shading=True)
+    assert np.abs(plain - ref).mean() > 0.015
+    assert np.abs(shaded - ref).mean() < 0.01
+    assert np.abs(shaded - dense).max() <= 1e-6
+
+
 # ---------------------------------------------------------------------------- modes
 def aligned_camera(g, shape, spacing, axis, sign):
     """Orthographic camera along ``sign`` times grid ``axis`` with one pixel per voxel, pixel
@@ -447,6 +464,8 @@ def test_bad_input(brain_half):
         render_shear_warp(brain_half, cam, None, g, mode="xray", xray_scale=-1.0)
     with pytest.raises(VolumeEVMError, match="tf"):
         render_shear_warp(brain_half, cam, None, g, mode="over")
+    with pytest.raises(VolumeEVMError, match="shading: unknown"):
+        render_shear_warp(brain_half, cam, MRI, g, shading={"glow": 1.0})
     with pytest.raises(VolumeEVMError, match="camera"):
         render_shear_warp(brain_half, "camera", MRI, g)
     with pytest.raises(VolumeEVMError, match="grid_to_world"):
