@@ -239,14 +239,17 @@ class _Grid:
         fl = np.floor(p)
         f = p - fl
         base = fl.astype(np.int64)
-        np.clip(base, -1, self.n - 1, out=base)
-        np.clip(f, 0, 1, out=f)
+        np.maximum(base, -1, out=base)
+        np.minimum(base, self.n - 1, out=base)
+        np.maximum(f, 0, out=f)
+        np.minimum(f, 1, out=f)
         nearest = base + (f >= 0.5)
         return base, f, nearest
 
     def flat(self, voxels):
         """Flat index into the padded grid of voxels ``(m, 3)`` (``-1 .. n``)."""
-        return (voxels + 1) @ self.strides
+        sx, sy, _ = self.strides
+        return (voxels[:, 0] + 1) * sx + (voxels[:, 1] + 1) * sy + (voxels[:, 2] + 1)
 
 
 class _DenseSampler:
@@ -446,7 +449,8 @@ def _classify(lut, value, ratio):
     length in steps where it is not 1 (the last, shorter segment)."""
     tab, lo, scale, _ = lut
     x = (value - np.float32(lo)) * np.float32(scale)
-    np.clip(x, 0, len(tab) - 1, out=x)
+    np.maximum(x, 0, out=x)
+    np.minimum(x, len(tab) - 1, out=x)
     i = np.minimum(x.astype(np.int64), len(tab) - 2)
     f = (x - i)[:, None]
     t0 = tab[i]
@@ -511,7 +515,11 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     if navigate:
         sampler = _NavigationSampler(vevm, shading is not None)
     else:
-        sampler = _DenseSampler(vevm, shading is not None)
+        entry = _CACHE.setdefault(vevm, {})
+        key = ("sampler", shading is not None)
+        if key not in entry:
+            entry[key] = _DenseSampler(vevm, shading is not None)
+        sampler = entry[key]
     lut = None if mode == "xray" else _lut(tf, step_mm)
     inv_t = np.linalg.inv(g)[:3, :3].T if shading is not None else None
 
@@ -534,6 +542,8 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     return rgba.reshape(h, w, 4), depth.reshape(h, w)
 
 
+_LEAPS = 3
+"""Blocks a ray may leap over per step (more would cost Python iterations on few rays)."""
 _EPS = 2e-3
 """Index-space tolerance of a leap: samples this close to a block's exit are never skipped."""
 
@@ -541,92 +551,135 @@ _EPS = 2e-3
 def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, step_mm,
            xray_scale, xray_offset, tf, p0, sv, first, stop, K, last, dirs):
     """March one chunk of rays; returns (accumulated (m, 4) float32, depth event (m,) float64:
-    lattice position ``k'`` of the event, the ray point ``p0 + k'·sv``; NaN for none)."""
+    lattice position ``k'`` of the event, the ray point ``p0 + k'·sv``; NaN for none).
+
+    The state of the rays still marching is kept compact (finished rays are frozen, then
+    dropped once they are a tenth of the set). Each step first leaps every ray whose current
+    sample lies in an invisible block (repeatedly, only those rays), then samples all rays.
+    """
     m = len(p0)
     backward = mode == "under"
-    acc = np.zeros((m, 4), np.float32)
-    kev = np.full(m, np.nan)
-    vmax = np.full(m, -np.inf, np.float32)
-    k = (stop - 1) if backward else first.copy()
-    ids = np.arange(m)
-    alive = (k >= first) & (k < stop)
-    ids, k = ids[alive], k[alive]
     step = -1 if backward else 1
+    out_acc = np.zeros((m, 4), np.float32)
+    out_kev = np.full(m, np.nan)
+    out_vmax = np.full(m, -np.inf, np.float32)
+    k = (stop - 1) if backward else first.copy()
+    keep = (k >= first) & (k < stop)
+    st = {"idx": np.flatnonzero(keep), "k": k[keep]}
+    st.update({name: arr[keep] for name, arr in (("p0", p0), ("sv", sv), ("first", first),
+                                                    ("stop", stop), ("K", K), ("last", last))})
+    if shading is not None:
+        st["dirs"] = dirs[keep]
+    n = len(st["idx"])
+    st["acc"] = np.zeros((n, 4), np.float32)
+    st["kev"] = np.full(n, np.nan)
+    st["vmax"] = np.full(n, -np.inf, np.float32)
+    live = np.ones(n, bool)
     if visible is not None:
         pstrides = np.array([(nb[1] + 2) * (nb[2] + 2), nb[2] + 2, 1], dtype=np.int64)
-        eps = _EPS / np.abs(sv.astype(np.float64)).max(axis=1)
-    while len(ids):
-        # Lattice position of each ray's current sample (the last one: its segment's middle).
-        kf = k.astype(np.float32)
-        is_last = k == K[ids] - 1
+        st["eps"] = _EPS / np.abs(st["sv"].astype(np.float64)).max(axis=1)
+
+    def position(rows, kk):
+        """Lattice position (float32) and index-space point of samples ``kk`` of ``rows``."""
+        kf = kk.astype(np.float32)
+        is_last = kk == st["K"][rows] - 1
         if is_last.any():
-            kf[is_last] += np.float32(0.5) * last[ids[is_last]] - np.float32(0.5)
-        pos = p0[ids] + kf[:, None] * sv[ids]
-        sel = None
+            kf[is_last] += np.float32(0.5) * st["last"][rows][is_last] - np.float32(0.5)
+        return kf, is_last, st["p0"][rows] + kf[:, None] * st["sv"][rows]
+
+    def finish(rows):
+        """Copy the results of ``rows`` to the outputs."""
+        ids = st["idx"][rows]
+        out_acc[ids] = st["acc"][rows]
+        out_kev[ids] = st["kev"][rows]
+        out_vmax[ids] = st["vmax"][rows]
+
+    while live.any():
+        hold = None
         if visible is not None:
-            _, _, nearest = sampler.grid.locate(pos)
-            bcell = (nearest + size) // size  # padded block coordinates
-            vis = visible[bcell @ pstrides]
-            if not vis.all():
-                leap = ~vis
-                li = ids[leap]
-                blo = (bcell[leap] - 1) * size - 0.5
-                kk = _leap(p0[li].astype(np.float64), sv[li].astype(np.float64), blo,
-                           blo + size, eps[li], backward)
-                k[leap] = np.minimum(k[leap] - 1, kk) if backward else np.maximum(k[leap] + 1, kk)
-                sel = vis
-        if sel is None:
-            ids_s, k_s, kf_s = ids, k, kf
+            # Leap: rays whose current sample is in an invisible block jump past the block
+            # (up to _LEAPS blocks per step; rays still in one wait for the next step).
+            rows = np.flatnonzero(live)
+            for _ in range(_LEAPS):
+                _, _, pos = position(rows, st["k"][rows])
+                _, _, nearest = sampler.grid.locate(pos)
+                bcell = (nearest + size) // size  # padded block coordinates
+                out = ~visible[bcell[:, 0] * pstrides[0] + bcell[:, 1] * pstrides[1]
+                               + bcell[:, 2]]
+                rows, bcell = rows[out], bcell[out]
+                if not len(rows):
+                    break
+                blo = (bcell - 1) * size - 0.5
+                kk = _leap(st["p0"][rows].astype(np.float64), st["sv"][rows].astype(np.float64),
+                           blo, blo + size, st["eps"][rows], backward)
+                kold = st["k"][rows]
+                knew = np.minimum(kold - 1, kk) if backward else np.maximum(kold + 1, kk)
+                st["k"][rows] = knew
+                gone = (knew < st["first"][rows]) | (knew >= st["stop"][rows])
+                live[rows[gone]] = False
+                rows = rows[~gone]
+            if len(rows):
+                hold = np.zeros(len(live), bool)
+                hold[rows] = True
+        kf, is_last, pos = position(slice(None), st["k"])
+        inside, value, grad = sampler(pos)
+        inside &= live
+        if hold is not None:
+            inside &= ~hold
+        ratio = np.where(is_last, st["last"], np.float32(1)) if is_last.any() else None
+        acc = st["acc"]
+        kev = st["kev"]
+        if mode == "xray":
+            mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
+            mu *= inside
+            acc[:, 0] += mu * (np.float32(step_mm) if ratio is None else step_mm * ratio)
+            hit = (mu > 0) & np.isnan(kev)
+            kev[hit] = st["k"][hit] - 0.5
+        elif mode == "mip":
+            vmax = st["vmax"]
+            better = inside & (value > vmax)  # ties keep the frontmost
+            vmax[better] = value[better]
+            kev[better] = kf[better]
         else:
-            ids_s, k_s, kf_s, pos, is_last = ids[sel], k[sel], kf[sel], pos[sel], is_last[sel]
-        if len(ids_s):
-            inside, value, grad = sampler(pos)
-            ratio = np.where(is_last, last[ids_s], np.float32(1)) if is_last.any() else None
-            if mode == "xray":
-                mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-                mu *= inside
-                seg = np.float32(step_mm) if ratio is None else np.float32(step_mm) * ratio
-                acc[ids_s, 0] += mu * seg
-                hit = (mu > 0) & np.isnan(kev[ids_s])
-                kev[ids_s[hit]] = k_s[hit] - 0.5
-            elif mode == "mip":
-                better = inside & (value > vmax[ids_s])  # ties keep the frontmost
-                vmax[ids_s[better]] = value[better]
-                kev[ids_s[better]] = kf_s[better]
+            rgb, alpha = _classify(lut, value, ratio)
+            alpha *= inside
+            if grad is not None:
+                rgb = _shade(rgb, grad, inv_t, st["dirs"], shading).astype(np.float32)
+            c = rgb * alpha[:, None]
+            hit = alpha > 0
+            if backward:
+                keep = 1 - alpha
+                acc[:, :3] *= keep[:, None]
+                acc[:, :3] += c
+                acc[:, 3] *= keep
+                acc[:, 3] += alpha
+                kev[hit] = st["k"][hit] - 0.5  # the last met is the frontmost
             else:
-                rgb, alpha = _classify(lut, value, ratio)
-                alpha = alpha * inside
-                if grad is not None:
-                    rgb = _shade(rgb, grad, inv_t, dirs[ids_s], shading).astype(np.float32)
-                c = rgb * alpha[:, None]
-                hit = alpha > 0
-                if backward:
-                    keep = 1 - alpha
-                    acc[ids_s, :3] = c + keep[:, None] * acc[ids_s, :3]
-                    acc[ids_s, 3] = alpha + keep * acc[ids_s, 3]
-                    kev[ids_s[hit]] = k_s[hit] - 0.5  # the last met is the frontmost
-                else:
-                    trans = 1 - acc[ids_s, 3]
-                    acc[ids_s, :3] += trans[:, None] * c
-                    acc[ids_s, 3] += trans * alpha
-                    hit &= np.isnan(kev[ids_s])
-                    kev[ids_s[hit]] = k_s[hit] - 0.5
-            if sel is None:
-                k += step
-            else:
-                k[sel] += step
-        done = (k < first[ids]) | (k >= stop[ids])
+                trans = 1 - acc[:, 3]
+                acc[:, :3] += trans[:, None] * c
+                acc[:, 3] += trans * alpha
+                hit &= np.isnan(kev)
+                kev[hit] = st["k"][hit] - 0.5
+        st["k"] += step if hold is None else np.where(hold, 0, step)
+        kk = st["k"]
+        ended = live & ((kk < st["first"]) | (kk >= st["stop"]))
         if mode == "over" and termination < 1:
-            done |= acc[ids, 3] >= termination
-        if done.any():
-            ids, k = ids[~done], k[~done]
+            ended |= live & (acc[:, 3] >= termination)
+        live &= ~ended
+        dead = ~live
+        if dead.sum() * 10 >= len(live):
+            finish(np.flatnonzero(dead))
+            st = {name: arr[live] for name, arr in st.items()}
+            live = live[live]
+    finish(slice(None))
+    acc, kev = out_acc, out_kev
     if mode == "xray":
         acc[:] = 1 - np.exp(-acc[:, :1])
     elif mode == "mip":
-        seen = np.isfinite(vmax)
+        seen = np.isfinite(out_vmax)
         acc[:] = 0
         if seen.any():
-            straight = tf.evaluate(vmax[seen])
+            straight = tf.evaluate(out_vmax[seen])
             acc[seen, 3] = straight[:, 3]
             acc[seen, :3] = straight[:, :3] * straight[:, 3:4]
         kev = np.where(seen & (acc[:, 3] > 0), kev, np.nan)

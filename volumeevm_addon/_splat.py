@@ -17,25 +17,33 @@ ray crosses the sheet's centre plane ``a``: for an in-plane offset ``q`` from th
 ray's unit index-space direction ``u``, ``w = exp(-|q_⊥|² / 2σ²)`` with
 ``|q_⊥|² = |q|² - (q·u)²`` — a circle for a view along ``A``, an ellipse stretched along the
 projected ray otherwise, scaled by the projection (perspective: per voxel). Weights come from a
-precomputed footprint table indexed by ``|q_⊥|²``. Each voxel is scattered to the pixels of a
-``k × k`` window around its projected centre (``k`` per sheet from the footprint's extent, at
-most ``2·max_footprint_px + 3``), all voxels of a sheet at once with ``np.bincount``.
+precomputed footprint table indexed by ``|q_⊥|²``. Each voxel is scattered to the pixels its
+projected footprint can reach (a window of offsets around its projected centre, found per sheet
+from the kernel's ellipse and the local projection; half-width at most ``max_footprint_px``),
+all voxels of a sheet at once with ``np.bincount``.
 
 Sheet buffer and classification
 -------------------------------
-Per sheet the buffer accumulates ``Σ w``, ``Σ w·density`` and the number of voxels whose cell
-holds the pixel's crossing point. Following the reference's boundary policy ("clamp") the
-sheet's density at a pixel is the normalised ``Σ w·d / Σ w`` over region voxels, and the pixel
-sees the sheet only if its crossing point's nearest voxel is in the region. The density is then
-classified (post-classification, "splatting without the blur") with the opacity corrected for
-the ray's physical path through the sheet's slab ``a ± 0.5``, cut by the volume's box, the clip
-range and ``depth_in`` (so depth cuts are exact per slab). Sheets are composited into the image
-in view order; voxels whose whole window is already opaque (``termination``) are not splatted
-and the loop stops once every pixel is opaque.
+Per sheet the buffer accumulates, per pixel, ``Σ w``, ``Σ w·density`` and the length of the
+ray's path through the slab ``a ± 0.5`` that lies in the sheet's cells (each voxel clips the
+path's in-plane segment to its cell; the cells are disjoint, so the sum is exact), with the
+path cut by the volume's box, the clip range and ``depth_in``. Following the reference's
+boundary policy ("clamp") the sheet's density at a pixel is the normalised ``Σ w·d / Σ w`` over
+region voxels, classified (post-classification, "splatting without the blur") with the opacity
+corrected for that physical length: coverage is exact, so a homogeneous region gives the
+closed form ``1 - (1 - α)^(L/Δ0)`` for its exact chord ``L`` in any view, and ``depth_in``
+cuts exactly. Sheets are composited into the image in view order; voxels whose whole window is
+already opaque (``termination``) are not splatted and the loop stops once every pixel is.
 
 Modes follow the reference: over, under, xray (``exp(-Σ μ·length)``), mip (maximum sheet
-density). Depth out: axial depth where the ray enters the first sheet slab with non-zero
-opacity (MIP: that holds the maximum).
+density). Depth out: axial depth where the ray enters the region's cells in the first sheet
+with non-zero opacity (MIP: the sheet holding the maximum), exact at the region's surface.
+
+Sheets are taken outward from the camera, the side the view faces first, then the other side
+(perspective cameras inside the volume: rays running against the principal direction see
+those, front to back as well). Limits: footprints of voxels right at the camera are cut at
+``max_footprint_px``; the sheet direction switches where two axes are equally parallel to the
+view, as in every sheet-based method.
 
 References
 ----------
