@@ -197,6 +197,18 @@ def _dense_layout(vevm, axis):
     return _Layout(boxes, codes, values, None, axes, False)
 
 
+def _transform(points, matrix, offset=None):
+    """``points @ matrix (+ offset)`` for ``(..., 3)`` points and a 3x3 matrix, as three scaled
+    sums: BLAS would treat these tall, thin products as matrix products and, on a loaded
+    machine, its threads spin for tens of milliseconds."""
+    m = np.asarray(matrix, dtype=np.float64)
+    out = points[..., 0:1] * m[0] + points[..., 1:2] * m[1]
+    out += points[..., 2:3] * m[2]
+    if offset is not None:
+        out += offset
+    return out
+
+
 def _gradients(layout, vevm):
     """Per voxel, in code order: index-space central differences over region voxels (one-sided
     where one neighbour is outside, 0 where both are), as the reference computes them."""
@@ -243,10 +255,10 @@ def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
     Blinn–Phong headlight along the view direction: the per-view table of shaded
     pre-classification, indexed by code (row 0: outside)."""
     grads = _gradients(layout, vevm)
-    normals = grads @ np.ascontiguousarray(view.inv[:3, :3])  # to world: inverse transpose
-    norm = np.linalg.norm(normals, axis=1)
+    normals = _transform(grads, view.inv[:3, :3])  # to world: the inverse transpose
+    norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
     has = norm > 0
-    cos = np.abs(normals @ view.light) / np.where(has, norm, 1.0)
+    cos = np.abs(_transform(normals, view.light[:, None])[:, 0]) / np.where(has, norm, 1.0)
     cos[~has] = 1.0
     lit = shading.ambient + shading.diffuse * cos
     glint = np.where(has, shading.specular * cos ** shading.shininess, 0.0)
@@ -350,10 +362,8 @@ class _View:
     def __init__(self, vevm, camera, g, layout):
         self.inv = np.linalg.inv(g)
         origins, dirs = camera.rays()
-        # (A contiguous 3x3 keeps matmul on its fast path: a transposed view is ~50x slower.)
-        rot = np.ascontiguousarray(self.inv[:3, :3].T)
-        o = origins.reshape(-1, 3) @ rot + self.inv[:3, 3]
-        d = dirs.reshape(-1, 3) @ rot
+        o = _transform(origins.reshape(-1, 3), self.inv[:3, :3].T, self.inv[:3, 3])
+        d = _transform(dirs.reshape(-1, 3), self.inv[:3, :3].T)
         self.axis = axis = self.principal_axis(vevm, camera, g)
         self.light = self.view_direction(vevm, camera, g)
         a, b = ("xyz".index(ch) for ch in TABLE_ORDERS[axis][1:])
@@ -503,7 +513,7 @@ class _View:
         pts[..., a] = p[:, None]
         pts[..., b] = q[None, :]
         pts[..., c] = self.c_ref
-        uv, _ = camera.project(pts @ g[:3, :3].T + g[:3, 3])
+        uv, _ = camera.project(_transform(pts, g[:3, :3].T, g[:3, 3]))
         with np.errstate(invalid="ignore"):
             col = np.floor(uv[..., 0])
             row = np.floor(uv[..., 1])
