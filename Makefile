@@ -8,7 +8,7 @@ PY313 ?= $(shell PYENV_VERSION=3.13.0 pyenv which python3.13 2>/dev/null || comm
 VENVS := .venv/py311 .venv/py313
 PYTEST_ARGS ?=
 
-.PHONY: demo test test-py311 test-py313 bench extension clean
+.PHONY: demo test test-py311 test-py313 bench bench-setup bench-debs extension clean
 
 .venv/py311/.stamp: requirements/py311.txt
 	rm -rf .venv/py311
@@ -48,8 +48,33 @@ extension: .venv/py313/.stamp
 	.venv/py313/bin/python $(BLENDER_EXT) validate dist/volumeevm-$(VERSION).zip
 	@echo "built dist/volumeevm-$(VERSION).zip"
 
-bench: .venv/py313/.stamp
+# Bench peers: VTK and matplotlib from requirements/bench.txt into .venv/py313; VolPack and the
+# Mesa EGL libraries VTK renders offscreen with from Debian (apt-get, as root, only when missing);
+# the VolPack driver (bench/peers/volpack_driver.c) compiled against Debian's libvolpack.a.
+BENCH_DEBS := libvolpack1-dev libegl1 libegl-mesa0 libgl1-mesa-dri
+VOLPACK_DRIVER := bench/peers/build/volpack_driver
+
+.venv/py313/.bench-stamp: .venv/py313/.stamp requirements/bench.txt
+	.venv/py313/bin/pip install --quiet --disable-pip-version-check -r requirements/bench.txt
+	touch $@
+
+bench-debs:
+	@missing=""; for p in $(BENCH_DEBS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+	  echo "apt-get install$$missing"; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq$$missing; \
+	fi
+
+$(VOLPACK_DRIVER): bench/peers/volpack_driver.c | bench-debs
+	mkdir -p $(@D)
+	gcc -O2 -Wall -o $@ $< -l:libvolpack.a -lm
+
+bench-setup: bench-debs .venv/py313/.bench-stamp $(VOLPACK_DRIVER)
+
+bench: bench-setup
 	.venv/py313/bin/python bench/bench_evm.py --out bench/results
+	.venv/py313/bin/python bench/bench_dvr.py --out bench/results
 
 clean:
 	rm -rf .venv out dist wheels
