@@ -653,7 +653,8 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         box = (slice(p0, p1), slice(q0, q1))
         # Depth test, only where the slice's depth range crosses a limit.
         corners = [k0[n] + kp[n] * pp + kq[n] * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
-        if min(corners) < near or max(corners) >= far_min:
+        clipped = min(corners) < near or max(corners) >= far_min
+        if clipped:
             dep = (k0[n] + kp[n] * np.arange(p0, p1, dtype=np.float64)[:, None]
                    + kq[n] * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
             inside &= dep >= near
@@ -684,7 +685,8 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         c = sample[..., :4]
         if view.ratio is not None:
             _correct(c, view.ratio[box])
-        c *= inside[..., None]
+        if clipped:  # (_resample already made samples with an outside nearest voxel zero)
+            c *= inside[..., None]
         hit = c[..., 3] > 0
         target = image[box]
         if mode == "over":
@@ -760,13 +762,15 @@ def _resample(src, ia, fa, ib, fb, constant):
         inside = src[ra:ra + n, rb:rb + m, -1] > 0
     else:
         fb3 = fb[None, :, None]
-        cols = src[:, ib] * (1 - fb3)
-        cols += src[:, ib + 1] * fb3
-        near_b = src[:, ib + (fb >= 0.5), -1]
+        cols = np.take(src, ib, axis=1)
+        cols *= 1 - fb3
+        cols += np.take(src, ib + 1, axis=1) * fb3
+        near_b = np.take(src[..., -1], ib + (fb >= 0.5), axis=1)
         fa3 = fa[:, None, None]
-        out = cols[ia] * (1 - fa3)
-        out += cols[ia + 1] * fa3
-        inside = near_b[ia + (fa >= 0.5)] > 0
+        out = np.take(cols, ia, axis=0)
+        out *= 1 - fa3
+        out += np.take(cols, ia + 1, axis=0) * fa3
+        inside = np.take(near_b, ia + (fa >= 0.5), axis=0) > 0
     weight = out[..., -1]
     np.maximum(weight, np.float32(1e-30), out=weight)
     scale = inside / weight
@@ -779,9 +783,16 @@ def _correct(c, ratio):
     """Opacity of premultiplied samples ``c`` (..., 4) made for the table's step, corrected to
     each ray's step ``ratio`` times longer: ``α' = 1 - (1 - α)^ratio``, colour times ``α'/α``."""
     a = c[..., 3]
+    factor = np.subtract(np.float32(1.0), a)
+    np.maximum(factor, 0, out=factor)
     with np.errstate(divide="ignore", invalid="ignore"):
-        corrected = -np.expm1(np.log1p(-np.minimum(a, 1.0)) * ratio)
-        factor = np.where(a > 0, corrected / a, 0.0).astype(np.float32)
+        # log/exp rather than log1p/expm1: NumPy vectorises them (5x faster); the absolute
+        # error stays at float32 rounding.
+        np.log(factor, out=factor)
+        factor *= ratio
+        np.exp(factor, out=factor)
+        np.subtract(np.float32(1.0), factor, out=factor)  # α', 0 where α is 0
+        np.divide(factor, a, out=factor, where=a > 0)
     c *= factor[..., None]
 
 
