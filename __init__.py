@@ -7,7 +7,7 @@ Python API (``operators.api``); ``ui`` the property groups and the sidebar tab.
 import bpy
 
 from . import operators, ui
-from .operators import import_volume, sidecar
+from .operators import import_volume, sidecar, tools
 from .ui import panels, props
 
 
@@ -21,9 +21,11 @@ def register():
     bpy.types.TOPBAR_MT_file_import.append(import_volume.menu_import)
     bpy.types.STATUSBAR_HT_header.append(panels.draw_status)
     sidecar.add_handlers()
+    tools.add_handlers()
 
 
 def unregister():
+    tools.remove_handlers()
     sidecar.remove_handlers()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)
     bpy.types.TOPBAR_MT_file_import.remove(import_volume.menu_import)

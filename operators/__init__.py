@@ -1,13 +1,14 @@
 """Blender operators, one module per user task, and the Python API for scripts (``api``).
 
 ``CLASSES`` lists every class to register, in order. Long work runs as jobs (``_jobs``);
-VolumeEVM files beside the .blend are handled by ``sidecar``.
+VolumeEVM files beside the .blend are handled by ``sidecar``; CAD tool stacks by ``tools``.
 """
 
-from . import build, import_volume, mesh
+from . import build, import_volume, mesh, tools
 
 CLASSES = [
     *import_volume.CLASSES,
     *build.CLASSES,
     *mesh.CLASSES,
+    *tools.CLASSES,
 ]

@@ -18,21 +18,43 @@ Objects and placement:
 - ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
   child of the volume object with identity matrices, so moving the box moves the surface.
 
+CAD tools (a non-destructive stack per volume object, see ``add_tool``)::
+
+    api.add_tool(vol, drill, "cut")                 # any closed mesh object; also "keep", "add",
+    api.add_tool(vol, None, "largest")              # "largest" (no tool), "clip" (tool's box)
+    drill.location.x += 0.01; api.evaluate(vol)     # or any depsgraph update (handler)
+    api.apply_stack(vol)                            # the result becomes the VolumeEVM
+
 Errors: bad input raises :class:`VolumeEVMError` (and ``OSError`` for unreadable files).
 Under ``blender --background`` progress lines ``[volumeevm] 42% building EVM`` are printed.
 """
 
+import hashlib
 import json
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import BLENDER_UNITS_PER_MM, VolumeEVM, VolumeEVMError, read_volume
-from ..volumeevm_addon._volume import index_to_physical
+from ..volumeevm_addon import (
+    BLENDER_UNITS_PER_MM,
+    EVM,
+    EditStack,
+    ToolOperation,
+    VolumeEVM,
+    VolumeEVMError,
+    check_closed_mesh,
+    read_volume,
+    voxelize_mesh,
+)
+from ..volumeevm_addon._volume import grid_to_world, index_to_physical
 from . import _jobs, _runtime, sidecar
 
-__all__ = ["import_volume", "build", "make_mesh", "volume_object", "get_vevm", "get_volume"]
+__all__ = ["import_volume", "build", "make_mesh", "volume_object", "get_vevm", "get_volume",
+           "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
+           "stack_state"]
 
 _COMPOUND_ENDINGS = (".nii.gz",)
 
@@ -328,6 +350,34 @@ def fill_mesh(mesh, co, polys):
     mesh.update(calc_edges=True)
 
 
+def own_surface(vol_obj):
+    """The surface object made from this volume (not one a duplicate still points at), or None."""
+    surface = vol_obj.volumeevm.surface
+    if surface is not None and surface.type == "MESH" and surface.volumeevm.volume == vol_obj:
+        return surface
+    return None
+
+
+def _attach_surface(context, owner, mesh):
+    """Give ``mesh`` to the owner's surface object (keeping its materials), or make one."""
+    surface = own_surface(owner)
+    if surface is not None:
+        old = surface.data
+        for material in old.materials:
+            mesh.materials.append(material)
+        surface.data = mesh
+        if old.users == 0:
+            bpy.data.meshes.remove(old)
+        return surface
+    surface = bpy.data.objects.new(f"{owner.name}_surface", mesh)
+    surface.volumeevm.role = "SURFACE"
+    surface.volumeevm.volume = owner
+    surface.parent = owner
+    owner.volumeevm.surface = surface
+    _link(context, surface)
+    return surface
+
+
 def mesh_job(context, obj):
     """The make-mesh job (see :func:`make_mesh`)."""
     vol_obj = volume_object(obj)
@@ -349,23 +399,11 @@ def mesh_job(context, obj):
             raise VolumeEVMError(f"{name}: the volume object was deleted while meshing")
         mesh = bpy.data.meshes.new(f"{name}_surface")
         fill_mesh(mesh, co, polys)
-        surface = owner.volumeevm.surface
-        # Refresh the owner's own surface (a duplicated volume still points at the original's).
-        if (surface is not None and surface.type == "MESH"
-                and surface.volumeevm.volume == owner):
-            old = surface.data
-            for material in old.materials:
-                mesh.materials.append(material)
-            surface.data = mesh
-            if old.users == 0:
-                bpy.data.meshes.remove(old)
-        else:
-            surface = bpy.data.objects.new(f"{name}_surface", mesh)
-            surface.volumeevm.role = "SURFACE"
-            surface.volumeevm.volume = owner
-            surface.parent = owner
-            owner.volumeevm.surface = surface
-            _link(context, surface)
+        surface = _attach_surface(context, owner, mesh)
+        surface.volumeevm.stack_signature = ""
+        if len(owner.volumeevm.tools):
+            # The surface shows the tool stack's result, not the bare VolumeEVM.
+            refresh_quietly(owner, context.evaluated_depsgraph_get())
         return surface
 
     return _jobs.Job(f"Mesh of {name}", _mesh_steps(cached if cached is not None else path),
@@ -382,3 +420,510 @@ def make_mesh(obj):
         ``vevm.mesh()`` times 0.001), child of the volume object, identity matrices.
     """
     return _jobs.run(mesh_job(bpy.context, obj))
+
+
+# ---------------------------------------------------------------------------- tool stack
+#: API operation names -> the stack entries' operation identifiers (``ui/props.py``).
+TOOL_OPERATIONS = {"cut": "CUT", "keep": "KEEP", "add": "ADD", "largest": "LARGEST",
+                   "clip": "CLIP"}
+#: Entry operation -> what the core does (a clip box is a "keep" with the tool's box).
+_CORE_OPERATION = {"CUT": "cut", "KEEP": "keep", "ADD": "add", "CLIP": "keep",
+                   "LARGEST": "largest"}
+TOOL_LABELS = {"CUT": "Cut", "KEEP": "Keep inside", "ADD": "Add", "LARGEST": "Keep largest part",
+               "CLIP": "Clip to box"}
+#: The tool of a disabled entry: skipped by the stack, so it is never voxelized.
+_SKIPPED = EVM()
+#: Outward triangles of the box whose corner (i, j, k) in {0, 1}^3 is vertex 4 i + 2 j + k.
+_BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int32)
+
+_busy = False  # True while the API evaluates or writes: the depsgraph handler stays out
+
+
+def is_busy():
+    """True while a stack evaluation runs (handlers must not start another one)."""
+    return _busy
+
+
+@contextmanager
+def _exclusive():
+    global _busy
+    previous, _busy = _busy, True
+    try:
+        yield
+    finally:
+        _busy = previous
+
+
+def tool_problem(vol_obj, tool_obj):
+    """Why ``tool_obj`` cannot be a tool of volume ``vol_obj`` ("" if it can)."""
+    if tool_obj is None:
+        return "Choose a tool object (any closed mesh)"
+    if tool_obj.type != "MESH":
+        return f"{tool_obj.name} is not a mesh ({tool_obj.type.lower()})"
+    if tool_obj == vol_obj or tool_obj.volumeevm.role == "VOLUME":
+        return f"{tool_obj.name} is a volume's box, not a tool"
+    if tool_obj == vol_obj.volumeevm.surface or (
+            tool_obj.volumeevm.role == "SURFACE" and tool_obj.volumeevm.volume == vol_obj):
+        return f"{tool_obj.name} is the volume's own surface"
+    return ""
+
+
+def tool_triangles(tool_obj, depsgraph, *, box=False):
+    """A tool's evaluated mesh as triangles in its local coordinates, and its placement.
+
+    Parameters
+    ----------
+    tool_obj : bpy.types.Object
+        A mesh object (modifiers applied through ``depsgraph``).
+    depsgraph : bpy.types.Depsgraph or None
+        Evaluated depsgraph (None: the object's own data, no modifiers).
+    box : bool
+        The tool's bounding box (8 corners, 12 triangles) instead of its mesh.
+
+    Returns
+    -------
+    vertices : (V, 3) ndarray of float64
+        Local coordinates (Blender stores them as float32).
+    faces : (F, 3) ndarray of int32
+        The mesh's loop triangles (outward when the mesh's normals point outwards).
+    matrix_world : (4, 4) ndarray of float64
+    """
+    evaluated = tool_obj if depsgraph is None else tool_obj.evaluated_get(depsgraph)
+    matrix = np.array(evaluated.matrix_world, np.float64)
+    if box:
+        corners = np.array([tuple(c) for c in evaluated.bound_box], np.float64)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        ends = np.stack([lo, hi])
+        grid = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        return ends[grid, [0, 1, 2]], _BOX_FACES, matrix
+    mesh = evaluated.data
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    tris = np.empty(len(mesh.loop_triangles) * 3, np.int32)
+    mesh.loop_triangles.foreach_get("vertices", tris)
+    return co.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3), matrix
+
+
+def tool_to_grid(vevm, volume_matrix, tool_matrix):
+    """4x4 matrix from a tool's local coordinates to the volume's voxel-centre indices."""
+    world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, volume_matrix)
+    to_grid = np.linalg.inv(world) @ np.asarray(tool_matrix, np.float64)
+    to_grid[3] = (0.0, 0.0, 0.0, 1.0)  # affine exactly (the inverse may leave rounding there)
+    return to_grid
+
+
+def voxelize_tool(vertices, faces, to_grid, shape):
+    """The EVM of a tool's voxels: ``EVM.from_mask(voxelize_mesh(vertices, faces, shape,
+    to_grid))``, computed on the sub-grid of the tool's bounding box only.
+
+    The vertices are mapped to index space exactly as :func:`voxelize_mesh` maps them, then
+    moved by a non-negative integer offset no larger than their smallest coordinates. That
+    subtraction is exact in float64 (the result is a multiple of the operand's ulp and not
+    larger in magnitude), and the voxelization is invariant under integer translations (the
+    tie rule perturbs each centre by the same infinitesimals) and under mirroring (inside is a
+    winding number other than zero), so the voxels are the same as on the whole grid; only
+    the cost (mask and EVM) shrinks to the box.
+    """
+    shape = tuple(int(n) for n in shape)
+    matrix = np.asarray(to_grid, np.float64)
+    verts = np.ascontiguousarray(vertices, np.float64)
+    if (matrix.shape != (4, 4) or verts.ndim != 2 or verts.shape[1:] != (3,) or not len(verts)
+            or not np.isfinite(verts).all() or not np.isfinite(matrix).all()):
+        return EVM.from_mask(voxelize_mesh(vertices, faces, shape, to_grid))  # its own error
+    linear = matrix[:3, :3]
+    pts = verts @ linear.T + matrix[:3, 3]  # as voxelize_mesh computes them
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    extent = np.asarray(shape, np.float64) - 0.5
+    if np.any(hi <= -0.5) or np.any(lo >= extent) or np.abs(pts).max() > 1e15:
+        return EVM.from_mask(voxelize_mesh(vertices, faces, shape, to_grid))  # its error
+    if faces is _BOX_FACES and np.count_nonzero(linear - np.diag(np.diag(linear))) == 0:
+        # An axis-aligned box [x0, x1] x ... holds exactly the centres x0 <= i < x1 (the
+        # tie rule of voxelize_mesh): its EVM is the 8 corners of the lattice box.
+        low = np.clip(np.ceil(lo), 0, shape).astype(np.int64)
+        high = np.clip(np.ceil(hi), 0, shape).astype(np.int64)
+        if np.any(high <= low):
+            return EVM()
+        ends = np.stack([low, high])
+        corners = [[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+        return EVM(ends[np.array(corners), [0, 1, 2]])
+    offset = np.clip(np.floor(lo), 0, None).astype(np.int64)
+    top = np.minimum(np.floor(hi).astype(np.int64) + 1, shape)
+    if np.any(top <= offset):  # meets the grid but holds no voxel centre
+        check_closed_mesh(verts, faces)  # still refuse an open mesh
+        return EVM()
+    mask = voxelize_mesh(pts - offset, faces, tuple(int(n) for n in top - offset), np.eye(4))
+    return EVM.from_mask(mask, offset=tuple(int(n) for n in offset))
+
+
+def _digest(*arrays):
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _base_digest(vevm):
+    return _digest(vevm.evm.vertices, vevm.table(0), np.asarray(vevm.shape),
+                   vevm.index_to_physical())
+
+
+class _Entry:
+    """One stack entry read from Blender: what to do, and the tool's triangles and placement."""
+
+    def __init__(self, number, kind, enabled, density, tool_name, mesh):
+        self.number, self.kind, self.enabled = number, kind, enabled
+        self.density, self.tool_name, self.mesh = density, tool_name, mesh
+        self.digest = "" if mesh is None else _digest(*mesh)
+
+    @property
+    def label(self):
+        what = TOOL_LABELS[self.kind]
+        return f"{what} with {self.tool_name}" if self.tool_name else what
+
+    def key(self):
+        return f"{self.kind}:{int(self.enabled)}:{self.density!r}:{self.digest}"
+
+
+def _read_entry(vol_obj, vevm, depsgraph, number, kind, tool_obj, enabled, density):
+    """An :class:`_Entry` (reading the tool's evaluated mesh); raises for a bad tool."""
+    if kind not in _CORE_OPERATION:
+        raise VolumeEVMError(f"unknown tool operation {kind!r}")
+    density = float(density) if kind == "ADD" and density is not None else None
+    if kind == "LARGEST" or not enabled:
+        name = "" if tool_obj is None or kind == "LARGEST" else tool_obj.name
+        return _Entry(number, kind, enabled, density, name, None)
+    if tool_obj is None:
+        raise VolumeEVMError(f"entry {number} ({TOOL_LABELS[kind]}): it has no tool object "
+                             f"(deleted?); choose one or remove the entry")
+    problem = tool_problem(vol_obj, tool_obj)
+    if problem:
+        raise VolumeEVMError(f"entry {number} ({TOOL_LABELS[kind]}): {problem}")
+    volume_matrix = np.array(
+        (vol_obj if depsgraph is None else vol_obj.evaluated_get(depsgraph)).matrix_world)
+    vertices, faces, matrix = tool_triangles(tool_obj, depsgraph, box=kind == "CLIP")
+    to_grid = tool_to_grid(vevm, volume_matrix, matrix)
+    return _Entry(number, kind, enabled, density, tool_obj.name,
+                  (vertices, faces, to_grid, np.asarray(vevm.shape)))
+
+
+def _read_entries(vol_obj, vevm, depsgraph):
+    entries = []
+    for number, e in enumerate(vol_obj.volumeevm.tools, 1):
+        entries.append(_read_entry(vol_obj, vevm, depsgraph, number, e.operation, e.tool,
+                                   e.enabled, e.density if e.use_density else None))
+    return entries
+
+
+def _signature(state, entries):
+    """What the surface shows: "" for the bare VolumeEVM, else a digest of base and entries."""
+    if not entries:
+        return ""
+    text = "|".join([state.base_digest, *(e.key() for e in entries)])
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def stack_state(obj):
+    """The runtime state of a volume's tool stack (made, or re-synced, from its properties).
+
+    The stack's base is the VolumeEVM of ``volumeevm.vevm_path``; when that path changed (a
+    build, Apply, or undo/redo restoring another path) a new ``EditStack`` starts from it.
+    """
+    vol_obj = volume_object(obj)
+    s = vol_obj.volumeevm
+    state = _runtime.stack_state(s.uid, vol_obj.name)
+    if state is None:
+        state = _runtime.StackState()
+        _runtime.put_stack_state(s.uid, vol_obj.name, state)
+    base = sidecar.load_vevm(vol_obj)
+    path = str(sidecar.resolve(vol_obj))
+    if state.stack is None or state.base_path != path or state.stack.base is not base:
+        state.base_path = path
+        state.base_digest = _base_digest(base)
+        state.stack = EditStack(base)
+        state.result = None
+    return state
+
+
+def _operation(state, entry, timing):
+    """The core's ToolOperation for an entry, voxelizing its tool unless it is cached."""
+    core = _CORE_OPERATION[entry.kind]
+    if not entry.enabled:
+        return ToolOperation(None if core == "largest" else _SKIPPED, core, enabled=False)
+    if core == "largest":
+        return ToolOperation(operation="largest")
+    tool = state.tools.get(entry.digest)
+    if tool is None:
+        start = time.perf_counter()
+        try:
+            tool = voxelize_tool(*entry.mesh)
+        except VolumeEVMError as error:
+            raise VolumeEVMError(f"{entry.label}: {error}") from None
+        timing["voxelize_s"] += time.perf_counter() - start
+        timing["voxelized"] += 1
+    state.remember_tool(entry.digest, tool)
+    return ToolOperation(tool, core, density=entry.density)
+
+
+def _evaluate(state, entries, timing):
+    """The stack's result for ``entries`` (cached prefix reused)."""
+    operations = [_operation(state, e, timing) for e in entries]
+    start = time.perf_counter()
+    try:
+        result = state.stack.evaluate(operations)
+    except VolumeEVMError:
+        # Find the entry that fails (cached prefixes make this cheap) and name it.
+        for count in range(1, len(operations) + 1):
+            try:
+                state.stack.evaluate(operations[:count])
+            except VolumeEVMError as error:
+                raise VolumeEVMError(f"{entries[count - 1].label}: {error}") from None
+        raise
+    timing["evaluate_s"] = time.perf_counter() - start
+    timing["recomputed"] = state.stack.last_recomputed
+    state.result = result
+    return result
+
+
+def _write_surface(context, vol_obj, result, signature, timing, *, create):
+    """Put the result's mesh into the volume's surface (in place), or make the surface."""
+    surface = own_surface(vol_obj)
+    if surface is None and not create:
+        return None
+    start = time.perf_counter()
+    verts_mm, polys = result.mesh()
+    co = (np.asarray(verts_mm, np.float64) * BLENDER_UNITS_PER_MM).astype(np.float32)
+    middle = time.perf_counter()
+    if surface is None:
+        mesh = bpy.data.meshes.new(f"{vol_obj.name}_surface")
+        fill_mesh(mesh, co, polys)
+        surface = _attach_surface(context, vol_obj, mesh)
+    else:
+        mesh = surface.data
+        mesh.clear_geometry()
+        fill_mesh(mesh, co, polys)
+    surface.volumeevm.stack_signature = signature
+    end = time.perf_counter()
+    timing["mesh_s"], timing["write_s"] = middle - start, end - middle
+    timing["polygons"] = len(polys)
+    return surface
+
+
+def refresh(vol_obj, depsgraph, *, create=False, force=False, extra=None):
+    """Evaluate a volume's tool stack and refresh its surface mesh if what it shows changed.
+
+    Parameters
+    ----------
+    vol_obj : bpy.types.Object
+        A volume object.
+    depsgraph : bpy.types.Depsgraph
+        Evaluated depsgraph the tools' meshes and placements are read from.
+    create : bool
+        Make the surface object if the volume has none (the API does; handlers do not).
+    force : bool
+        Evaluate even when the surface already shows this stack (returns the result).
+    extra : tuple, optional
+        ``(kind, tool_obj, density)``: an entry to evaluate after the stored ones (not stored).
+
+    Returns
+    -------
+    VolumeEVM or None
+        The stack's result (None when nothing needed evaluating).
+
+    Raises
+    ------
+    VolumeEVMError
+        A bad tool (open mesh, wholly outside, not a mesh), an empty result, a missing
+        sidecar. The surface keeps its last good mesh; ``stack_state(obj).problem`` says why.
+    """
+    timing = {"voxelize_s": 0.0, "voxelized": 0, "evaluate_s": 0.0, "recomputed": 0,
+              "mesh_s": 0.0, "write_s": 0.0}
+    start = time.perf_counter()
+    with _exclusive():
+        state = None
+        try:
+            state = stack_state(vol_obj)
+            vevm = state.stack.base
+            entries = _read_entries(vol_obj, vevm, depsgraph)
+            if extra is not None:
+                kind, tool_obj, density = extra
+                entries.append(_read_entry(vol_obj, vevm, depsgraph, len(entries) + 1, kind,
+                                           tool_obj, True, density))
+            timing["read_s"] = time.perf_counter() - start
+            signature = _signature(state, entries)
+            surface = own_surface(vol_obj)
+            shown = surface is not None and surface.volumeevm.stack_signature == signature
+            if shown and not force and extra is None:
+                state.problem = ""
+                return None
+            result = _evaluate(state, entries, timing)
+            if extra is None and not shown:
+                _write_surface(bpy.context, vol_obj, result, signature, timing, create=create)
+        except _jobs.REPORTED_ERRORS as error:
+            stack_problem(vol_obj, str(error))
+            raise
+        state.problem = ""
+        timing["total_s"] = time.perf_counter() - start
+        timing["voxels"] = result.voxel_count
+        state.timing = timing
+        return result
+
+
+def stack_problem(obj, text):
+    """Record a problem of a volume's tool stack (shown in the sidebar)."""
+    vol_obj = volume_object(obj)
+    s = vol_obj.volumeevm
+    state = _runtime.stack_state(s.uid, vol_obj.name)
+    if state is None:
+        state = _runtime.StackState()
+        _runtime.put_stack_state(s.uid, vol_obj.name, state)
+    state.problem = text
+
+
+def refresh_quietly(vol_obj, depsgraph):
+    """:func:`refresh` for handlers: a problem is recorded (shown in the sidebar), not raised."""
+    try:
+        refresh(vol_obj, depsgraph)
+    except _jobs.REPORTED_ERRORS as error:
+        print(f"[volumeevm] {vol_obj.name}: {error}")
+        return str(error)
+    return ""
+
+
+def entry_changed(vol_obj):
+    """Update callback of a stack entry's fields: re-evaluate (unless the API is writing)."""
+    if _busy or vol_obj is None or own_surface(vol_obj) is None:
+        return
+    refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
+
+
+def _commit_entry(vol_obj, kind, tool_obj, density):
+    s = vol_obj.volumeevm
+    entry = s.tools.add()
+    entry.operation = kind
+    entry.tool = tool_obj if kind != "LARGEST" else None
+    entry.use_density = density is not None
+    entry.density = 0.0 if density is None else float(density)
+    s.tool_index = len(s.tools) - 1
+    return entry
+
+
+def add_tool(volume_obj, tool_obj, operation, density=None):
+    """Add a tool operation to a volume's stack, evaluate it and refresh the surface mesh.
+
+    Parameters
+    ----------
+    volume_obj : bpy.types.Object
+        A volume object (or its surface) with a built VolumeEVM.
+    tool_obj : bpy.types.Object or None
+        A closed mesh object (modifiers applied); None for ``"largest"``. For ``"clip"`` its
+        bounding box is the tool.
+    operation : {"cut", "keep", "add", "largest", "clip"}
+        Remove the tool's inside, keep only it, add it as material, keep the largest
+        face-connected part, keep only the inside of the tool's bounding box.
+    density : float, optional
+        Density of added voxels (``"add"``), in data units; default: the region's largest.
+
+    Returns
+    -------
+    VolumeEVM
+        The stack's result (its mesh is now the surface object's, made if missing).
+
+    Raises
+    ------
+    VolumeEVMError
+        An open tool mesh (with its number of open edges), a tool wholly outside the volume,
+        an empty result, a tool that is not a mesh or is the volume's own surface. Nothing is
+        changed then.
+    """
+    vol_obj = volume_object(volume_obj)
+    if operation not in TOOL_OPERATIONS:
+        raise VolumeEVMError(f"operation must be one of {sorted(TOOL_OPERATIONS)}, "
+                             f"got {operation!r}")
+    kind = TOOL_OPERATIONS[operation]
+    if kind != "LARGEST":
+        problem = tool_problem(vol_obj, tool_obj)
+        if problem:
+            raise VolumeEVMError(f"{vol_obj.name}: {problem}")
+    if density is not None and kind != "ADD":
+        raise VolumeEVMError(f"density is for 'add' only, not {operation!r}")
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    result = refresh(vol_obj, depsgraph, extra=(kind, tool_obj, density))
+    with _exclusive():
+        _commit_entry(vol_obj, kind, tool_obj, density)
+    return refresh(vol_obj, depsgraph, create=True, force=True)
+
+
+def evaluate(obj):
+    """Re-evaluate a volume's tool stack (tools as they are now) and refresh its surface mesh.
+
+    Returns
+    -------
+    VolumeEVM
+        The result; raises :class:`VolumeEVMError` (surface unchanged) if it cannot be made.
+    """
+    vol_obj = volume_object(obj)
+    return refresh(vol_obj, bpy.context.evaluated_depsgraph_get(), create=True, force=True)
+
+
+def remove_tool(obj, index):
+    """Remove entry ``index`` (0-based) of the stack and refresh; returns the problem or ""."""
+    vol_obj = volume_object(obj)
+    s = vol_obj.volumeevm
+    if not 0 <= index < len(s.tools):
+        raise VolumeEVMError(f"{vol_obj.name}: no tool entry {index} (the stack has "
+                             f"{len(s.tools)})")
+    with _exclusive():
+        s.tools.remove(index)
+        s.tool_index = max(0, min(s.tool_index, len(s.tools) - 1))
+    return refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
+
+
+def move_tool(obj, index, offset):
+    """Move entry ``index`` by ``offset`` places (clamped) and refresh; returns the problem."""
+    vol_obj = volume_object(obj)
+    s = vol_obj.volumeevm
+    if not 0 <= index < len(s.tools):
+        raise VolumeEVMError(f"{vol_obj.name}: no tool entry {index} (the stack has "
+                             f"{len(s.tools)})")
+    target = max(0, min(len(s.tools) - 1, index + int(offset)))
+    with _exclusive():
+        s.tools.move(index, target)
+        s.tool_index = target
+    return refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
+
+
+def apply_stack(obj):
+    """Make the tool stack permanent: its result becomes the volume's VolumeEVM.
+
+    The result is written to a new sidecar file (the previous one stays, so undo can go back
+    to it), ``vevm_path`` and the counts are updated and the stack is cleared; the surface
+    already shows the result.
+
+    Returns
+    -------
+    VolumeEVM
+        The new VolumeEVM.
+    """
+    vol_obj = volume_object(obj)
+    s = vol_obj.volumeevm
+    if not len(s.tools):
+        raise VolumeEVMError(f"{vol_obj.name}: the tool stack is empty; nothing to apply")
+    result = refresh(vol_obj, bpy.context.evaluated_depsgraph_get(), create=True, force=True)
+    with _exclusive():
+        path = sidecar.save_new(s.uid, result)
+        report = result.size_report()
+        s.vevm_path = str(path)
+        s.voxel_count = result.voxel_count
+        s.ev_count = len(result.evm)
+        s.vevm_bytes = report["total_bytes"]
+        s.tools.clear()
+        s.tool_index = 0
+        surface = own_surface(vol_obj)
+        if surface is not None:
+            surface.volumeevm.stack_signature = ""  # it shows the (new) VolumeEVM itself
+        state = stack_state(vol_obj)
+        state.result = result
+    return result

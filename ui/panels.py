@@ -5,7 +5,7 @@ import math
 import bpy
 import numpy as np
 
-from ..operators import _jobs, _runtime
+from ..operators import _jobs, _runtime, api
 from ..operators.build import active_volume
 
 #: Histogram rows drawn in the sidebar (the stored bins are summed in groups).
@@ -205,11 +205,100 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
                               f"{len(mesh.polygons):,} faces")
 
 
+_OPERATION_ICONS = {"CUT": "REMOVE", "KEEP": "SELECT_INTERSECT", "ADD": "ADD",
+                    "LARGEST": "STICKY_UVS_LOC", "CLIP": "MOD_WIREFRAME"}
+
+
+class VOLUMEEVM_UL_tools(bpy.types.UIList):
+    """The tool stack of a volume: entries apply from top to bottom."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname,
+                  index=0, flt_flag=0):
+        row = layout.row(align=True)
+        row.prop(item, "enabled", text="")
+        sub = row.row(align=True)
+        sub.active = item.enabled
+        sub.label(text=api.TOOL_LABELS[item.operation], icon=_OPERATION_ICONS[item.operation])
+        if item.operation != "LARGEST":
+            sub.prop(item, "tool", text="")
+        if item.operation == "ADD":
+            sub.prop(item, "use_density", text="", icon="DRIVER_DISTANCE")
+            if item.use_density:
+                sub.prop(item, "density", text="")
+
+
+def timing_text(timing):
+    """The last refresh's time and its parts, for the sidebar."""
+    parts = [f"voxelize {timing.get('voxelize_s', 0.0):.2f}",
+             f"stack {timing.get('evaluate_s', 0.0):.2f}",
+             f"mesh {timing.get('mesh_s', 0.0) + timing.get('write_s', 0.0):.2f}"]
+    return f"Last refresh: {timing['total_s']:.2f} s ({', '.join(parts)})"
+
+
+class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
+    """CAD tools: any closed mesh cuts, keeps or adds material, as a non-destructive stack that
+    follows the tools when they move."""
+
+    bl_label = "Tools"
+
+    def draw(self, context):
+        layout = self.layout
+        obj = active_volume(context)
+        s = obj.volumeevm
+        if not s.vevm_path:
+            layout.label(text="Build the VolumeEVM first", icon="INFO")
+            return
+        layout.prop(s, "tool_object", text="Tool")
+        if s.tool_object is not None:
+            problem = api.tool_problem(obj, s.tool_object)
+            if problem:
+                layout.label(text=problem, icon="ERROR")
+        grid = layout.grid_flow(columns=2, align=True)
+        grid.operator("volumeevm.tool_cut", icon=_OPERATION_ICONS["CUT"])
+        grid.operator("volumeevm.tool_keep", icon=_OPERATION_ICONS["KEEP"])
+        grid.operator("volumeevm.tool_clip", icon=_OPERATION_ICONS["CLIP"])
+        grid.operator("volumeevm.tool_largest", icon=_OPERATION_ICONS["LARGEST"])
+        row = layout.row(align=True)
+        row.operator("volumeevm.tool_add", icon=_OPERATION_ICONS["ADD"])  # uses the settings
+        row.prop(s, "tool_use_density", text="", icon="DRIVER_DISTANCE")
+        sub = row.row(align=True)
+        sub.active = s.tool_use_density
+        sub.prop(s, "tool_density", text="")
+
+        row = layout.row()
+        row.template_list("VOLUMEEVM_UL_tools", "", s, "tools", s, "tool_index", rows=3)
+        col = row.column(align=True)
+        col.operator("volumeevm.tool_move_up", text="", icon="TRIA_UP")
+        col.operator("volumeevm.tool_move_down", text="", icon="TRIA_DOWN")
+        col.separator()
+        col.operator("volumeevm.tool_remove", text="", icon="X")
+        row = layout.row(align=True)
+        row.operator("volumeevm.tool_refresh", icon="FILE_REFRESH")
+        row.operator("volumeevm.tool_apply", icon="CHECKMARK")
+
+        state = _runtime.stack_state(s.uid, obj.name)
+        if state is None:
+            return
+        if state.timing.get("total_s") is not None:
+            col = layout.column(align=True)
+            col.label(text=timing_text(state.timing), icon="TIME")
+            if "voxels" in state.timing:
+                col.label(text=f"Result: {state.timing['voxels']:,} voxels")
+        if state.problem:
+            box = layout.box()
+            box.label(text="Tool stack problem:", icon="ERROR")
+            for line in _wrap(state.problem, 40):
+                box.label(text=line)
+
+
 def draw_status(self, context):
     """Status-bar progress of a running job."""
     if _jobs.CURRENT is not None:
         draw_progress(self.layout.row())
 
+
+#: UI lists (registered before the panels that draw them).
+LISTS = [VOLUMEEVM_UL_tools]
 
 CLASSES = [
     VOLUMEEVM_PT_main,
@@ -217,4 +306,5 @@ CLASSES = [
     VOLUMEEVM_PT_histogram,
     VOLUMEEVM_PT_build,
     VOLUMEEVM_PT_mesh,
+    VOLUMEEVM_PT_tools,
 ]

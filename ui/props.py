@@ -9,6 +9,7 @@ Bulk data never goes into ID properties: the dense volume stays in a runtime cac
 import bpy
 from bpy.props import (
     BoolProperty,
+    CollectionProperty,
     EnumProperty,
     FloatProperty,
     FloatVectorProperty,
@@ -18,6 +19,7 @@ from bpy.props import (
     StringProperty,
 )
 
+from ..operators import api
 from ..operators.api import HISTOGRAM_BINS
 
 
@@ -29,6 +31,48 @@ class VolumeEVMSceneSettings(bpy.types.PropertyGroup):
         description="Draw histogram bars on a logarithmic scale (CT is mostly air)",
         default=True,
     )
+
+
+#: Tool operations of the stack: (identifier, name, description).
+TOOL_OPERATIONS = (
+    ("CUT", "Cut", "Remove the material inside the tool"),
+    ("KEEP", "Keep Inside", "Keep only the material inside the tool"),
+    ("ADD", "Add", "Add the tool's inside as material with a density"),
+    ("LARGEST", "Keep Largest Part", "Keep only the largest face-connected part"),
+    ("CLIP", "Clip to Box", "Keep only the material inside the tool's bounding box"),
+)
+
+
+def is_mesh_object(settings, obj):
+    """Pointer poll of stack entries: mesh objects that are not VolumeEVM volumes."""
+    return obj.type == "MESH" and obj.volumeevm.role != "VOLUME"
+
+
+def _entry_changed(entry, context):
+    api.entry_changed(entry.id_data)
+
+
+class VolumeEVMToolEntry(bpy.types.PropertyGroup):
+    """One entry of a volume's tool stack (``Object.volumeevm.tools``).
+
+    Changing a field (in the sidebar or from a script) re-evaluates the stack at once.
+    """
+
+    tool: PointerProperty(
+        name="Tool", type=bpy.types.Object, poll=is_mesh_object,
+        description="The closed mesh object that cuts, keeps or adds material",
+        update=_entry_changed,
+    )
+    operation: EnumProperty(name="Operation", items=TOOL_OPERATIONS, default="CUT",
+                            update=_entry_changed)
+    enabled: BoolProperty(name="Enabled", default=True, update=_entry_changed,
+                          description="Apply this entry (disabled entries are skipped)")
+    use_density: BoolProperty(
+        name="Own Density", default=False, update=_entry_changed,
+        description="Give added voxels this density; off: the region's largest density",
+    )
+    density: FloatProperty(name="Density", precision=3, update=_entry_changed,
+                           description="Density of added voxels, in data units")
 
 
 class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
@@ -116,11 +160,31 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     ev_count: IntProperty(name="Extreme Vertices", min=0)
     vevm_bytes: FloatProperty(name="VolumeEVM Bytes", description="Vertices + densities table")
     dense_bytes: FloatProperty(name="Dense Bytes", description="The dense array")
+    # --- the non-destructive tool stack (evaluated on top of the VolumeEVM above)
+    tools: CollectionProperty(name="Tools", type=VolumeEVMToolEntry,
+                              description="Tool operations applied in order to the VolumeEVM")
+    tool_index: IntProperty(name="Active Tool Entry", min=0)
+    tool_object: PointerProperty(
+        name="Tool", type=bpy.types.Object,
+        description="The object the tool buttons use: any closed mesh (the buttons say why "
+                    "another object cannot be used)",
+    )
+    tool_use_density: BoolProperty(
+        name="Own Density", default=False,
+        description="Add with this density; off: the region's largest density",
+    )
+    tool_density: FloatProperty(name="Density", precision=3,
+                                description="Density of added material, in data units")
     # --- links between a volume and its surface
     surface: PointerProperty(name="Surface", type=bpy.types.Object,
                              description="The mesh made from this volume's VolumeEVM")
     volume: PointerProperty(name="Volume", type=bpy.types.Object,
                             description="The volume object this surface was made from")
+    stack_signature: StringProperty(
+        name="Stack Signature",
+        description="Digest of the VolumeEVM and tool stack this surface mesh shows ('' = the "
+                    "VolumeEVM itself); undo restores it with the mesh",
+    )
 
 
-CLASSES = [VolumeEVMSceneSettings, VolumeEVMObjectSettings]
+CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMObjectSettings]
