@@ -253,7 +253,7 @@ def _check_shading(shading):
 def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
     """Premultiplied, step-corrected RGBA (and region weight 1) of every voxel, lit by a
     Blinn–Phong headlight along the view direction: the per-view table of shaded
-    pre-classification, indexed by code (row 0: outside)."""
+    pre-classification, ``(5, codes)``, indexed by code (column 0: outside)."""
     grads = _gradients(layout, vevm)
     normals = _transform(grads, view.inv[:3, :3])  # to world: the inverse transpose
     norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
@@ -263,12 +263,12 @@ def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
     lit = shading.ambient + shading.diffuse * cos
     glint = np.where(has, shading.specular * cos ** shading.shininess, 0.0)
     rows = classes.rows
-    straight = np.zeros((lut_size + 1, 3), np.float32)
-    straight[1:] = tf.straight_table(n=lut_size)[:, :3]
-    out = np.take(lut, rows, axis=0)
-    rgb = np.take(straight, rows, axis=0) * lit[:, None] + glint[:, None]
+    straight = np.zeros((3, lut_size + 1), np.float32)
+    straight[:, 1:] = tf.straight_table(n=lut_size)[:, :3].T
+    out = np.take(lut, rows, axis=1)
+    rgb = np.take(straight, rows, axis=1) * lit + glint
     np.minimum(rgb, 1.0, out=rgb)
-    out[:, :3] = rgb * out[:, 3:4]
+    out[:3] = rgb * out[3]
     return out
 
 
@@ -615,14 +615,16 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
     else:
         classes = _classes(layout, tf, lut_size)
         tight = classes.tight
-        lut = np.zeros((lut_size + 1, 5), np.float32)
-        lut[1:, :4] = tf.table(n=lut_size, step_mm=view.delta)
-        lut[1:, 4] = 1.0
+        # Channels first (R, G, B, A, region weight), row 0 for outside voxels: every plane
+        # of a slice's samples is then contiguous.
+        lut = np.zeros((5, lut_size + 1), np.float32)
+        lut[:4, 1:] = tf.table(n=lut_size, step_mm=view.delta).T
+        lut[4, 1:] = 1.0
         voxels = None if shading is None else _shaded_voxels(layout, vevm, classes, tf, lut,
                                                              lut_size, view, shading)
     rank_map = np.full((hi, wi), _NEVER, np.int32)
     if mode in ("over", "under"):
-        image = np.zeros((hi, wi, 4), np.float32)
+        image = np.zeros((4, hi, wi), np.float32)
     else:
         image = np.zeros((hi, wi), np.float32)
         if mode == "mip":
@@ -642,13 +644,13 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         q0, q1, ib, fb = cols
         codes = _window(layout.codes[s], layout.boxes[s], ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
         if post:
-            src = np.empty(codes.shape + (2,), np.float32)
-            np.take(layout.values32, codes, out=src[..., 0])
-            np.greater(codes, 0, out=src[..., 1])
+            src = np.empty((2,) + codes.shape, np.float32)
+            np.take(layout.values32, codes, out=src[0])
+            np.greater(codes, 0, out=src[1])
         elif voxels is not None:
-            src = np.take(voxels, codes, axis=0)
+            src = np.take(voxels, codes, axis=1)
         else:
-            src = np.take(lut, np.take(classes.rows, codes), axis=0)
+            src = np.take(lut, np.take(classes.rows, codes), axis=1)
         sample, inside = _resample(src, ia - ia[0], fa, ib - ib[0], fb, view.ortho)
         box = (slice(p0, p1), slice(q0, q1))
         # Depth test, only where the slice's depth range crosses a limit.
@@ -660,7 +662,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             inside &= dep >= near
             inside &= dep < (camera.clip_end if limit is None else limit[box])
         if post:
-            value = sample[..., 0]
+            value = sample[0]
             if mode == "xray":
                 np.subtract(value, np.float32(xray_offset), out=value)
                 np.maximum(value, 0, out=value)
@@ -682,18 +684,18 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
                 hit &= rank_map[box] == _NEVER
             np.copyto(rank_map[box], ranks[n], where=hit)
             continue
-        c = sample[..., :4]
+        c = sample
         if view.ratio is not None:
             _correct(c, view.ratio[box])
         if clipped:  # (_resample already made samples with an outside nearest voxel zero)
-            c *= inside[..., None]
-        hit = c[..., 3] > 0
-        target = image[box]
+            c *= inside
+        hit = c[3] > 0
+        target = image[(slice(None),) + box]
         if mode == "over":
-            trans = 1.0 - target[..., 3]
+            trans = 1.0 - target[3]
             if termination < 1.0:  # terminated rays take nothing more
-                np.putmask(trans, target[..., 3] >= termination, 0.0)
-            c *= trans[..., None]
+                np.putmask(trans, target[3] >= termination, 0.0)
+            c *= trans
             target += c
             np.copyto(rank_map[box], ranks[n], where=hit & (rank_map[box] == _NEVER))
             if (n + 1) % _ERT_EVERY == 0:
@@ -701,21 +703,22 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
                 if active is None:
                     break
         else:
-            keep = 1.0 - c[..., 3]
-            target *= keep[..., None]
+            keep = 1.0 - c[3]
+            target *= keep
             target += c
             np.copyto(rank_map[box], ranks[n], where=hit)
     if mode == "xray":
-        rgba = np.empty((hi, wi, 4), np.float32)
-        rgba[...] = (1.0 - np.exp(-image))[..., None]
+        rgba = np.empty((4, hi, wi), np.float32)
+        rgba[...] = 1.0 - np.exp(-image)
         image = rgba
     elif mode == "mip":
-        rgba = np.zeros((hi, wi, 4), np.float32)
+        rgba = np.zeros((4, hi, wi), np.float32)
         seen = image > _UNSEEN
         straight = tf.evaluate(image[seen])
-        rgba[seen, 3] = straight[:, 3]
-        rgba[seen, :3] = straight[:, :3] * straight[:, 3:4]
-        rank_map[~seen | (rgba[..., 3] <= 0)] = _NEVER
+        rgba[3][seen] = straight[:, 3]
+        for ch in range(3):
+            rgba[ch][seen] = straight[:, ch] * straight[:, 3]
+        rank_map[~seen | (rgba[3] <= 0)] = _NEVER
         image = rgba
     return image, rank_map, slices.astype(np.float64) - 0.5 * view.step
 
@@ -743,10 +746,11 @@ def _span(t0, t1, alpha, beta, lo, hi):
 
 
 def _resample(src, ia, fa, ib, fb, constant):
-    """Bilinear samples of a slice window ``src`` (last channel: 1 inside the region) at
-    ``x = ia + fa`` (rows) and ``y = ib + fb`` (columns), window coordinates, with the clamp
-    policy: weights of outside voxels dropped and renormalised, transparent where the nearest
-    voxel is outside. Returns the renormalised channels (all but the last) and ``inside``.
+    """Bilinear samples of a slice window ``src`` (channels first; the last channel is 1
+    inside the region) at ``x = ia + fa`` (rows) and ``y = ib + fb`` (columns), window
+    coordinates, with the clamp policy: weights of outside voxels dropped and renormalised,
+    transparent where the nearest voxel is outside. Returns the renormalised channels (all but
+    the last) and ``inside``.
 
     ``constant``: the fractions are the same for all rows and all columns (a translated slice,
     ``ia``/``ib`` consecutive): four shifted views instead of gathers.
@@ -754,35 +758,34 @@ def _resample(src, ia, fa, ib, fb, constant):
     if constant:
         f, g = fa[0], fb[0]
         n, m = len(ia), len(ib)
-        out = src[:n, :m] * ((1 - f) * (1 - g))
-        out += src[:n, 1:m + 1] * ((1 - f) * g)
-        out += src[1:n + 1, :m] * (f * (1 - g))
-        out += src[1:n + 1, 1:m + 1] * (f * g)
+        out = src[:, :n, :m] * ((1 - f) * (1 - g))
+        out += src[:, :n, 1:m + 1] * ((1 - f) * g)
+        out += src[:, 1:n + 1, :m] * (f * (1 - g))
+        out += src[:, 1:n + 1, 1:m + 1] * (f * g)
         ra, rb = int(f >= 0.5), int(g >= 0.5)
-        inside = src[ra:ra + n, rb:rb + m, -1] > 0
+        inside = src[-1, ra:ra + n, rb:rb + m] > 0
     else:
-        fb3 = fb[None, :, None]
-        cols = np.take(src, ib, axis=1)
-        cols *= 1 - fb3
-        cols += np.take(src, ib + 1, axis=1) * fb3
-        near_b = np.take(src[..., -1], ib + (fb >= 0.5), axis=1)
-        fa3 = fa[:, None, None]
-        out = np.take(cols, ia, axis=0)
-        out *= 1 - fa3
-        out += np.take(cols, ia + 1, axis=0) * fa3
+        cols = np.take(src, ib, axis=2)
+        cols *= 1 - fb
+        cols += np.take(src, ib + 1, axis=2) * fb
+        near_b = np.take(src[-1], ib + (fb >= 0.5), axis=1)
+        fa2 = fa[:, None]
+        out = np.take(cols, ia, axis=1)
+        out *= 1 - fa2
+        out += np.take(cols, ia + 1, axis=1) * fa2
         inside = np.take(near_b, ia + (fa >= 0.5), axis=0) > 0
-    weight = out[..., -1]
+    weight = out[-1]
     np.maximum(weight, np.float32(1e-30), out=weight)
     scale = inside / weight
-    result = out[..., :-1]
-    result *= scale[..., None]
+    result = out[:-1]
+    result *= scale
     return result, inside
 
 
 def _correct(c, ratio):
-    """Opacity of premultiplied samples ``c`` (..., 4) made for the table's step, corrected to
+    """Opacity of premultiplied samples ``c`` (4, ...) made for the table's step, corrected to
     each ray's step ``ratio`` times longer: ``α' = 1 - (1 - α)^ratio``, colour times ``α'/α``."""
-    a = c[..., 3]
+    a = c[3]
     factor = np.subtract(np.float32(1.0), a)
     np.maximum(factor, 0, out=factor)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -793,13 +796,13 @@ def _correct(c, ratio):
         np.exp(factor, out=factor)
         np.subtract(np.float32(1.0), factor, out=factor)  # α', 0 where α is 0
         np.divide(factor, a, out=factor, where=a > 0)
-    c *= factor[..., None]
+    c *= factor
 
 
 def _active_box(image, threshold, box):
     """Bounding box of the pixels of ``box`` whose opacity is below ``threshold``; None if none."""
     a0, a1, b0, b1 = box
-    open_ = image[a0:a1, b0:b1, 3] < threshold
+    open_ = image[3, a0:a1, b0:b1] < threshold
     rows = np.flatnonzero(open_.any(axis=1))
     if rows.size == 0:
         return None
@@ -816,14 +819,14 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     ok = view.rays_ok
     i0 = np.floor(pq).astype(np.int64)
     f = (pq - i0).astype(np.float32)
-    acc = np.zeros((h * w, 4), np.float32)
+    acc = np.zeros((4, h * w), np.float32)
     for da in (0, 1):
         for db in (0, 1):
             ia, ib = i0[:, 0] + da, i0[:, 1] + db
             wt = (f[:, 0] if da else 1 - f[:, 0]) * (f[:, 1] if db else 1 - f[:, 1])
             use = ok & (ia >= 0) & (ia < hi) & (ib >= 0) & (ib < wi) & (wt > 0)
-            acc[use] += image[ia[use], ib[use]] * wt[use, None]
-    rgba_out[...] = acc.reshape(h, w, 4)
+            acc[:, use] += image[:, ia[use], ib[use]] * wt[use]
+    rgba_out[...] = acc.T.reshape(h, w, 4)
     near = np.rint(pq).astype(np.int64)
     use = ok & (near[:, 0] >= 0) & (near[:, 0] < hi) & (near[:, 1] >= 0) & (near[:, 1] < wi)
     idx = np.flatnonzero(use)
