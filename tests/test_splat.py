@@ -10,6 +10,7 @@ from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._evm import EVM
 from volumeevm_addon._reference import render_reference
+from volumeevm_addon import _splat
 from volumeevm_addon._splat import _sheets_dense, _sheets_evm, render_splat
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
@@ -144,6 +145,21 @@ def test_skip_empty_equals_dense_brain(brain):
     assert r1[..., 3].max() > 0.5
     np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
     np.testing.assert_allclose(d1, d0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["over", "xray"])
+def test_culling_invisible_voxels_changes_nothing(ct, mode, monkeypatch):
+    """Soft tissue in the region, transparent for ct_bone: its voxels are not splatted, and
+    the image is the same as splatting them."""
+    v, g, tf = region(ct, -300, "ct_bone")
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0)
+    kw = {"xray_scale": 2e-4, "xray_offset": 100.0} if mode == "xray" else {}
+    r1, d1 = render_splat(v, cam, tf, g, mode=mode, **kw)
+    monkeypatch.setattr(_splat, "_CULL_INVISIBLE", False)
+    r0, d0 = render_splat(v, cam, tf, g, mode=mode, **kw)
+    assert r0[..., 3].max() > 0.3
+    np.testing.assert_array_equal(r1, r0)
+    np.testing.assert_array_equal(d1, d0)
 
 
 # ---------------------------------------------------------------------------- closed forms

@@ -63,6 +63,8 @@ from ._raycast import camera_rays, check_common
 __all__ = ["render_splat"]
 
 _FOOTPRINT_SIZE = 1024
+_CULL_INVISIBLE = True
+"""Drop voxels whose whole neighbourhood is transparent (they cannot change the image)."""
 _CACHE = weakref.WeakKeyDictionary()
 _PAIRS = 1 << 22
 """Voxel-pixel pairs scattered at once (bounds memory)."""
@@ -124,6 +126,27 @@ def _sheets_dense(vevm, axis, order):
         if 0 <= a < mask.shape[0] and mask[a].any():
             cells = np.argwhere(mask[a])
             yield a, cells, dens[a][mask[a]]
+
+
+def _neighbourhood(cells, dens, radius, op, fill):
+    """``op`` (np.minimum / np.maximum) of the densities of the sheet's voxels within
+    ``radius`` voxels (square window) of each voxel; ``(m,)`` float64."""
+    lo = cells.min(axis=0)
+    size = cells.max(axis=0) - lo + 1 + 2 * radius
+    grid = np.full(tuple(size), fill)
+    at = (cells[:, 0] - lo[0] + radius, cells[:, 1] - lo[1] + radius)
+    grid[at] = dens
+    for ax in (0, 1):
+        src = grid
+        grid = src.copy()
+        n = src.shape[ax]
+        for sft in range(1, radius + 1):
+            a = [slice(None)] * 2
+            b = [slice(None)] * 2
+            a[ax], b[ax] = slice(sft, n), slice(0, n - sft)
+            op(grid[tuple(a)], src[tuple(b)], out=grid[tuple(a)])
+            op(grid[tuple(b)], src[tuple(a)], out=grid[tuple(b)])
+    return grid[at]
 
 
 def _footprint_table(sigma, radius):
@@ -264,12 +287,34 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     if mode == "mip":
         vmax_f = np.full(npix, -np.inf, np.float32)
     unit = tf.unit_length_mm if lut is not None else 1.0
+    cull = None
+    if _CULL_INVISIBLE and mode != "mip":
+        # Every pixel a voxel reaches takes its density from voxels at most 2·radius·√3
+        # in-plane voxels from it (the footprint's ellipse for the most oblique view).
+        reach_vox = int(np.ceil(2 * radius * np.sqrt(3.0)))
+        if mode == "xray":
+            def cull(cells, dens):
+                hi = _neighbourhood(cells, dens, reach_vox, np.maximum, -np.inf)
+                keep = (hi > xray_offset) & (xray_scale > 0)
+                return cells[keep], dens[keep]
+        else:
+            margin = 1.0 / lut[2]  # one lookup-table step: the table is interpolated
+
+            def cull(cells, dens):
+                lo_ = _neighbourhood(cells, dens, reach_vox, np.minimum, np.inf)
+                hi_ = _neighbourhood(cells, dens, reach_vox, np.maximum, -np.inf)
+                keep = ~tf.transparent_between(lo_ - margin, hi_ + margin)
+                return cells[keep], dens[keep]
     fwd_i = camera.forward @ inv[:3, :3].T
     for a, cells, dens in sheets:
         live_rows = np.flatnonzero(~done.all(axis=1))
         if len(live_rows) == 0:
             break
         live_cols = np.flatnonzero(~done.all(axis=0))
+        if cull is not None:
+            cells, dens = cull(cells, dens)
+            if len(cells) == 0:
+                continue
         n = len(cells)
         vox = np.empty((n, 3), np.float64)
         vox[:, axis] = a
