@@ -485,7 +485,8 @@ class _View:
         a, b, c = self.abc
         s = np.asarray(s, dtype=np.float64)
         if self.ortho:
-            return np.ones_like(s), (s - self.c_ref) * self.slope[a], (s - self.c_ref) * self.slope[b]
+            run = s - self.c_ref
+            return np.ones_like(s), run * self.slope[a], run * self.slope[b]
         lam = (s - self.eye[c]) / (self.c_ref - self.eye[c])
         return lam, self.eye[a] * (1 - lam), self.eye[b] * (1 - lam)
 
