@@ -319,6 +319,37 @@ def test_opaque_plane_hides_what_is_behind(kind):
     assert rgba.max() == 0 and np.all(depth == BACKGROUND_DEPTH)
 
 
+# ---------------------------------------------------------------------------- shading
+def test_shading_against_reference(ct):
+    """A blob with a surface-like transfer function: the shaded error (measured 0.0012 mean,
+    unshaded 0.0006) is far below what shading changes (0.028); on the CT the sheets agree
+    with the dense scan and over equals under."""
+    n = 20
+    x = np.arange(n) - (n - 1) / 2
+    blob = 1000 * np.exp(-(x[:, None, None] ** 2 + x[None, :, None] ** 2
+                           + (1.5 * x[None, None, :]) ** 2) / (2 * 4.0 ** 2))
+    v = VolumeEVM.from_array(blob, 0, spacing=(1.0, 1.0, 1.5))
+    g = grid_to_world(v.spacing, v.origin)
+    tf = TransferFunction([(0, 0.2, 0.4, 1.0, 0.0), (300, 1.0, 0.8, 0.2, 0.0),
+                           (400, 1.0, 0.8, 0.2, 0.9), (1000, 1.0, 0.8, 0.2, 0.9)])
+    cam = camera("ORTHO", g, v, (0.03, -0.04, 0.025), 0.03)
+    rgba, _ = render_splat(v, cam, tf, g, termination=1.0, shading=True)
+    plain, _ = render_splat(v, cam, tf, g, termination=1.0)
+    rr, _ = reference(v, cam, tf, g, shading=True)
+    rp, _ = reference(v, cam, tf, g)
+    assert np.abs(rr - rp)[..., :3].mean() > 0.02  # shading matters here
+    assert np.abs(rgba - rr).mean() < 0.002
+    assert np.abs(plain - rp).mean() < 0.001
+    v, g, tf = region(ct, 150, "ct_bone")
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(30, 24))
+    shaded, _ = render_splat(v, cam, tf, g, shading={"specular": 0.5}, termination=1.0)
+    dense, _ = render_splat(v, cam, tf, g, shading={"specular": 0.5}, termination=1.0,
+                            skip_empty=False)
+    under, _ = render_splat(v, cam, tf, g, shading={"specular": 0.5}, mode="under")
+    np.testing.assert_allclose(dense, shaded, atol=1e-6)
+    np.testing.assert_allclose(under, shaded, atol=2e-5)
+
+
 # ---------------------------------------------------------------------------- degenerate
 def test_empty_region_and_camera_that_sees_nothing(ct):
     g = grid_to_world((1.0, 1.0, 1.0), (0, 0, 0))
@@ -367,3 +398,5 @@ def test_bad_input(ct):
         render_splat(v, cam, tf, g, max_footprint_px=0)
     with pytest.raises(VolumeEVMError, match="termination"):
         render_splat(v, cam, tf, g, termination=1.5)
+    with pytest.raises(VolumeEVMError, match="shading"):
+        render_splat(v, cam, tf, g, shading="phong")

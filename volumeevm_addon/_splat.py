@@ -58,7 +58,8 @@ import numpy as np
 from ._camera import BACKGROUND_DEPTH
 from ._densities import TABLE_ORDERS
 from ._errors import VolumeEVMError
-from ._raycast import camera_rays, check_common
+from ._raycast import camera_rays, check_common, check_shading
+from ._reference import _shade
 
 __all__ = ["render_splat"]
 
@@ -99,33 +100,90 @@ def _slabs(vevm, axis):
     return entry[axis]
 
 
-def _sheets_evm(vevm, axis, order):
-    """Yield ``(a, cells (m, 2), densities (m,))`` for the slices ``order`` (an array of slice
-    coordinates), from the sections and the densities table of ``axis``."""
+def _slices_evm(vevm, axis):
+    """A function ``a -> (cells (m, 2) B, C, densities (m,))`` (None for an empty slice) reading
+    the sections and the densities table of ``axis``."""
     table = vevm.table(axis)
     slabs = _slabs(vevm, axis)
     starts = np.array([s[0] for s in slabs])
-    for a in order:
+
+    def get(a):
         i = np.searchsorted(starts, a, side="right") - 1
         if i < 0 or a >= slabs[i][1] or len(slabs[i][2]) == 0:
-            continue
+            return None
         lo, _, cells, base = slabs[i]
         n = len(cells)
         off = base + (a - lo) * n
-        yield a, cells, table[off:off + n]
+        return cells, table[off:off + n]
+
+    return get
+
+
+def _slices_dense(vevm, axis):
+    """Same as :func:`_slices_evm`, from the dense grid and the region mask (no EVM)."""
+    axes = ["xyz".index(c) for c in TABLE_ORDERS[axis]]
+    mask = np.transpose(vevm.evm.to_mask(vevm.shape), axes)
+    dens = np.transpose(vevm.to_dense(), axes)
+
+    def get(a):
+        if not (0 <= a < mask.shape[0] and mask[a].any()):
+            return None
+        return np.argwhere(mask[a]), dens[a][mask[a]]
+
+    return get
+
+
+def _sheets_evm(vevm, axis, order):
+    """Yield ``(a, cells (m, 2), densities (m,))`` for the non-empty slices of ``order`` (slice
+    coordinates along ``axis``), from the EVM's sections and the densities table."""
+    get = _slices_evm(vevm, axis)
+    for a in order:
+        got = get(a)
+        if got is not None:
+            yield (a,) + got
 
 
 def _sheets_dense(vevm, axis, order):
-    """Same as :func:`_sheets_evm`, from the dense grid and the region mask (no EVM sweep)."""
-    mask = vevm.evm.to_mask(vevm.shape)
-    dens = vevm.to_dense()
-    axes = ["xyz".index(c) for c in TABLE_ORDERS[axis]]
-    mask = np.transpose(mask, axes)
-    dens = np.transpose(dens, axes)
+    """Same as :func:`_sheets_evm`, scanning the dense grid with the region mask."""
+    get = _slices_dense(vevm, axis)
     for a in order:
-        if 0 <= a < mask.shape[0] and mask[a].any():
-            cells = np.argwhere(mask[a])
-            yield a, cells, dens[a][mask[a]]
+        got = get(a)
+        if got is not None:
+            yield (a,) + got
+
+
+def _sheet_gradients(get, a, cells):
+    """Index-space central differences ``(m, 3)`` (A, B, C) at the cells of slice ``a`` over
+    region voxels, one-sided where one neighbour is outside, 0 where both are (the reference's
+    rule), from slices ``a - 1 .. a + 1``."""
+    lo = cells.min(axis=0) - 1
+    shape = tuple(cells.max(axis=0) - lo + 2)
+    grids = []
+    for k in (a - 1, a, a + 1):
+        dens = np.zeros(shape)
+        mask = np.zeros(shape, bool)
+        got = get(k)
+        if got is not None:
+            c, d = got
+            c = c - lo
+            fits = np.all((c >= 0) & (c < shape), axis=1)
+            at = (c[fits, 0], c[fits, 1])
+            dens[at] = d[fits]
+            mask[at] = True
+        grids.append((dens, mask))
+    at = (cells[:, 0] - lo[0], cells[:, 1] - lo[1])
+    f0 = grids[1][0][at]
+    out = np.empty((len(cells), 3))
+    pairs = [(grids[2][0][at], grids[2][1][at], grids[0][0][at], grids[0][1][at])]
+    for ax in (0, 1):
+        plus = (at[0] + (ax == 0), at[1] + (ax == 1))
+        minus = (at[0] - (ax == 0), at[1] - (ax == 1))
+        pairs.append((grids[1][0][plus], grids[1][1][plus], grids[1][0][minus],
+                      grids[1][1][minus]))
+    for j, (fp, mp, fm, mm) in enumerate(pairs):
+        out[:, j] = np.where(mp & mm, 0.5 * (fp - fm),
+                             np.where(mp, fp - f0, np.where(mm, f0 - fm, 0.0)))
+    return out
 
 
 def _neighbourhood(cells, dens, radius, op, fill):
@@ -158,8 +216,8 @@ def _footprint_table(sigma, radius):
 
 
 def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None, skip_empty=True,
-                 termination=0.99, kernel_sigma=0.4, kernel_radius=1.5, max_footprint_px=32,
-                 xray_scale=1.0, xray_offset=0.0):
+                 termination=0.99, shading=None, kernel_sigma=0.4, kernel_radius=1.5,
+                 max_footprint_px=32, xray_scale=1.0, xray_offset=0.0):
     """Render a VolumeEVM by sheet-buffer splatting (module docstring).
 
     Parameters
@@ -180,6 +238,10 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     termination : float
         ``"over"``: pixels whose opacity reaches it take no more splats, and voxels whose
         window is all such pixels are skipped (error at most ``1 - termination``); 1 = off.
+    shading : None, True, dict or Shading
+        Gradient shading for over/under (:class:`._reference.Shading`, the reference's
+        Blinn–Phong headlight): per-voxel central differences over region voxels (from the
+        neighbouring sheets), splatted with the densities and normalised the same way.
     kernel_sigma, kernel_radius : float
         Gaussian kernel's standard deviation and truncation radius, in voxels.
     max_footprint_px : int
@@ -197,6 +259,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     """
     g, depth_in, termination, xray_scale, xray_offset = check_common(
         vevm, camera, tf, grid_to_world, mode, depth_in, termination, xray_scale, xray_offset)
+    shading = check_shading(shading) if mode in ("over", "under") else None
     try:
         sigma, radius = float(kernel_sigma), float(kernel_radius)
     except (TypeError, ValueError):
@@ -268,7 +331,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         order = np.concatenate([ahead[is_ahead], ahead[~is_ahead][::-1]])
     if mode == "under":
         order = order[::-1]
-    sheets = (_sheets_evm if skip_empty else _sheets_dense)(vevm, axis, order)
+    get = (_slices_evm if skip_empty else _slices_dense)(vevm, axis)
+    sheets = ((a,) + got for a in order for got in (get(a),) if got is not None)
 
     ftab, fscale = _footprint_table(sigma, radius)
     if mode == "xray":
@@ -284,6 +348,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     # Flat views of the images for scattered updates.
     acc_f, depth_f, done_f = acc.reshape(-1, 4), depth.reshape(-1), done.reshape(-1)
     mm_f, a0_f, kz_f = img["mm"].ravel(), img["a0"].ravel(), img["kz"].ravel()
+    dirs_f = r["dirs"]
+    inv_t = inv[:3, :3].T  # index-space gradients to world normals
     if mode == "mip":
         vmax_f = np.full(npix, -np.inf, np.float32)
     unit = tf.unit_length_mm if lut is not None else 1.0
@@ -392,8 +458,9 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         pixel[:-1, 4] = s0.ravel()
         pixel[:-1, 5] = s1.ravel()
         pixel[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
-        W, WD, L, S = _scatter(cells, dens, u[:, b_ax], u[:, c_ax], col - c0, row - r0,
-                               offsets, bw, bh, pixel, ftab, fscale)
+        grads = None if shading is None else _sheet_gradients(get, a, cells)
+        W, WD, L, S, G = _scatter(cells, dens, grads, u[:, b_ax], u[:, c_ax], col - c0,
+                                  row - r0, offsets, bw, bh, pixel, ftab, fscale)
         sees = np.flatnonzero((L > 0) & (W > 0))
         if len(sees) == 0:
             continue
@@ -418,7 +485,12 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         f = (x - i)[:, None]
         st = tab[i] + f * (tab[i + 1] - tab[i])
         alpha = 1 - np.power(1 - st[:, 3], length / np.float32(unit))
-        c = st[:, :3] * alpha[:, None]
+        rgb = st[:, :3]
+        if shading is not None:
+            grad = np.empty((len(q), 3))
+            grad[:, [axis, b_ax, c_ax]] = G[sees] / W[sees][:, None]
+            rgb = _shade(rgb, grad, inv_t, dirs_f[q], shading).astype(np.float32)
+        c = rgb * alpha[:, None]
         hit = alpha > 0
         if mode == "over":
             trans = 1 - acc_f[q, 3]
@@ -446,7 +518,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     return acc, depth
 
 
-def _scatter(cells, dens, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale):
+def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale):
     """Splat one sheet into its ``bh × bw`` window.
 
     Each voxel goes to the pixels ``(col, row) + offsets`` (window coordinates). ``rows``
@@ -454,13 +526,15 @@ def _scatter(cells, dens, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale)
     crossing point (B, C) of its ray with the sheet's plane, the ray's drift (dB/dA, dC/dA)
     and the range ``[s0, s1]`` of A-offsets from the plane it travels in the slab. Returns per
     pixel ``Σ w``, ``Σ w·density``, the length (in units of A) of the ray's path in the slab
-    that lies in the sheet's cells, and the A-offset where that path starts.
+    that lies in the sheet's cells, the A-offset where that path starts, and (``grads``
+    (m, 3) or None) ``Σ w·gradient``.
     """
     npix = bw * bh
     W = np.zeros(npix + 1)
     WD = np.zeros(npix + 1)
     L = np.zeros(npix + 1)
     S = np.full(npix + 1, np.inf)
+    G = None if grads is None else np.zeros((npix + 1, 3))
     ou, ov = offsets[:, 0], offsets[:, 1]
     fb = cells[:, 0].astype(np.float32)
     fc = cells[:, 1].astype(np.float32)
@@ -499,7 +573,11 @@ def _scatter(cells, dens, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale)
         L += np.bincount(flat, length, minlength=npix + 1)
         hit = length > 0
         np.minimum.at(S, flat[hit], lo[hit])
-    return W[:npix], WD[:npix], L[:npix], S[:npix]
+        if G is not None:
+            for j in range(3):
+                G[:, j] += np.bincount(flat, wt * np.broadcast_to(
+                    grads[sl, j], cc.shape).ravel(), minlength=npix + 1)
+    return W[:npix], WD[:npix], L[:npix], S[:npix], None if G is None else G[:npix]
 
 
 _FAR = 1e6
