@@ -34,6 +34,11 @@ corrected for that physical length: coverage is exact, so a homogeneous region g
 closed form ``1 - (1 - α)^(L/Δ0)`` for its exact chord ``L`` in any view, and ``depth_in``
 cuts exactly. Sheets are composited into the image in view order; voxels whose whole window is
 already opaque (``termination``) are not splatted and the loop stops once every pixel is.
+Voxels whose in-sheet neighbourhood (every density a pixel they reach can mix) is transparent
+for the transfer function (X-ray: does not attenuate) are not splatted either: the image is the
+same. Shading (optional) splats per-voxel gradients (central differences over region voxels,
+from the neighbouring sheets) with the densities and lights the sheet's samples like the
+reference does.
 
 Modes follow the reference: over, under, xray (``exp(-Σ μ·length)``), mip (maximum sheet
 density). Depth out: axial depth where the ray enters the region's cells in the first sheet
