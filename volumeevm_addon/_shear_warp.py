@@ -7,8 +7,10 @@ intermediate image (one pixel per voxel of a slice) to the final image.
 Pipeline
 --------
 1. **Principal axis** ``c``: the grid axis whose world direction is most parallel to the view
-   (orthographic: the camera's forward vector; perspective: the eye-to-region-centre vector),
-   ties to x, then y, then z (VolPack ``vp_view.c``). The slices ``c = s`` (voxel-centre
+   (orthographic: the camera's forward vector; perspective with the eye outside the region's
+   bounding box: the eye-to-region-centre vector, among the axes along which the eye is outside
+   the box, so that every ray crosses the slices the same way; eye inside the box: the forward
+   vector), ties to x, then y, then z (VolPack ``vp_view.c``). The slices ``c = s`` (voxel-centre
    planes) are read front to back (``"over"``, ``"xray"``, ``"mip"``) or back to front
    (``"under"``): the densities table ``vevm.table(c)`` read forwards or backwards.
 2. **Intermediate image.** Its pixel ``(p, q)`` is the ray through the point ``(p, q)`` (plus an
@@ -74,11 +76,15 @@ Depth
   holding the maximum, if its class is not transparent), taken from the **nearest**
   intermediate pixel (depths are not blended); ``1e10`` where there is none.
 
-Known limits (measured in ``tests/test_shear_warp.py``): in-slice bilinear interpolation only
-(inter-slice aliasing), one intermediate pixel per voxel (zooming in blurs), the principal axis
-switches at 45°, pre-classification smooths boundaries, and in perspective only rays that
-advance along the principal axis in the viewing direction are rendered (a camera inside the
-volume sees the slices in front of it along that axis).
+Known limits: in-slice bilinear interpolation only (inter-slice aliasing), one intermediate
+pixel per voxel (zooming in blurs), pre-classification smooths boundaries, and in perspective
+only rays that advance along the principal axis in the viewing direction are rendered (an eye
+inside the region sees what lies ahead along that axis). The principal axis switches at 45°:
+on brainsmall at half resolution (MRI preset, orthographic, 64x48, azimuth 40°..50°) the mean
+absolute error to the reference stays 0.006 on both sides, and the frame-to-frame change across
+the switch (44.9° -> 45.1°: 0.0030) is no larger than between neighbouring angles
+(0.003-0.005, against the reference's 0.0003-0.003): resampling noise, not popping, with this
+transfer function (``tests/test_shear_warp.py`` keeps the measurement).
 
 References
 ----------
@@ -575,6 +581,27 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     VolumeEVMError
         For a bad mode, camera, transfer function, matrix, ``depth_in`` or option, and for a
         perspective camera so close that the intermediate image would be unreasonably large.
+
+    See Also
+    --------
+    volumeevm_addon._reference.render_reference : the accuracy oracle (same conventions).
+
+    Examples
+    --------
+    A 2x2x2 mm block of 1 mm voxels seen from above; opacity 0.5 per mm over a 2 mm chord:
+
+    >>> from volumeevm_addon import VolumeEVM
+    >>> from volumeevm_addon._camera import Camera
+    >>> from volumeevm_addon._transfer import TransferFunction
+    >>> BU = 0.001  # Blender units per mm
+    >>> cam_matrix = np.eye(4)
+    >>> cam_matrix[:3, 3] = (0.5 * BU, 0.5 * BU, 1.0)
+    >>> cam = Camera.orthographic(cam_matrix, 2 * BU, resolution_x=2, resolution_y=2)
+    >>> tf = TransferFunction([(0, 1, 1, 1, 0.5), (1, 1, 1, 1, 0.5)])
+    >>> vevm = VolumeEVM.from_array(np.zeros((2, 2, 2)), 0.0)
+    >>> rgba, depth = render_shear_warp(vevm, cam, tf, np.diag([BU, BU, BU, 1.0]))
+    >>> rgba[..., 3].astype(float).round(6).tolist(), depth.astype(float).round(6).tolist()
+    ([[0.75, 0.75], [0.75, 0.75]], [[0.9985, 0.9985], [0.9985, 0.9985]])
     """
     g, depth_in, termination, lut_size, xray_scale, xray_offset = _check(
         vevm, camera, tf, grid_to_world, mode, depth_in, termination, lut_size, xray_scale,
