@@ -279,6 +279,15 @@ def test_stack_equals_one_by_one_disable_restores(api, core, data_dir, volume):
     expected = expected.add(implant)
     assert_same_vevm(api.stack_state(vol).result, expected)
     assert_surface_is(surface_of(vol), expected)
+    # The sidebar's density settings reach the Add button; editing an entry re-evaluates.
+    s.tool_use_density, s.tool_density = True, 2000.0
+    assert bpy.ops.volumeevm.tool_add() == {"FINISHED"}
+    assert s.tools[4].use_density and s.tools[4].density == 2000.0
+    s.tools[4].density = 900.0
+    assert_same_vevm(api.stack_state(vol).result, expected.add(implant, 900.0))
+    assert bpy.ops.volumeevm.tool_remove() == {"FINISHED"}  # the active (last) entry
+    assert len(s.tools) == 4
+    assert_surface_is(surface_of(vol), expected)
 
     # The box fast path (axis-aligned clip) equals voxelizing the box mesh; a rotated box too.
     clip.rotation_euler = (0.0, 0.0, math.radians(10.0))
