@@ -11,30 +11,36 @@ with a fixed step, fast:
   spacing is accounted for) and is taken at its midpoint; the last segment is cut at the ray's
   far end (so ``depth_in`` and the far clip cut exactly) and its opacity corrected for its
   shorter length. Opacity is corrected for the step, ``α' = 1 - (1 - α)^(Δ/Δ0)``.
-- **Reconstruction** (boundary policy "clamp"): a sample at index-space point ``p`` is in the
-  cell ``floor(p) + (frac(p) >= 0.5)``; if that voxel is outside the region the sample is
-  transparent. Inside, the density is the trilinear interpolation of the 8 neighbours that are
-  in the region, with the weights of the others dropped and the rest renormalised. Gradients
-  (for shading) are per-voxel central differences over region voxels (one-sided at the
-  surface), interpolated the same way, as in the reference.
+- **Reconstruction** (boundary policy "clamp"): the density at a sample's midpoint is the
+  trilinear interpolation of its 8 neighbours that are in the region, with the weights of the
+  others dropped and the rest renormalised. Gradients (for shading) are per-voxel central
+  differences over region voxels (one-sided at the surface), interpolated the same way, as in
+  the reference.
+- **Coverage**: as in the reference, only the parts of a ray inside region cells count. Each
+  sample's segment is cut where it crosses cell boundaries (at most one per axis for steps up
+  to the smallest voxel size) and only the pieces in region cells (all among the midpoint's 8
+  neighbours, whose readability is at hand) count: the opacity is corrected for that length.
+  The region's surface is therefore placed exactly (a homogeneous region gives the closed form
+  ``1 - (1 - α)^(L/Δ0)`` for its exact chord ``L``) and so is the output depth.
 - **Classification** after interpolation (post-classification) through a lookup table of the
   transfer function (straight colour and step-corrected opacity), linearly interpolated.
 - **Modes**: ``"over"`` front to back with early ray termination (``termination``),
   ``"under"`` back to front, ``"xray"`` (``T = exp(-Σ μ Δ)``, μ per mm), ``"mip"`` (maximum
   density along the ray, classified without length correction), with the reference's
   conventions.
-- **Depth out**: axial depth of the front end of the first segment with non-zero opacity
-  (X-ray: attenuation; MIP: the sample holding the maximum, if its opacity is non-zero);
-  ``1e10`` where there is none.
+- **Depth out**: axial depth where the first segment with non-zero opacity enters the region
+  (X-ray: attenuation; MIP: the sample holding the maximum among samples in region cells, if
+  its opacity is non-zero); ``1e10`` where there is none.
 
 Space leaping (``skip_empty=True``)
 -----------------------------------
-The EVM's ordered boxes are rasterised into a coarse grid of blocks of ``block``³ cells. A block
-is *visible* when it holds a region voxel and (over, under) the transfer function is not
-transparent on the block's density range, widened by one voxel and one lookup-table step (every
-value a sample in the block can interpolate), or (X-ray) some density attenuates. Rays start at
-the region's bounding box, and a sample whose cell lies in an invisible block makes its ray leap
-to the first lattice sample past the block's exit. Skipped samples would add exact zeros, so the
+The EVM's ordered boxes, grown by one voxel (a segment may reach into a neighbouring cell), are
+rasterised into a coarse grid of blocks of ``block``³ cells. A block is *visible* when it holds
+such a voxel and (over, under) the transfer function is not transparent on the block's density
+range, widened by one voxel and one lookup-table step (every value a sample in the block can
+interpolate), or (X-ray) some density attenuates. Rays start at the region's bounding box (grown
+by one voxel), and a sample whose midpoint lies in an invisible block makes its ray leap to the
+first lattice sample past the block's exit. Skipped samples would add exact zeros, so the
 image equals ``skip_empty=False`` (every lattice sample in the volume's box, the dense grid
 with the region mask, no EVM) up to float rounding, which is the exactness contract.
 
@@ -48,7 +54,7 @@ dense array of densities exists. Slow by design; same image as :func:`render_ray
 Python loops over ray steps (and chunks of rays); all rays of a chunk advance together and the
 active set is compacted as rays finish. The padded sampling tables (complex64 density and
 weight, the region mask, float32 gradients when shading) and the block grid are built on first
-use and cached per VolumeEVM (about 9 bytes per grid voxel, 21 with gradients).
+use and cached per VolumeEVM (about 8 bytes per grid voxel, 20 with gradients).
 
 References
 ----------
@@ -256,7 +262,7 @@ class _Grid:
 
 class _DenseSampler:
     """Trilinear reconstruction from padded dense tables made from the VolumeEVM: complex64
-    ``density·r + i·r`` (``r`` = in the region), the region mask, and the gradients."""
+    ``density·r + i·r`` (``r`` = in the region) and the gradients."""
 
     def __init__(self, vevm, with_gradient):
         self.grid = _Grid(vevm.shape)
@@ -265,9 +271,6 @@ class _DenseSampler:
         tab = np.zeros(pad, np.complex64)
         tab[1:-1, 1:-1, 1:-1] = np.where(mask, dens, 0).astype(np.float32) + 1j * mask
         self.table = tab.ravel()
-        inside = np.zeros(pad, bool)
-        inside[1:-1, 1:-1, 1:-1] = mask
-        self.inside = inside.ravel()
         self.grad = None
         if with_gradient:
             gr = _voxel_gradients(dens, mask)
@@ -276,20 +279,16 @@ class _DenseSampler:
             self.grad = gpad.reshape(3, -1)
 
     def __call__(self, p):
-        """``p`` (m, 3) float32 -> (inside (m,) bool, density (m,) float32, gradient (m, 3)
-        float32 or None)."""
-        base, f, nearest = self.grid.locate(p)
-        inside = self.inside[self.grid.flat(nearest)]
+        """``p`` (m, 3) float32 -> (base voxel (m, 3), fractions (m, 3), readable corners
+        (m, 8) bool, density (m,) float32, gradient (m, 3) float32 or None); the density and
+        gradient are 0 where no corner is readable."""
+        base, f, _ = self.grid.locate(p)
         b = self.grid.flat(base)
-        acc = _lerp8([self.table[b + o] for o in self.grid.corner_offsets], f)
-        wsum = np.where(inside, acc.imag, np.float32(1))
-        value = np.where(inside, acc.real / wsum, np.float32(0))
-        grad = None
-        if self.grad is not None:
-            grad = np.stack([_lerp8([g[b + o] for o in self.grid.corner_offsets], f)
-                             for g in self.grad], axis=1) / wsum[:, None]
-            grad[~inside] = 0
-        return inside, value, grad
+        vals = [self.table[b + o] for o in self.grid.corner_offsets]
+        readable = np.stack([v.imag > 0 for v in vals], axis=1)
+        return (base, f, readable) + _renormalised(
+            _lerp8(vals, f), None if self.grad is None else [
+                _lerp8([g[b + o] for o in self.grid.corner_offsets], f) for g in self.grad])
 
 
 class _NavigationSampler:
@@ -334,17 +333,55 @@ class _NavigationSampler:
                 g = np.where(mp & mm, np.float32(0.5) * (fp - fm),
                              np.where(mp, fp - dens, np.where(mm, dens - fm, np.float32(0))))
                 gcols.append(np.where(ok, g, np.float32(0)))
-        corner = (f[:, 0] >= 0.5) * 4 + (f[:, 1] >= 0.5) * 2 + (f[:, 2] >= 0.5)
-        inside = ok[np.arange(len(p)), corner]
-        cvals = dens + 1j * ok.astype(np.float32)
-        acc = _lerp8([cvals[:, i].astype(np.complex64) for i in range(8)], f)
-        wsum = np.where(inside, acc.imag, np.float32(1))
-        value = np.where(inside, acc.real / wsum, np.float32(0))
+        cvals = (dens + 1j * ok.astype(np.float32)).astype(np.complex64)
+        grads = None
         if self.with_gradient:
-            grad = np.stack([_lerp8([g[:, i] for i in range(8)], f) for g in gcols],
-                            axis=1) / wsum[:, None]
-            grad[~inside] = 0
-        return inside, value, grad
+            grads = [_lerp8([g[:, i] for i in range(8)], f) for g in gcols]
+        return (base, f, ok) + _renormalised(_lerp8([cvals[:, i] for i in range(8)], f), grads)
+
+
+def _renormalised(acc, grads):
+    """Density (and gradient) from the interpolated ``density·r + i·r`` (and ``gradient·r``)
+    divided by the interpolated weight of readable corners; 0 where there is none."""
+    wsum = acc.imag
+    has = wsum > 0
+    wsum = np.where(has, wsum, np.float32(1))
+    value = acc.real / wsum
+    grad = None
+    if grads is not None:
+        grad = np.stack(grads, axis=1) / wsum[:, None]
+    return value, grad
+
+
+def _coverage(pf, pb, base, readable):
+    """Fraction of each segment ``pf -> pb`` (index space) lying in readable cells, and where
+    (as a fraction) its first readable piece starts (NaN for none).
+
+    The segment is cut where it crosses a cell boundary (index ``m + 0.5``; at most one per
+    axis when the step is at most a voxel); each piece's cell is one of the 8 trilinear
+    corners of the segment's midpoint (``base``), whose readability is known.
+    """
+    m = len(pf)
+    span = pb - pf
+    cf = np.floor(pf + np.float32(0.5))
+    cb = np.floor(pb + np.float32(0.5))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (np.maximum(cf, cb) - np.float32(0.5) - pf) / span
+    t = np.where(cf != cb, np.clip(t, 0, 1), np.float32(1))
+    t.sort(axis=1)
+    edges = [np.zeros(m, np.float32), t[:, 0], t[:, 1], t[:, 2], np.ones(m, np.float32)]
+    frac = np.zeros(m, np.float32)
+    first = np.full(m, np.nan, np.float32)
+    rows = np.arange(m)
+    for e0, e1 in zip(edges[:-1], edges[1:]):
+        length = e1 - e0
+        q = pf + (np.float32(0.5) * (e0 + e1))[:, None] * span
+        rel = np.floor(q + np.float32(0.5)).astype(np.int64) - base
+        np.clip(rel, 0, 1, out=rel)
+        ins = readable[rows, rel[:, 0] * 4 + rel[:, 1] * 2 + rel[:, 2]] & (length > 0)
+        frac += length * ins
+        first = np.where(np.isnan(first) & ins, e0, first)
+    return frac, first
 
 
 def _dense(vevm):
@@ -362,9 +399,10 @@ def _dense(vevm):
 class _Blocks:
     """Coarse occupancy of the region (from the EVM's boxes) with per-block density ranges.
 
-    Block ``b`` holds the cells ``b·B .. (b + 1)·B - 1``; its range covers the region's
-    densities in those cells widened by one voxel on each side (what trilinear interpolation
-    in the block can read), found conservatively from the 26 neighbouring blocks.
+    Block ``b`` holds the cells ``b·B .. (b + 1)·B - 1``; it is occupied when a region voxel
+    lies within one voxel of them; its range covers the region's densities in those cells
+    widened by one voxel on each side (what trilinear interpolation in the block can read),
+    found conservatively from the 26 neighbouring blocks.
     """
 
     def __init__(self, vevm, size):
@@ -374,10 +412,12 @@ class _Blocks:
         lo, hi = vevm.evm.boxes()
         lo = lo.astype(np.int64)
         hi = hi.astype(np.int64)
-        # Rasterise the boxes into blocks: +-1 at the corners of each box's block range, then
-        # prefix sums (a 3-D difference array).
+        # Rasterise the boxes, grown by one voxel (a sample's segment may reach a neighbouring
+        # cell), into blocks: +-1 at the corners of each box's block range, then prefix sums
+        # (a 3-D difference array).
         diff = np.zeros(tuple(self.nb + 1), np.int64)
-        blo, bhi = lo // size, (hi - 1) // size + 1
+        blo = np.maximum(lo - 1, 0) // size
+        bhi = np.minimum(hi, shape - 1) // size + 1
         for cx in (0, 1):
             for cy in (0, 1):
                 for cz in (0, 1):
@@ -447,8 +487,8 @@ def _lut(tf, step_mm):
 
 
 def _classify(lut, value, ratio):
-    """Straight RGB (m, 3) and opacity (m,) of densities; ``ratio`` (m,) or None: the sample's
-    length in steps where it is not 1 (the last, shorter segment)."""
+    """Straight RGB (m, 3) and opacity (m,) of densities for segments of ``ratio`` (m,) steps
+    (in the region)."""
     tab, lo, scale, _ = lut
     x = (value - np.float32(lo)) * np.float32(scale)
     np.maximum(x, 0, out=x)
@@ -458,8 +498,9 @@ def _classify(lut, value, ratio):
     t0 = tab[i]
     rgba = t0 + f * (tab[i + 1] - t0)
     alpha = rgba[:, 3]
-    if ratio is not None:
-        alpha = 1 - np.power(1 - alpha, ratio)
+    short = np.flatnonzero(ratio != 1)
+    if len(short):
+        alpha[short] = 1 - np.power(1 - alpha[short], ratio[short])
     return rgba[:, :3], alpha
 
 
@@ -506,9 +547,10 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
         blocks = _blocks(vevm, block)
         visible = blocks.visible(mode, tf, _lut(tf, step_mm)[3] if mode in ("over", "under")
                                  else 0.0, xray_scale, xray_offset)
-        # Start and stop at the region's bounding box (cells lo .. hi - 1), with one sample
-        # to spare at each end (the last sample sits before its lattice position).
-        bmin, bmax = _slabs(p0, sv, blocks.bbox[0] - 0.5, blocks.bbox[1] - 0.5)
+        # Start and stop at the region's bounding box (cells lo .. hi - 1) grown by one voxel,
+        # with one sample to spare at each end (the last sample sits before its lattice
+        # position).
+        bmin, bmax = _slabs(p0, sv, blocks.bbox[0] - 1.5, blocks.bbox[1] + 0.5)
         with np.errstate(invalid="ignore"):
             first = np.maximum(np.ceil(bmin) - 1, 0)
             stop = np.minimum(np.floor(bmax) + 2, K)
@@ -624,44 +666,50 @@ def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, s
                 hold = np.zeros(len(live), bool)
                 hold[rows] = True
         kf, is_last, pos = position(slice(None), st["k"])
-        inside, value, grad = sampler(pos)
-        inside &= live
-        if hold is not None:
-            inside &= ~hold
-        ratio = np.where(is_last, st["last"], np.float32(1)) if is_last.any() else None
+        base, f, readable, value, grad = sampler(pos)
+        active = live if hold is None else live & ~hold
+        # The sample's segment (half a step each side; the last one is shorter).
+        half = np.float32(0.5) if not is_last.any() else np.where(
+            is_last, np.float32(0.5) * st["last"], np.float32(0.5))
         acc = st["acc"]
         kev = st["kev"]
-        if mode == "xray":
-            mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-            mu *= inside
-            acc[:, 0] += mu * (np.float32(step_mm) if ratio is None else step_mm * ratio)
-            hit = (mu > 0) & np.isnan(kev)
-            kev[hit] = st["k"][hit] - 0.5
-        elif mode == "mip":
+        if mode == "mip":
+            corner = (f[:, 0] >= 0.5) * 4 + (f[:, 1] >= 0.5) * 2 + (f[:, 2] >= 0.5)
+            inside = readable[np.arange(len(f)), corner] & active
             vmax = st["vmax"]
             better = inside & (value > vmax)  # ties keep the frontmost
             vmax[better] = value[better]
             kev[better] = kf[better]
         else:
-            rgb, alpha = _classify(lut, value, ratio)
-            alpha *= inside
-            if grad is not None:
-                rgb = _shade(rgb, grad, inv_t, st["dirs"], shading).astype(np.float32)
-            c = rgb * alpha[:, None]
-            hit = alpha > 0
-            if backward:
-                keep = 1 - alpha
-                acc[:, :3] *= keep[:, None]
-                acc[:, :3] += c
-                acc[:, 3] *= keep
-                acc[:, 3] += alpha
-                kev[hit] = st["k"][hit] - 0.5  # the last met is the frontmost
+            hsv = st["sv"] * (half if np.ndim(half) == 0 else half[:, None])
+            frac, start = _coverage(pos - hsv, pos + hsv, base, readable)
+            frac *= active
+            length = frac * (2 * half)  # in steps: the part of the segment in the region
+            front = kf - half + start * (2 * half)  # lattice position where it starts
+            if mode == "xray":
+                mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
+                acc[:, 0] += mu * length * np.float32(step_mm)
+                hit = (mu * length > 0) & np.isnan(kev)
+                kev[hit] = front[hit]
             else:
-                trans = 1 - acc[:, 3]
-                acc[:, :3] += trans[:, None] * c
-                acc[:, 3] += trans * alpha
-                hit &= np.isnan(kev)
-                kev[hit] = st["k"][hit] - 0.5
+                rgb, alpha = _classify(lut, value, length)
+                if grad is not None:
+                    rgb = _shade(rgb, grad, inv_t, st["dirs"], shading).astype(np.float32)
+                c = rgb * alpha[:, None]
+                hit = alpha > 0
+                if backward:
+                    keep = 1 - alpha
+                    acc[:, :3] *= keep[:, None]
+                    acc[:, :3] += c
+                    acc[:, 3] *= keep
+                    acc[:, 3] += alpha
+                    kev[hit] = front[hit]  # the last met is the frontmost
+                else:
+                    trans = 1 - acc[:, 3]
+                    acc[:, :3] += trans[:, None] * c
+                    acc[:, 3] += trans * alpha
+                    hit &= np.isnan(kev)
+                    kev[hit] = front[hit]
         st["k"] += step if hold is None else np.where(hold, 0, step)
         kk = st["k"]
         ended = live & ((kk < st["first"]) | (kk >= st["stop"]))
