@@ -372,8 +372,15 @@ class _View:
         self.scale = scale  # intermediate pixels per voxel along each in-slice axis
         self.inv = np.linalg.inv(g)
         origins, dirs = camera.rays()
-        o = _transform(origins.reshape(-1, 3), self.inv[:3, :3].T, self.inv[:3, 3])
-        d = _transform(dirs.reshape(-1, 3), self.inv[:3, :3].T)
+        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        # Index space; orthographic rays share one direction, perspective rays one origin.
+        rot = self.inv[:3, :3].T
+        if camera.is_ortho:
+            o = _transform(origins, rot, self.inv[:3, 3])
+            d = np.broadcast_to(_transform(dirs[:1], rot), o.shape)
+        else:
+            d = _transform(dirs, rot)
+            o = np.broadcast_to(_transform(origins[:1], rot, self.inv[:3, 3]), d.shape)
         self.axis = axis = self.principal_axis(vevm, camera, g)
         self.light = self.view_direction(vevm, camera, g)
         a, b = ("xyz".index(ch) for ch in TABLE_ORDERS[axis][1:])
@@ -864,15 +871,19 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     hi, wi = view.size
     pq = view.pq - view.origin
     ok = view.rays_ok
-    i0 = np.floor(pq).astype(np.int64)
-    f = (pq - i0).astype(np.float32)
-    acc = np.zeros((4, h * w), np.float32)
-    for da in (0, 1):
-        for db in (0, 1):
-            ia, ib = i0[:, 0] + da, i0[:, 1] + db
-            wt = (f[:, 0] if da else 1 - f[:, 0]) * (f[:, 1] if db else 1 - f[:, 1])
-            use = ok & (ia >= 0) & (ia < hi) & (ib >= 0) & (ib < wi) & (wt > 0)
-            acc[:, use] += image[:, ia[use], ib[use]] * wt[use]
+    # The image with a border of zeros: taps outside it read zeros, with no masking.
+    padded = np.zeros((4, hi + 2, wi + 2), np.float32)
+    padded[:, 1:-1, 1:-1] = image
+    flat = padded.reshape(4, -1)
+    i0 = np.floor(pq).astype(np.int64) + 1
+    f = (pq - i0 + 1).astype(np.float32)
+    valid = ok & (i0[:, 0] >= 0) & (i0[:, 0] <= hi) & (i0[:, 1] >= 0) & (i0[:, 1] <= wi)
+    base = np.where(valid, i0[:, 0] * (wi + 2) + i0[:, 1], 0)
+    fa, fb = f[:, 0], f[:, 1]
+    acc = np.take(flat, base, axis=1) * ((1 - fa) * (1 - fb) * valid)
+    acc += np.take(flat, base + 1, axis=1) * ((1 - fa) * fb * valid)
+    acc += np.take(flat, base + wi + 2, axis=1) * (fa * (1 - fb) * valid)
+    acc += np.take(flat, base + wi + 3, axis=1) * (fa * fb * valid)
     rgba_out[...] = acc.T.reshape(h, w, 4)
     near = np.rint(pq).astype(np.int64)
     use = ok & (near[:, 0] >= 0) & (near[:, 0] < hi) & (near[:, 1] >= 0) & (near[:, 1] < wi)
