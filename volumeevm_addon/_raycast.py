@@ -359,9 +359,17 @@ def _coverage(pf, pb, base, readable):
 
     The segment is cut where it crosses a cell boundary (index ``m + 0.5``; at most one per
     axis when the step is at most a voxel); each piece's cell is one of the 8 trilinear
-    corners of the segment's midpoint (``base``), whose readability is known.
+    corners of the segment's midpoint (``base``), whose readability is known. Segments whose
+    8 corners are all readable (or none) need no cutting.
     """
-    m = len(pf)
+    every = readable.all(axis=1)
+    frac = every.astype(np.float32)
+    first = np.where(every, np.float32(0), np.float32(np.nan))
+    mixed = np.flatnonzero(readable.any(axis=1) & ~every)
+    if len(mixed) == 0:
+        return frac, first
+    pf, pb, base, readable = pf[mixed], pb[mixed], base[mixed], readable[mixed]
+    m = len(mixed)
     span = pb - pf
     cf = np.floor(pf + np.float32(0.5))
     cb = np.floor(pb + np.float32(0.5))
@@ -370,8 +378,8 @@ def _coverage(pf, pb, base, readable):
     t = np.where(cf != cb, np.clip(t, 0, 1), np.float32(1))
     t.sort(axis=1)
     edges = [np.zeros(m, np.float32), t[:, 0], t[:, 1], t[:, 2], np.ones(m, np.float32)]
-    frac = np.zeros(m, np.float32)
-    first = np.full(m, np.nan, np.float32)
+    part = np.zeros(m, np.float32)
+    start = np.full(m, np.nan, np.float32)
     rows = np.arange(m)
     for e0, e1 in zip(edges[:-1], edges[1:]):
         length = e1 - e0
@@ -379,8 +387,10 @@ def _coverage(pf, pb, base, readable):
         rel = np.floor(q + np.float32(0.5)).astype(np.int64) - base
         np.clip(rel, 0, 1, out=rel)
         ins = readable[rows, rel[:, 0] * 4 + rel[:, 1] * 2 + rel[:, 2]] & (length > 0)
-        frac += length * ins
-        first = np.where(np.isnan(first) & ins, e0, first)
+        part += length * ins
+        start = np.where(np.isnan(start) & ins, e0, start)
+    frac[mixed] = part
+    first[mixed] = start
     return frac, first
 
 
