@@ -210,7 +210,7 @@ def _transform(points, matrix, offset=None):
     """``points @ matrix (+ offset)`` for ``(..., 3)`` points and a 3x3 matrix, as three scaled
     sums: BLAS would treat these tall, thin products as matrix products and, on a loaded
     machine, its threads spin for tens of milliseconds."""
-    m = np.asarray(matrix, dtype=np.float64)
+    m = np.asarray(matrix, dtype=points.dtype)  # float32 points stay float32
     out = points[..., 0:1] * m[0] + points[..., 1:2] * m[1]
     out += points[..., 2:3] * m[2]
     if offset is not None:
@@ -269,8 +269,9 @@ def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
     has = norm > 0
     cos = np.abs(_transform(normals, view.light[:, None])[:, 0]) / np.where(has, norm, 1.0)
     cos[~has] = 1.0
-    lit = shading.ambient + shading.diffuse * cos
-    glint = np.where(has, shading.specular * cos ** shading.shininess, 0.0)
+    lit = np.float32(shading.ambient) + np.float32(shading.diffuse) * cos
+    glint = np.where(has, np.float32(shading.specular) * cos ** np.float32(shading.shininess),
+                     np.float32(0.0))
     rows = classes.rows
     straight = np.zeros((3, lut_size + 1), np.float32)
     straight[:, 1:] = tf.straight_table(n=lut_size)[:, :3].T
