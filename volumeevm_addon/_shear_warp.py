@@ -142,6 +142,13 @@ class _Layout:
         ``values[0] = 0``, then the densities the codes point at.
     ranges : (n, 2) ndarray or None
         Per slice, min and max density of its voxels (``None``: no slice may be skipped).
+    axes, region_only
+        The table order as grid axes; whether codes number the region's voxels (True) or
+        every voxel of the dense grid (False).
+    gradients : (N + 1, 3) ndarray of np.float32 or None
+        Per code, the voxel's index-space gradient, made when shading first needs it.
+    classes : WeakKeyDictionary
+        Per transfer function and table size, its :class:`_Classes`.
     """
 
     def __init__(self, boxes, codes, values, ranges, axes, region_only):
