@@ -33,7 +33,7 @@ def face_components(evm):
     """Face-connected components of ``evm``, one :class:`EVM` each, largest volume first."""
     from ._evm import EVM
 
-    _, lo, hi = _sweep.boxes(evm.keys(), 3)
+    lo, hi = evm.boxes()
     if len(lo) == 0:
         return []
     # Sub-slabs: boxes of one slab (same x range) and one y range, runs along z.

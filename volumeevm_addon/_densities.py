@@ -40,7 +40,7 @@ class TableIndex:
     def __init__(self, evm, order):
         self.order = order
         self.axes = ["xyz".index(a) for a in order]
-        _, lo, hi = _sweep.boxes(evm.keys(order), 3)
+        lo, hi = (corner[:, self.axes] for corner in evm.boxes(order))
         self.size = int(np.prod(hi - lo, axis=1).sum())
         if self.size == 0:
             return

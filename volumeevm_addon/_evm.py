@@ -76,7 +76,7 @@ class EVM:
     True
     """
 
-    __slots__ = ("_vertices", "_keys")
+    __slots__ = ("_vertices", "_keys", "_boxes")
 
     def __init__(self, vertices=None):
         """Wrap extreme vertices ``(n, 3)`` (any order; duplicates are an error)."""
@@ -92,6 +92,7 @@ class EVM:
 
     def _set(self, keys):
         self._keys = {"xyz": keys}
+        self._boxes = {}
         self._vertices = compact_integers(_sweep.unpack(keys, 3)[1])
 
     @classmethod
@@ -266,12 +267,18 @@ class EVM:
 
     # ------------------------------------------------------------------ measures
     def boxes(self, order="xyz"):
-        """Ordered disjoint boxes ``(lo, hi)`` ``(n, 3)`` each, x, y, z columns, split in ``order``."""
-        _, lo, hi = _sweep.boxes(self.keys(order), 3)
-        axes = _axes(order)
-        out_lo, out_hi = np.empty_like(lo), np.empty_like(hi)
-        out_lo[:, axes], out_hi[:, axes] = lo, hi
-        return out_lo, out_hi
+        """Ordered disjoint boxes ``(lo, hi)`` ``(n, 3)`` each, x, y, z columns, split in ``order``.
+
+        Cached: volume, the relation v and the densities of edits all start from them.
+        """
+        if order not in self._boxes:
+            _, lo, hi = _sweep.boxes(self.keys(order), 3)
+            axes = _axes(order)
+            out_lo, out_hi = np.empty_like(lo), np.empty_like(hi)
+            out_lo[:, axes], out_hi[:, axes] = lo, hi
+            out_lo.flags.writeable = out_hi.flags.writeable = False
+            self._boxes[order] = out_lo, out_hi
+        return self._boxes[order]
 
     def voxels(self):
         """The region's voxels ``(n, 3)`` (int64), box by box: for lookups, not in table order."""
@@ -329,11 +336,27 @@ class EVM:
         return tuple(parts)
 
     def clip(self, lo, hi):
-        """The part of the region inside the box ``[lo, hi)`` (lattice corners)."""
-        part = self
+        """The part of the region inside the box ``[lo, hi)`` (lattice corners).
+
+        Per axis, the vertices between the two planes are kept, the section entering at ``lo``
+        opens the part and the section leaving at ``hi`` closes it (a split at both planes).
+        """
+        plane_bits = 2 * _sweep.BITS
+        columns = _sweep.unpack(self.keys(), 3)[1]
         for axis in range(3):
-            part = part.split(axis, lo[axis])[1].split(axis, hi[axis])[0]
-        return part
+            axes = ["xyz".index(a) for a in ("xyz", "yzx", "zxy")[axis]]
+            keys = np.sort(_sweep.pack(columns[:, axes]))
+            cuts = [np.int64(int(c) + _sweep.OFFSET) << plane_bits for c in (lo[axis], hi[axis])]
+            if cuts[0] >= cuts[1]:
+                return EVM()
+            first, stop = np.searchsorted(keys, cuts)
+            rest = (1 << plane_bits) - 1
+            opening = _sweep.parity(keys[:first] & rest) | cuts[0]
+            closing = _sweep.parity(keys[:stop] & rest) | cuts[1]
+            keys = _sweep.parity(np.concatenate([opening, keys[first:stop], closing]), runs=True)
+            columns = np.empty((len(keys), 3), np.int64)
+            columns[:, axes] = _sweep.unpack(keys, 3)[1]
+        return EVM._from_keys(np.sort(_sweep.pack(columns)))
 
     def mesh(self):
         """Boundary as a closed, outward polygon mesh in lattice units; see :mod:`._mesh`."""

@@ -176,10 +176,8 @@ class VolumeEVM:
         result = self._derived(region, np.empty(region.volume(), table.dtype))
         # Both tables list voxels in the same (C) order, so the old voxels the tool leaves alone
         # keep their relative order: fill them in one masked copy.
-        from_tool = np.zeros(result.voxel_count, bool)
-        from_tool[result.index(tool.voxels())] = True
-        covered = np.zeros(self.voxel_count, bool)
-        covered[self.index((self.evm & tool).voxels())] = True
+        from_tool = result._table_mask(tool)
+        covered = self._table_mask(self.evm & tool)
         result._tables[0][from_tool] = density
         result._tables[0][~from_tool] = table[~covered]
         return result
@@ -188,18 +186,29 @@ class VolumeEVM:
         """The VolumeEVM of ``region``, a subset of this region, with the densities it keeps.
 
         Tables list voxels in C order, and a subset keeps that order, so the new table is the old
-        one masked: the mask is made from whichever of ``region`` or the removed part is smaller.
+        one masked.
         """
         if region.is_empty():
             raise VolumeEVMError(f"{what}: the result would be empty")
-        kept = region.volume()
-        if kept <= self.voxel_count - kept:
-            keep = np.zeros(self.voxel_count, bool)
-            keep[self.index(region.voxels())] = True
-        else:
-            keep = np.ones(self.voxel_count, bool)
-            keep[self.index((self.evm ^ region).voxels())] = False
-        return self._derived(region, self._tables[0][keep])
+        return self._derived(region, self._tables[0][self._table_mask(region)])
+
+    def _table_mask(self, part):
+        """Which entries of the table (order "xyz") belong to ``part``, a subset of the region.
+
+        Each row of ``part`` (fixed x and y, a run along z) is one contiguous stretch of the
+        table, so the mask comes from the rows' first indices (the relation v) and lengths,
+        without visiting ``part``'s voxels one by one.
+        """
+        lo, hi = part.boxes()
+        size = hi - lo
+        rows = size[:, 0] * size[:, 1]
+        box = np.repeat(np.arange(len(lo)), rows)
+        local = np.arange(rows.sum()) - np.repeat(np.cumsum(rows) - rows, rows)
+        firsts = lo[box] + np.stack([local // size[box, 1], local % size[box, 1], np.zeros_like(local)], axis=1)
+        start = self.index(firsts)
+        end = start + size[box, 2]
+        edges = np.bincount(start, minlength=self.voxel_count + 1) - np.bincount(end, minlength=self.voxel_count + 1)
+        return np.cumsum(edges[:-1]) > 0
 
     def _derived(self, region, table):
         return VolumeEVM(region, table, shape=self.shape, spacing=self.spacing, origin=self.origin,
