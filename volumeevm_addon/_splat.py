@@ -221,7 +221,7 @@ def _footprint_table(sigma, radius):
 
 
 def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None, skip_empty=True,
-                 termination=0.99, shading=None, kernel_sigma=0.4, kernel_radius=1.5,
+                 termination=0.99, shading=None, kernel_sigma=0.4, kernel_radius=1.0,
                  max_footprint_px=32, xray_scale=1.0, xray_offset=0.0):
     """Render a VolumeEVM by sheet-buffer splatting (module docstring).
 
@@ -248,7 +248,9 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         Blinn–Phong headlight): per-voxel central differences over region voxels (from the
         neighbouring sheets), splatted with the densities and normalised the same way.
     kernel_sigma, kernel_radius : float
-        Gaussian kernel's standard deviation and truncation radius, in voxels.
+        Gaussian kernel's standard deviation and truncation radius, in voxels (defaults 0.4
+        and 1.0: weights are normalised per pixel, so the cut costs little; the radius must
+        exceed √3/2 so that every cell a ray crosses reaches the pixel).
     max_footprint_px : int
         Largest half-width (pixels) of a footprint window; larger footprints (extreme
         close-ups) are cut.
@@ -269,8 +271,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         sigma, radius = float(kernel_sigma), float(kernel_radius)
     except (TypeError, ValueError):
         sigma = radius = np.nan
-    if not (np.isfinite(sigma) and np.isfinite(radius) and sigma > 0 and radius >= 0.75):
-        raise VolumeEVMError(f"kernel_sigma/kernel_radius: need sigma > 0 and radius >= 0.75 "
+    if not (np.isfinite(sigma) and np.isfinite(radius) and sigma > 0 and radius >= 0.9):
+        raise VolumeEVMError(f"kernel_sigma/kernel_radius: need sigma > 0 and radius >= 0.9 "
                              f"voxels, got {kernel_sigma!r}, {kernel_radius!r}")
     max_px = int(max_footprint_px)
     if max_px < 1:
@@ -454,7 +456,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         with np.errstate(divide="ignore", invalid="ignore"):
             s0 = np.clip((img["t0"][win] - ta) / span, -0.5, 0.5)
             s1 = np.clip((img["t1"][win] - ta) / span, -0.5, 0.5)
-        s1[~live] = s0[~live]  # finished pixels take nothing
+        s0[~live] = 0  # finished (or never reached) pixels take nothing
+        s1[~live] = 0
         pixel = np.empty((bh * bw + 1, 6), np.float32)
         pixel[:-1, 0] = (img["B0"][win] + a * img["B1"][win]).ravel()
         pixel[:-1, 1] = (img["C0"][win] + a * img["C1"][win]).ravel()
