@@ -11,7 +11,7 @@ from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._evm import EVM
 from volumeevm_addon._reference import render_reference
 from volumeevm_addon import _splat
-from volumeevm_addon._splat import _sheets_dense, _sheets_evm, render_splat
+from volumeevm_addon._splat import _sheets, _slices_dense, _slices_evm, render_splat
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon._volume import grid_to_world
@@ -106,8 +106,8 @@ def test_sheets_come_from_sections_and_tables(ct):
     for axis in range(3):
         order = np.arange(v.shape[axis])
         for order_ in (order, order[::-1]):
-            got = list(_sheets_evm(v, axis, order_))
-            want = list(_sheets_dense(v, axis, order_))
+            got = list(_sheets(_slices_evm(v, axis), order_))
+            want = list(_sheets(_slices_dense(v, axis), order_))
             assert [s[0] for s in got] == [s[0] for s in want] and len(got) > 10
             for (a, cells, dens), (_, cells2, dens2) in zip(got, want):
                 np.testing.assert_array_equal(cells, cells2)

@@ -138,19 +138,9 @@ def _slices_dense(vevm, axis):
     return get
 
 
-def _sheets_evm(vevm, axis, order):
-    """Yield ``(a, cells (m, 2), densities (m,))`` for the non-empty slices of ``order`` (slice
-    coordinates along ``axis``), from the EVM's sections and the densities table."""
-    get = _slices_evm(vevm, axis)
-    for a in order:
-        got = get(a)
-        if got is not None:
-            yield (a,) + got
-
-
-def _sheets_dense(vevm, axis, order):
-    """Same as :func:`_sheets_evm`, scanning the dense grid with the region mask."""
-    get = _slices_dense(vevm, axis)
+def _sheets(get, order):
+    """Yield ``(a, cells (m, 2), densities (m,))`` for the non-empty slices of ``order``
+    (slice coordinates), read with ``get`` (:func:`_slices_evm` or :func:`_slices_dense`)."""
     for a in order:
         got = get(a)
         if got is not None:
@@ -339,7 +329,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     if mode == "under":
         order = order[::-1]
     get = (_slices_evm if skip_empty else _slices_dense)(vevm, axis)
-    sheets = ((a,) + got for a in order for got in (get(a),) if got is not None)
+    sheets = _sheets(get, order)
 
     ftab, fscale = _footprint_table(sigma, radius)
     if mode == "xray":
