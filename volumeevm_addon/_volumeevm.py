@@ -113,16 +113,18 @@ class VolumeEVM:
     def table(self, axis=0):
         """Densities of the region's voxels in slice-major order along ``axis`` (0, 1, 2).
 
-        Axis 0 is the stored table; the others are made on first use and cached.
+        Axis 0 is the stored table; the others are made on first use and cached. Making one
+        scatters the stored table into a transient grid and reads it back in the other order:
+        two vectorized passes, and only the cached table stays.
         """
         if axis not in (0, 1, 2):
             raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
         if axis not in self._tables:
             axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
-            mask = np.transpose(self.evm.to_mask(self.shape), axes)
-            voxels = np.empty((self.voxel_count, 3), np.int64)
-            voxels[:, axes] = np.argwhere(mask)
-            self._tables[axis] = self._tables[0][self.index(voxels)]
+            mask = self.evm.to_mask(self.shape)
+            dense = np.zeros(self.shape, self._tables[0].dtype)
+            dense[mask] = self._tables[0]
+            self._tables[axis] = np.transpose(dense, axes)[np.transpose(mask, axes)]
         return self._tables[axis]
 
     def index(self, voxels, axis=0):
