@@ -8,7 +8,7 @@ import bpy
 
 from . import operators, ui
 from .operators import import_volume, sidecar, tools
-from .ui import panels, props
+from .ui import panels, props, render_panel
 
 
 def register():
@@ -20,6 +20,7 @@ def register():
         bpy.utils.register_class(cls)
     bpy.types.TOPBAR_MT_file_import.append(import_volume.menu_import)
     bpy.types.STATUSBAR_HT_header.append(panels.draw_status)
+    render_panel.register()
     sidecar.add_handlers()
     tools.add_handlers()
 
@@ -27,6 +28,7 @@ def register():
 def unregister():
     tools.remove_handlers()
     sidecar.remove_handlers()
+    render_panel.unregister()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)
     bpy.types.TOPBAR_MT_file_import.remove(import_volume.menu_import)
     for cls in reversed(operators.CLASSES):
