@@ -9,7 +9,7 @@ import pytest
 from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._evm import EVM
-from volumeevm_addon._raycast import render_raycast, render_raycast_navigate
+from volumeevm_addon._raycast import _Blocks, render_raycast, render_raycast_navigate
 from volumeevm_addon._reference import render_reference
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
@@ -114,6 +114,27 @@ def test_skip_empty_equals_dense_brain_and_blocks(brain):
         r1, d1 = render_raycast(v, cam, tf, g, termination=0.95, block=block, chunk_rays=97)
         np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
         np.testing.assert_allclose(d1, d0, rtol=1e-6)
+
+
+def test_blocks_cover_what_samples_can_read():
+    """Block occupancy and density range: the region voxels within one voxel of the block's
+    cells (brute force over a random region)."""
+    rng = np.random.default_rng(11)
+    shape, size = (13, 11, 9), 4
+    mask = rng.uniform(size=shape) < 0.05
+    dens = rng.uniform(-100, 100, shape)
+    v = VolumeEVM(EVM.from_mask(mask), dens[mask], shape=shape)
+    blocks = _Blocks(v, size)
+    for b in np.ndindex(*blocks.nb):
+        lo = np.maximum(np.array(b) * size - 1, 0)
+        hi = np.minimum((np.array(b) + 1) * size + 1, shape)
+        sub = tuple(slice(a, c) for a, c in zip(lo, hi))
+        inside = dens[sub][mask[sub]]
+        assert blocks.occupied[b] == (len(inside) > 0)
+        if len(inside):
+            assert blocks.range_lo[b] == inside.min() and blocks.range_hi[b] == inside.max()
+        else:
+            assert blocks.range_lo[b] == np.inf and blocks.range_hi[b] == -np.inf
 
 
 # ---------------------------------------------------------------------------- closed forms
@@ -254,6 +275,20 @@ def test_mip_is_the_maximum_along_rays():
     # Finer steps never exceed the column maximum (interpolation is a convex combination).
     fine, _ = render_raycast(v, cam, tf, g, mode="mip", step_mm=0.1)
     assert np.all(fine[..., 3] <= expected + 1e-5)
+
+
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_mip_against_reference(ct, kind):
+    """Each segment's ends and middle are evaluated; a ray that grazes a cell the samples miss
+    is the rare large error (measured mean 0.0024 / 0.0016, 99th percentile 0.015 / 0.007)."""
+    v, g, tf = bone(ct)
+    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3)
+    rgba, depth = render_raycast(v, cam, tf, g, mode="mip")
+    rr, dr = reference(v, cam, tf, g, mode="mip")
+    err = np.abs(rgba - rr).max(axis=-1)
+    assert rr[..., 3].mean() > 0.1
+    assert err.mean() < 0.005 and np.percentile(err, 99) < 0.03
+    assert ((depth < 1e9) != (dr < 1e9)).sum() <= 5
 
 
 def test_xray_is_exp_of_minus_the_sum():

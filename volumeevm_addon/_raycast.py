@@ -26,8 +26,9 @@ with a fixed step, fast:
   transfer function (straight colour and step-corrected opacity), linearly interpolated.
 - **Modes**: ``"over"`` front to back with early ray termination (``termination``),
   ``"under"`` back to front, ``"xray"`` (``T = exp(-Σ μ Δ)``, μ per mm), ``"mip"`` (maximum
-  density along the ray, classified without length correction), with the reference's
-  conventions.
+  density along the ray over points in region cells, classified without length correction;
+  each segment's two ends and middle are evaluated, as the reference does), with the
+  reference's conventions.
 - **Depth out**: axial depth where the first segment with non-zero opacity enters the region
   (X-ray: attenuation; MIP: the sample holding the maximum among samples in region cells, if
   its opacity is non-zero); ``1e10`` where there is none.
@@ -410,9 +411,8 @@ class _Blocks:
     """Coarse occupancy of the region (from the EVM's boxes) with per-block density ranges.
 
     Block ``b`` holds the cells ``b·B .. (b + 1)·B - 1``; it is occupied when a region voxel
-    lies within one voxel of them; its range covers the region's densities in those cells
-    widened by one voxel on each side (what trilinear interpolation in the block can read),
-    found conservatively from the 26 neighbouring blocks.
+    lies within one voxel of them, and its range covers the densities of those voxels (what
+    trilinear interpolation in the block can read).
     """
 
     def __init__(self, vevm, size):
@@ -437,18 +437,27 @@ class _Blocks:
         occ = diff.cumsum(0).cumsum(1).cumsum(2)[:-1, :-1, :-1] > 0
         self.occupied = occ
         self.bbox = np.stack([lo.min(axis=0), hi.max(axis=0)]) if len(lo) else None
-        # Density ranges per block (region voxels only), then widened to the 26 neighbours.
+        # Density ranges per block: every region voxel within one voxel of the block's cells
+        # (what trilinear interpolation at a sample in the block can read). A voxel counts
+        # for the blocks of its 27 neighbours; only those that fall in another block than its
+        # own add anything.
         mask = vevm.evm.to_mask(vevm.shape)
-        coords = np.nonzero(mask)  # C order = the order of table(0)
+        vox = np.stack(np.nonzero(mask), axis=1)  # C order = the order of table(0)
         dens = np.asarray(vevm.table(0), dtype=np.float64)
-        bid = np.ravel_multi_index(tuple(c // size for c in coords), tuple(self.nb))
+        own = vox // size
         nflat = int(np.prod(self.nb))
         rlo = np.full(nflat, np.inf)
         rhi = np.full(nflat, -np.inf)
-        np.minimum.at(rlo, bid, dens)
-        np.maximum.at(rhi, bid, dens)
-        self.range_lo = _grow(rlo.reshape(tuple(self.nb)), np.minimum, np.inf)
-        self.range_hi = _grow(rhi.reshape(tuple(self.nb)), np.maximum, -np.inf)
+        for delta in np.ndindex(3, 3, 3):
+            blk = (vox + (np.array(delta) - 1)) // size
+            sel = np.all((blk >= 0) & (blk < self.nb), axis=1)
+            if any(delta[i] != 1 for i in range(3)):
+                sel &= np.any(blk != own, axis=1)
+            bid = np.ravel_multi_index(tuple(blk[sel].T), tuple(self.nb))
+            np.minimum.at(rlo, bid, dens[sel])
+            np.maximum.at(rhi, bid, dens[sel])
+        self.range_lo = rlo.reshape(tuple(self.nb))
+        self.range_hi = rhi.reshape(tuple(self.nb))
 
     def visible(self, mode, tf, lut_step, xray_scale, xray_offset):
         """Flat bool array over the blocks padded by one invisible block on each side."""
@@ -461,18 +470,6 @@ class _Blocks:
         elif mode == "xray":
             vis &= (self.range_hi > xray_offset) & (xray_scale > 0)
         return np.pad(vis, 1).ravel()
-
-
-def _grow(a, op, fill):
-    """``op`` of each block with its 26 neighbours."""
-    pad = np.pad(a, 1, constant_values=fill)
-    out = a.copy()
-    nx, ny, nz = a.shape
-    for dx in range(3):
-        for dy in range(3):
-            for dz in range(3):
-                op(out, pad[dx:dx + nx, dy:dy + ny, dz:dz + nz], out=out)
-    return out
 
 
 def _blocks(vevm, size):
@@ -596,6 +593,8 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     return rgba.reshape(h, w, 4), depth.reshape(h, w)
 
 
+_END = 1 - 1e-3
+"""Where MIP evaluates a segment's ends, as a fraction of its half-length."""
 _LEAPS = 3
 """Blocks a ray may leap over per step (more would cost Python iterations on few rays)."""
 _EPS = 2e-3
@@ -683,15 +682,23 @@ def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, s
             is_last, np.float32(0.5) * st["last"], np.float32(0.5))
         acc = st["acc"]
         kev = st["kev"]
+        hsv = st["sv"] * (half if np.ndim(half) == 0 else half[:, None])
         if mode == "mip":
-            corner = (f[:, 0] >= 0.5) * 4 + (f[:, 1] >= 0.5) * 2 + (f[:, 2] >= 0.5)
-            inside = readable[np.arange(len(f)), corner] & active
+            # The segment's two ends (nudged into it) and its middle, in ray order: linear
+            # stretches of the field peak at their ends, as the reference's MIP knows.
             vmax = st["vmax"]
-            better = inside & (value > vmax)  # ties keep the frontmost
-            vmax[better] = value[better]
-            kev[better] = kf[better]
+            for e in (-_END, None, _END):
+                if e is None:
+                    f_, readable_, value_, kpos = f, readable, value, kf
+                else:
+                    _, f_, readable_, value_, _ = sampler(pos + np.float32(e) * hsv)
+                    kpos = kf + np.float32(e) * half
+                corner = (f_[:, 0] >= 0.5) * 4 + (f_[:, 1] >= 0.5) * 2 + (f_[:, 2] >= 0.5)
+                inside = readable_[np.arange(len(f_)), corner] & active
+                better = inside & (value_ > vmax)  # ties keep the frontmost
+                vmax[better] = value_[better]
+                kev[better] = kpos[better]
         else:
-            hsv = st["sv"] * (half if np.ndim(half) == 0 else half[:, None])
             frac, start = _coverage(pos - hsv, pos + hsv, base, readable)
             frac *= active
             length = frac * (2 * half)  # in steps: the part of the segment in the region
