@@ -289,6 +289,7 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     if not isinstance(tf, TransferFunction):
         raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
     vol_obj = api.volume_object(volume_obj)
+    _render_layer(scene).update()  # placements changed since the last update (scripts)
     camera = camera_from_blender(scene, camera_object)
     exr_path, png_path = _abspath(exr_path), _abspath(png_path)
     for path in (exr_path, png_path):

@@ -1,0 +1,371 @@
+"""Render VolumeEVM in the real bpy: camera match (silhouettes against Cycles), depth against
+scene geometry, the operator end to end (images, EXR, PNG, reports), the compositor set-up and
+an F12 render that includes the DVR.
+
+Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13); Cycles CPU.
+"""
+
+import math
+
+import bpy
+import numpy as np
+import OpenEXR
+import pytest
+from blender_helpers import REPO, addon, reset_blender
+from mathutils import Vector
+
+SKULL = REPO / "sample_blends" / "data" / "ct_skull_cgal.npy"
+SKULL_THRESHOLD = 2.9
+CENTRE = Vector((0.124, 0.124, 0.115))  # middle of the skull's grid (Blender units)
+
+
+@pytest.fixture(scope="module")
+def ext():
+    module = addon()
+    module.register()
+    yield module
+    module.unregister()
+
+
+@pytest.fixture(autouse=True)
+def fresh(ext):
+    reset_blender()
+    yield
+    reset_blender()
+
+
+@pytest.fixture
+def dvr(ext):
+    return ext.operators.dvr
+
+
+@pytest.fixture
+def skull(ext):
+    """The sample skull as a volume object with its VolumeEVM (the region >= 2.9)."""
+    api = ext.operators.api
+    vol = api.import_volume(SKULL)
+    api.build(vol, SKULL_THRESHOLD)
+    return vol
+
+
+def opaque_tf(ext):
+    """Opacity 1 per mm at every density: any ray through a region voxel is opaque."""
+    from volumeevm.volumeevm_addon._transfer import TransferFunction
+
+    return TransferFunction([(0.0, 1.0, 1.0, 1.0, 1.0), (10.0, 1.0, 1.0, 1.0, 1.0)])
+
+
+def bone_tf():
+    from volumeevm.volumeevm_addon._transfer import TransferFunction
+
+    return TransferFunction([(2.0, 0.9, 0.8, 0.7, 0.0), (3.0, 0.95, 0.85, 0.7, 0.15),
+                             (5.5, 1.0, 1.0, 1.0, 0.6)])
+
+
+def add_camera(scene, location, *, ortho=False, shift=(0.0, 0.0), target=CENTRE):
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam)
+    cam.location = location
+    cam.rotation_euler = (target - Vector(location)).to_track_quat("-Z", "Y").to_euler()
+    cam.data.shift_x, cam.data.shift_y = shift
+    cam.data.clip_start, cam.data.clip_end = 0.01, 10.0
+    if ortho:
+        cam.data.type = "ORTHO"
+        cam.data.ortho_scale = 0.36
+    else:
+        cam.data.lens = 50.0
+    scene.camera = cam
+    return cam
+
+
+def cycles(scene, size, percentage=100, *, samples=1):
+    """Cycles CPU, ``samples`` per pixel at the pixel centre (filter width 0.01), linear view."""
+    r = scene.render
+    r.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.cycles.filter_width = 0.01
+    r.resolution_x, r.resolution_y = size
+    r.resolution_percentage = percentage
+    r.film_transparent = True
+    scene.view_settings.view_transform = "Standard"
+    r.dither_intensity = 0.0
+
+
+def plane(scene, location, size, colour, *, rotation=(0.0, 0.0, 0.0)):
+    """An emissive opaque plane (colour exactly ``colour`` in the render)."""
+    mesh = bpy.data.meshes.new("Plane")
+    h = size / 2
+    mesh.from_pydata([(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)], [], [(0, 1, 2, 3)])
+    obj = bpy.data.objects.new("Plane", mesh)
+    obj.location, obj.rotation_euler = location, rotation
+    material = bpy.data.materials.new("Emit")
+    if bpy.app.version < (5, 0, 0):
+        material.use_nodes = True
+    nodes = material.node_tree.nodes
+    emit = nodes.new("ShaderNodeEmission")
+    emit.inputs["Color"].default_value = (*colour, 1.0)
+    material.node_tree.links.new(emit.outputs[0], nodes["Material Output"].inputs["Surface"])
+    mesh.materials.append(material)
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def iou(a, b):
+    return float((a & b).sum()) / float((a | b).sum())
+
+
+# ---------------------------------------------------------------------------- camera
+CAMERAS = {
+    "ortho_shift_percent": dict(location=(0.55, -0.45, 0.30), ortho=True, shift=(0.08, -0.05),
+                                size=(160, 100), percentage=60,
+                                placement=((0.03, -0.02, 0.01), (0.2, 0.0, 0.5), 1.1)),
+    "persp_shift": dict(location=(-0.25, -0.55, 0.25), ortho=False, shift=(-0.06, 0.04),
+                        size=(96, 128), percentage=100),
+    "persp_vertical_fit_percent": dict(location=(0.15, 0.60, -0.10), ortho=False,
+                                       shift=(0.05, 0.1), size=(150, 90), percentage=80,
+                                       sensor_fit="VERTICAL", pixel_aspect=(1.0, 1.25)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CAMERAS))
+def test_opaque_silhouette_equals_surface_mesh_render(ext, dvr, skull, case):
+    """Opaque DVR silhouette = Cycles' silhouette of the EVM surface mesh, same camera."""
+    spec = CAMERAS[case]
+    scene = bpy.context.scene
+    cam = add_camera(scene, spec["location"], ortho=spec["ortho"], shift=spec["shift"])
+    cam.data.sensor_fit = spec.get("sensor_fit", "AUTO")
+    cycles(scene, spec["size"], spec["percentage"])
+    scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = spec.get("pixel_aspect", (1, 1))
+    if "placement" in spec:  # the volume object moved, turned and scaled (surface follows)
+        skull.location, skull.rotation_euler, scale = spec["placement"]
+        skull.scale = (scale, scale, scale)
+    surface = ext.operators.api.make_mesh(skull)
+    mesh_pass = dvr.render_scene(scene)  # the surface mesh by Cycles
+    result = dvr.render_dvr(skull, opaque_tf(ext), method="raycast", hide_surface=True)
+    w = spec["size"][0] * spec["percentage"] // 100
+    h = spec["size"][1] * spec["percentage"] // 100
+    assert result.rgba.shape == (h, w, 4)
+    assert mesh_pass.rgba.shape == (h, w, 4)
+    mesh_mask = mesh_pass.rgba[..., 3] > 0.5
+    assert np.array_equal(mesh_mask, mesh_pass.depth < 1e9)
+    dvr_mask = result.dvr_rgba[..., 3] > 0.5
+    assert 0.05 < mesh_mask.mean() < 0.8  # the skull is in view, not everywhere
+    value = iou(mesh_mask, dvr_mask)
+    print(f"IoU {case}: {value:.4f} ({int((mesh_mask ^ dvr_mask).sum())} pixels differ of "
+          f"{int(mesh_mask.sum())})")
+    assert value >= 0.99
+    # The scene pass hid the surface: nothing but the DVR in the composite.
+    assert np.all(result.scene.rgba[..., 3] == 0)
+    assert surface.hide_render is False  # put back
+
+
+# ---------------------------------------------------------------------------- depth
+def test_plane_in_front_hides_exactly_the_volume_behind_it(ext, dvr, skull):
+    scene = bpy.context.scene
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (96, 80))
+    free = dvr.render_dvr(skull, bone_tf(), method="raycast")
+    # A plane between camera and skull covering the left part of the view.
+    plane(scene, (0.02, -0.2, 0.115), 0.2, (0.1, 0.6, 0.2), rotation=(math.pi / 2, 0.0, 0.0))
+    result = dvr.render_dvr(skull, bone_tf(), method="raycast")
+    covered = result.scene.depth < 1e9
+    assert 0.1 < covered.mean() < 0.9
+    assert (free.dvr_rgba[..., 3][covered] > 0.1).any()  # the plane does hide some volume
+    assert np.all(result.dvr_rgba[covered] == 0)
+    np.testing.assert_array_equal(result.dvr_rgba[~covered], free.dvr_rgba[~covered])
+    np.testing.assert_allclose(result.rgba[covered], result.scene.rgba[covered], atol=1e-6)
+    assert np.allclose(result.scene.rgba[covered][:, :3], (0.1, 0.6, 0.2), atol=1e-3)
+    np.testing.assert_array_equal(result.depth[covered], result.scene.depth[covered])
+
+
+def test_volume_in_front_veils_a_plane_behind_it(ext, dvr, skull):
+    scene = bpy.context.scene
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=False)
+    cycles(scene, (80, 64))
+    plane(scene, (0.124, 0.5, 0.115), 2.0, (0.8, 0.2, 0.1), rotation=(math.pi / 2, 0.0, 0.0))
+    result = dvr.render_dvr(skull, bone_tf(), method="raycast")
+    assert np.all(result.scene.depth < 1e9)  # the plane fills the view
+    seen = result.dvr_rgba[..., 3] > 0.01
+    assert 0.05 < seen.mean() < 0.9
+    # The plane lies behind the whole volume: the DVR is the same as with no scene at all.
+    from volumeevm.volumeevm_addon._render import render
+
+    cam = ext.operators.camera.camera_from_blender(scene)
+    alone, alone_depth = render(ext.operators.api.get_vevm(skull), cam, bone_tf(),
+                                method="raycast", matrix_world=np.array(skull.matrix_world))
+    np.testing.assert_allclose(result.dvr_rgba, alone, atol=1e-6)
+    plane_colour = result.scene.rgba
+    assert np.allclose(plane_colour[..., :3], (0.8, 0.2, 0.1), atol=1e-3)
+    expected = result.dvr_rgba + (1 - result.dvr_rgba[..., 3:4]) * plane_colour
+    np.testing.assert_allclose(result.rgba, expected, atol=1e-6)
+    assert np.all(result.rgba[..., 3] > 0.999)
+    # Output depth: the volume's where it is seen, else the plane's.
+    np.testing.assert_array_equal(result.depth[seen], alone_depth[seen])
+    np.testing.assert_array_equal(result.depth[~(alone_depth < 1e10)],
+                                  result.scene.depth[~(alone_depth < 1e10)])
+
+
+# ---------------------------------------------------------------------------- operator
+def settings_for(scene, vol, tmp_path, **extra):
+    s = scene.volumeevm_render
+    s.volume = vol
+    s.method = "raycast"
+    s.preset = "ct_bone"  # CT preset stretched onto the skull's 0 .. 5.4 (no HU units)
+    for key, value in extra.items():
+        setattr(s, key, value)
+    return s
+
+
+def test_operator_end_to_end(ext, dvr, skull, tmp_path):
+    scene = bpy.context.scene
+    add_camera(scene, (-0.3, -0.5, 0.3), ortho=False, shift=(0.05, 0.0))
+    cycles(scene, (120, 80), 50, samples=2)
+    plane(scene, (0.124, 0.4, 0.115), 2.0, (0.2, 0.3, 0.4), rotation=(math.pi / 2, 0.0, 0.0))
+    s = settings_for(scene, skull, tmp_path, use_exr=True, exr_path=str(tmp_path / "a.exr"),
+                     use_png=True, png_path=str(tmp_path / "a.png"))
+    assert s.ramp is not None and len(s.ramp.color_ramp.elements) == 5
+    assert s.value_lo == pytest.approx(0.0, abs=1e-6)
+    assert s.value_hi == pytest.approx(skull.volumeevm.value_max, rel=1e-6)
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    image = bpy.data.images[dvr.DEFAULT_IMAGE]
+    assert tuple(image.size) == (60, 40) and image.is_float and image.alpha_mode == "PREMUL"
+    pixels = np.empty(60 * 40 * 4, np.float32)
+    image.pixels.foreach_get(pixels)
+    composite = np.flipud(pixels.reshape(40, 60, 4))
+    assert np.isfinite(composite).all()
+    # Equal to the core render over the scene render (rays stopped at the scene depth).
+    tf = ext.operators.render.transfer_function(s)
+    expected = dvr.render_dvr(skull, tf, method="raycast", image_name="check",
+                              options=dvr.method_options("raycast", 1.0, s.volume.volumeevm.spacing))
+    from volumeevm.volumeevm_addon._render import render
+
+    cam = ext.operators.camera.camera_from_blender(scene)
+    core, core_depth = render(ext.operators.api.get_vevm(skull), cam, tf, method="raycast",
+                              depth_in=expected.scene.depth,
+                              matrix_world=np.array(skull.matrix_world),
+                              step_mm=0.5 * min(skull.volumeevm.spacing), termination=0.99)
+    np.testing.assert_allclose(expected.dvr_rgba, core, atol=1e-6)
+    np.testing.assert_allclose(composite, core + (1 - core[..., 3:4]) * expected.scene.rgba,
+                               atol=2e-3)  # two Cycles renders: sample noise only
+    assert (core[..., 3] > 0.2).any()
+    dvr_image = bpy.data.images[f"{dvr.DEFAULT_IMAGE} DVR"]
+    dvr_pixels = np.empty(60 * 40 * 4, np.float32)
+    dvr_image.pixels.foreach_get(dvr_pixels)
+    np.testing.assert_allclose(np.flipud(dvr_pixels.reshape(40, 60, 4)), core, atol=1e-6)
+    # EXR: R, G, B, A, Z.
+    with OpenEXR.File(str(tmp_path / "a.exr"), separate_channels=True) as f:
+        channels = {k: v.pixels for k, v in f.parts[0].channels.items()}
+    assert set(channels) == {"R", "G", "B", "A", "Z"}
+    np.testing.assert_array_equal(np.stack([channels[c] for c in "RGBA"], -1), composite)
+    z = channels["Z"]
+    seen = core[..., 3] > 0
+    np.testing.assert_allclose(z[seen], core_depth[seen], rtol=1e-6)
+    assert np.all(z[~seen] == expected.scene.depth[~seen])
+    assert np.isfinite(z).all()
+    png = bpy.data.images.load(str(tmp_path / "a.png"))
+    assert tuple(png.size) == (60, 40)
+    # Files are never overwritten unasked; with Overwrite they are replaced.
+    with pytest.raises(RuntimeError, match="exists"):
+        bpy.ops.volumeevm.render_dvr()
+    s.overwrite = True
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]  # no temporaries
+
+
+def test_camera_that_sees_nothing_warns_and_gives_a_transparent_dvr(ext, dvr, skull, tmp_path):
+    scene = bpy.context.scene
+    add_camera(scene, (0.124, -0.6, 0.115), target=Vector((0.124, -2.0, 0.115)))  # looks away
+    cycles(scene, (40, 30))
+    settings_for(scene, skull, tmp_path)
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    result = dvr.render_dvr(skull, bone_tf())
+    assert not result.visible
+    assert np.all(result.dvr_rgba == 0) and np.all(result.dvr_depth == 1e10)
+    assert np.isfinite(result.rgba).all()
+    assert tuple(result.image.size) == (40, 30)
+
+
+def test_no_camera_is_an_error(ext, skull, tmp_path):
+    scene = bpy.context.scene
+    cycles(scene, (40, 30))
+    settings_for(scene, skull, tmp_path)
+    with pytest.raises(RuntimeError, match="no camera"):
+        bpy.ops.volumeevm.render_dvr()
+    assert bpy.data.images.get("VolumeEVM Render") is None
+
+
+def test_transfer_function_from_the_ramp(ext, skull):
+    scene = bpy.context.scene
+    s = scene.volumeevm_render
+    s.volume = skull
+    s.preset = "mri"
+    tf = ext.operators.render.transfer_function(s)
+    from volumeevm.volumeevm_addon._transfer import TransferFunction
+
+    hi = skull.volumeevm.value_max
+    want = TransferFunction.preset("mri", data_range=(skull.volumeevm.value_min, hi))
+    values = np.linspace(-1.0, hi + 1.0, 101)
+    np.testing.assert_allclose(tf.evaluate(values), want.evaluate(values), atol=1e-5)
+    s.unit_length_mm = 2.0
+    assert ext.operators.render.transfer_function(s).unit_length_mm == 2.0
+
+
+# ---------------------------------------------------------------------------- compositor
+def test_compositor_setup_and_f12_include_the_dvr(ext, dvr, skull, tmp_path):
+    scene = bpy.context.scene
+    add_camera(scene, (0.4, -0.5, 0.2), ortho=True)
+    cycles(scene, (64, 48), samples=2)
+    scene.render.film_transparent = False
+    scene.render.compositor_device = "CPU"
+    plane(scene, (0.124, 0.4, 0.115), 2.0, (0.3, 0.5, 0.2), rotation=(math.pi / 2, 0.0, 0.0))
+    settings_for(scene, skull, tmp_path)
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
+    assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}  # again: nothing duplicated
+    render_ops = ext.operators.render
+    if hasattr(scene, "compositing_node_group"):
+        tree = scene.compositing_node_group
+        output = [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]
+    else:
+        assert scene.use_nodes
+        tree = scene.node_tree
+        output = [n for n in tree.nodes if n.bl_idname == "CompositorNodeComposite"]
+    assert len(output) == 1
+    kinds = [n.bl_idname for n in tree.nodes]
+    assert kinds.count("CompositorNodeAlphaOver") == 1 and kinds.count("CompositorNodeImage") == 1
+    over = tree.nodes[render_ops.NODE_OVER]
+    assert tree.nodes[render_ops.NODE_IMAGE].image.name == f"{dvr.DEFAULT_IMAGE} DVR"
+    assert output[0].inputs[0].links[0].from_node == over
+    background, foreground = render_ops._over_sockets(over)
+    source = background.links[0].from_node
+    while source.bl_idname == "NodeReroute":  # 4.5's default tree routes through one
+        source = source.inputs[0].links[0].from_node
+    assert source.bl_idname == "CompositorNodeRLayers"
+    assert foreground.links[0].from_node.name == render_ops.NODE_IMAGE
+    # F12 to a float EXR (linear) and to a PNG (Standard view transform, no dither).
+    expected = np.empty(64 * 48 * 4, np.float32)
+    bpy.data.images[dvr.DEFAULT_IMAGE].pixels.foreach_get(expected)
+    expected = np.flipud(expected.reshape(48, 64, 4))
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    scene.render.filepath = str(tmp_path / "f12.exr")
+    bpy.ops.render.render(write_still=True)
+    with OpenEXR.File(str(tmp_path / "f12.exr"), separate_channels=True) as f:
+        ch = {k.split(".")[-1]: v.pixels for p in f.parts for k, v in p.channels.items()}
+    f12 = np.stack([ch[c] for c in "RGBA"], -1)
+    dvr_alpha = np.flipud(np.array(bpy.data.images[f"{dvr.DEFAULT_IMAGE} DVR"].pixels[:],
+                                   np.float32).reshape(48, 64, 4))[..., 3]
+    assert (dvr_alpha > 0.2).any()
+    np.testing.assert_allclose(f12, expected, atol=2e-3)
+    settings.file_format = "PNG"
+    settings.color_depth = "8"
+    scene.render.filepath = str(tmp_path / "f12.png")
+    bpy.ops.render.render(write_still=True)
+    png = bpy.data.images.load(str(tmp_path / "f12.png"))
+    got = np.flipud(np.array(png.pixels[:], np.float32).reshape(48, 64, 4))[..., :3]
+    srgb = np.where(expected[..., :3] <= 0.0031308, 12.92 * expected[..., :3],
+                    1.055 * np.clip(expected[..., :3], 0.0031308, None) ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(got, np.clip(srgb, 0, 1), atol=2.5 / 255)
