@@ -50,7 +50,8 @@ Navigation (``render_raycast_navigate``)
 The report's baseline: the same caster, but every density is located through the EVM: the 8
 neighbours of each sample go through the relation v (:meth:`VolumeEVM.index`, from the EVM's
 boxes by binary search) into the densities table, ``-1`` meaning "outside, not readable". No
-dense array of densities exists. Slow by design; same image as :func:`render_raycast`.
+dense array is sampled (the space-leaping block grid, shared with :func:`render_raycast`, is
+made once through a temporary grid). Slow by design; same image as :func:`render_raycast`.
 
 Python loops over ray steps (and chunks of rays); all rays of a chunk advance together and the
 active set is compacted as rays finish. The padded sampling tables (complex64 density and
@@ -438,26 +439,27 @@ class _Blocks:
         self.occupied = occ
         self.bbox = np.stack([lo.min(axis=0), hi.max(axis=0)]) if len(lo) else None
         # Density ranges per block: every region voxel within one voxel of the block's cells
-        # (what trilinear interpolation at a sample in the block can read). A voxel counts
-        # for the blocks of its 27 neighbours; only those that fall in another block than its
-        # own add anything.
+        # (what trilinear interpolation at a sample in the block can read), from a temporary
+        # grid of the table's densities grown by one voxel (min and max filters), then
+        # reduced block by block.
         mask = vevm.evm.to_mask(vevm.shape)
-        vox = np.stack(np.nonzero(mask), axis=1)  # C order = the order of table(0)
-        dens = np.asarray(vevm.table(0), dtype=np.float64)
-        own = vox // size
-        nflat = int(np.prod(self.nb))
-        rlo = np.full(nflat, np.inf)
-        rhi = np.full(nflat, -np.inf)
-        for delta in np.ndindex(3, 3, 3):
-            blk = (vox + (np.array(delta) - 1)) // size
-            sel = np.all((blk >= 0) & (blk < self.nb), axis=1)
-            if any(delta[i] != 1 for i in range(3)):
-                sel &= np.any(blk != own, axis=1)
-            bid = np.ravel_multi_index(tuple(blk[sel].T), tuple(self.nb))
-            np.minimum.at(rlo, bid, dens[sel])
-            np.maximum.at(rhi, bid, dens[sel])
-        self.range_lo = rlo.reshape(tuple(self.nb))
-        self.range_hi = rhi.reshape(tuple(self.nb))
+        dens = np.asarray(vevm.table(0), dtype=np.float32)
+        padded = tuple(int(b) * size for b in self.nb)
+        ranges = []
+        for op, fill in ((np.minimum, np.inf), (np.maximum, -np.inf)):
+            grid = np.full(padded, fill, np.float32)
+            grid[tuple(slice(0, int(n)) for n in shape)][mask] = dens
+            for ax in range(3):
+                src = grid.copy()
+                lo = [slice(None)] * 3
+                hi = [slice(None)] * 3
+                lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+                op(grid[tuple(lo)], src[tuple(hi)], out=grid[tuple(lo)])
+                op(grid[tuple(hi)], src[tuple(lo)], out=grid[tuple(hi)])
+            nx, ny, nz = (int(b) for b in self.nb)
+            blocks = grid.reshape(nx, size, ny, size, nz, size)
+            ranges.append((blocks.min if op is np.minimum else blocks.max)(axis=(1, 3, 5)))
+        self.range_lo, self.range_hi = ranges
 
     def visible(self, mode, tf, lut_step, xray_scale, xray_offset):
         """Flat bool array over the blocks padded by one invisible block on each side."""
