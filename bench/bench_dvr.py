@@ -490,6 +490,8 @@ def print_table(rows):
                 f"peak RSS; vs whole-volume ref; best of {r['runs']}")
         if r.get("preprocess_s") is not None:
             note += f"; classify {r['preprocess_s']:.3f} s"
+        if r.get("details", {}).get("rss_before_data_kb"):
+            note += f"; {r['details']['rss_before_data_kb'] / 1024:.0f} MB before data"
         print(f"{lead} {r['best_s']:9.4f} {first} {e['mae']:8.5f} {e['rmse']:8.5f} "
               f"{e['max_abs']:7.3f} {mem:8.1f}  {note}")
 
@@ -541,26 +543,32 @@ def main():
     args.out.mkdir(parents=True, exist_ok=True)
     rows, notes, cases = [], [], []
     load_start = os.getloadavg()
+    # the code measured is the code at the start (others may commit while the bench runs)
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                           cwd=REPO, capture_output=True, text=True).stdout.split("\n")
+    dirty = sorted(line[3:] for line in dirty if line.strip())
     for name in [c for c in args.cases.split(",") if c]:
         cases.append(run_case(name, args, rows, notes))
     print_table(rows)
     checks = targets(rows)
     missing = sorted({r["method"] for r in rows if "missing" in r and r["kind"] == "ours"})
     print()
-    print("Timing: best of %d warm runs (after a warm-up), 2 shared cores; noisy." % args.repeat)
+    load = os.getloadavg()[0]
+    print(f"Timing: best of {args.repeat} warm runs (after a warm-up) on {os.cpu_count()} cores "
+          f"shared with other work (load average {load_start[0]:.1f} at start, {load:.1f} at end): "
+          "noisy, compare ratios. Memory: ours = tracemalloc peak of one render; peers = "
+          "process peak RSS (VmHWM).")
     if missing:
         print("Methods missing at run time: " + ", ".join(missing))
     for c in checks:
         print(f"targets {c['case']}: " + json.dumps({k: (round(v, 4) if isinstance(v, float)
                                                      else v) for k, v in c.items()
                                                     if k != "case"}))
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
-    dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                                cwd=REPO, capture_output=True, text=True).stdout.strip())
     result = {
         "benchmark": "dvr",
-        "commit": commit, "worktree_modified": dirty,
+        "commit": commit, "modified_files_at_start": dirty,
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {cpu_model()}",
         "threads_env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
@@ -570,7 +578,7 @@ def main():
         "timing": f"best of {args.repeat} warm runs after one warm-up; budget {args.budget} s "
                   "per method and view; 2 cores shared with other work",
         "memory": "ours: tracemalloc peak during one render (Python/NumPy allocations); peers: "
-                  "the peer process's peak RSS (VTK's includes the VTK libraries, see "
+                  "the peer process's peak RSS, VmHWM (VTK's includes the VTK libraries, see "
                   "details.rss_before_data_kb)",
         "error": "MAE/RMSE of premultiplied RGBA over all pixels and channels; ours vs the "
                  "reference of the region (VolumeEVM), peers vs the reference of the whole "

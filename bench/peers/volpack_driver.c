@@ -6,7 +6,7 @@
  * complete object -> clip matrix given by the caller as VolPack's VP_MODEL matrix (VIEW and
  * PROJECT are identity), renders FRAMES frames with vpRenderClassifiedVolume and writes the last
  * image as raw RGBA bytes (VolPack's own layout: W*H pixels, scanline 0 first). Prints one line
- * of JSON with the times (seconds, CLOCK_MONOTONIC) and this process's peak RSS.
+ * of JSON with the times (seconds, CLOCK_MONOTONIC) and this process's peak RSS (VmHWM).
  *
  * Usage:
  *   volpack_driver VOLUME XLEN YLEN ZLEN FIELD_MAX TABLE MATRIX WIDTH HEIGHT FRAMES
@@ -54,6 +54,29 @@ static void *read_file(const char *path, size_t expected)
     return buf;
 }
 
+/* Peak resident set of this program (kB): VmHWM of /proc/self/status. getrusage's ru_maxrss
+   is not used: on Linux it keeps the parent's peak across fork and execve. */
+static long peak_rss_kb(void)
+{
+    char line[256];
+    long kb = -1;
+    FILE *f = fopen("/proc/self/status", "r");
+    if (f != NULL) {
+        while (fgets(line, sizeof line, f) != NULL)
+            if (strncmp(line, "VmHWM:", 6) == 0) {
+                kb = atol(line + 6);
+                break;
+            }
+        fclose(f);
+    }
+    if (kb < 0) {
+        struct rusage ru;
+        getrusage(RUSAGE_SELF, &ru);
+        kb = ru.ru_maxrss;
+    }
+    return kb;
+}
+
 static void check(vpContext *vpc, vpResult r, const char *what)
 {
     if (r != VP_OK) {
@@ -74,7 +97,6 @@ int main(int argc, char **argv)
     vpMatrix4 model;
     unsigned char *image;
     FILE *out;
-    struct rusage ru;
 
     if (argc != 14) {
         fprintf(stderr, "usage: %s VOLUME XLEN YLEN ZLEN FIELD_MAX TABLE MATRIX WIDTH HEIGHT "
@@ -152,10 +174,9 @@ int main(int argc, char **argv)
     vpGeti(vpc, VP_VIEW_AXIS, &axis);
     vpGeti(vpc, VP_INTERMEDIATE_WIDTH, &iw);
     vpGeti(vpc, VP_INTERMEDIATE_HEIGHT, &ih);
-    getrusage(RUSAGE_SELF, &ru);
     printf("], \"best_s\": %.9f, \"view_axis\": \"%c\", \"intermediate\": [%d, %d], "
            "\"max_rss_kb\": %ld}\n", best,
-           axis == VP_X_AXIS ? 'x' : (axis == VP_Y_AXIS ? 'y' : 'z'), iw, ih, ru.ru_maxrss);
+           axis == VP_X_AXIS ? 'x' : (axis == VP_Y_AXIS ? 'y' : 'z'), iw, ih, peak_rss_kb());
 
     out = fopen(argv[13], "wb");
     if (out == NULL || fwrite(image, 4, (size_t)width * height, out) != (size_t)width * height) {
