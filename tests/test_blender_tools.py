@@ -391,6 +391,25 @@ def test_live_error_keeps_last_mesh_and_shows_in_sidebar(ext, api, core, data_di
         api.evaluate(vol)
 
 
+def test_handler_never_raises(ext, api, core, data_dir, volume, monkeypatch):
+    vol, base = volume
+    nut = tool_object(data_dir, "mesh_tool_nut", 30.0,
+                      at=world_of_voxel(core, base, bone_voxel_near(base, (10, 14, 25)), vol))
+    api.add_tool(vol, nut, "cut")
+    good = mesh_arrays(surface_of(vol).data)
+
+    def broken(*_args):
+        raise ZeroDivisionError("a bug")
+
+    monkeypatch.setattr(api, "refresh_quietly", broken)
+    nut.location.x += 0.004
+    bpy.context.view_layer.update()  # the handler catches it
+    assert api.stack_state(vol).problem == ("unexpected error while refreshing: "
+                                            "ZeroDivisionError('a bug')")
+    for a, b in zip(good, mesh_arrays(surface_of(vol).data)):
+        np.testing.assert_array_equal(a, b)
+
+
 # ---------------------------------------------------------------------------- undo
 def _push(name):
     assert bpy.ops.ed.undo_push(message=name) == {"FINISHED"}
@@ -429,7 +448,7 @@ def test_undo_restores_mesh_and_stack(api, core, data_dir, volume):
     assert_same_vevm(api.evaluate(vol), second)
 
 
-def test_apply_new_sidecar_undo_and_reopen(tmp_path, api, core, data_dir, volume):
+def test_apply_new_sidecar_undo_and_reopen(tmp_path, ext, api, core, data_dir, volume):
     vol, base = volume
     name = vol.name
     old_path = vol.volumeevm.vevm_path
@@ -457,6 +476,12 @@ def test_apply_new_sidecar_undo_and_reopen(tmp_path, api, core, data_dir, volume
     assert bpy.ops.ed.undo() == {"FINISHED"}  # before Apply: old base, stack back
     vol = bpy.data.objects[name]
     assert vol.volumeevm.vevm_path == old_path and len(vol.volumeevm.tools) == 2
+    # The undo_post handler re-synced the runtime stack to the restored base path, and the
+    # mesh Blender restored matches the restored stack (nothing to rewrite).
+    state = ext.operators._runtime.stack_state(vol.volumeevm.uid, name)
+    assert state.base_path == str(Path(old_path)) and state.problem == ""
+    assert surface_of(vol).volumeevm.stack_signature != ""
+    assert_surface_is(surface_of(vol), expected)
     assert_same_vevm(api.get_vevm(vol), base)
     nut = bpy.data.objects["mesh_tool_nut"]
     assert_same_vevm(api.evaluate(vol), expected)
