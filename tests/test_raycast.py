@@ -220,11 +220,11 @@ def test_gaussian_blob_against_reference():
     rgba, _ = render_raycast(v, cam, tf, g, step_mm=0.25, termination=1.0)
     rr, _ = reference(v, cam, tf, g)
     assert rr[..., 3].max() > 0.8
-    assert np.abs(rgba - rr).max() < 2e-3
+    assert np.abs(rgba - rr).max() < 2e-4  # measured 5.8e-5 (2.4e-4 at the default step)
     rgba, _ = render_raycast(v, cam, None, g, mode="xray", step_mm=0.25, xray_scale=3e-4)
     rr, _ = reference(v, cam, None, g, mode="xray", xray_scale=3e-4)
     assert rr[..., 3].max() > 0.5
-    assert np.abs(rgba - rr).max() < 1e-3
+    assert np.abs(rgba - rr).max() < 2e-4  # measured 5.7e-5
 
 
 @pytest.mark.parametrize("which", ["skin", "bone"])

@@ -215,7 +215,7 @@ def test_gaussian_blob_against_reference():
     rr, _ = reference(v, cam, tf, g)
     assert rr[..., 3].max() > 0.8
     err = np.abs(rgba - rr)
-    assert err.max() < 0.006 and err.mean() < 4e-4  # measured 0.0029, 0.00018
+    assert err.max() < 0.006 and err.mean() < 4e-4  # measured 0.0044, 0.00026
     rgba, _ = render_splat(v, cam, None, g, mode="xray", xray_scale=3e-4)
     rr, _ = reference(v, cam, None, g, mode="xray", xray_scale=3e-4)
     assert rr[..., 3].max() > 0.5
@@ -232,8 +232,8 @@ def test_real_volume_against_reference(ct, kind):
     rr, dr = reference(v, cam, tf, g)
     err = np.abs(rgba - rr).max(axis=-1)
     assert rr[..., 3].mean() > 0.2
-    assert err.mean() < 0.005  # measured 0.0031 (ortho), 0.0024 (perspective)
-    assert np.percentile(err, 99) < 0.08  # measured 0.051, 0.053
+    assert err.mean() < 0.005  # measured 0.0030 (ortho), 0.0023 (perspective)
+    assert np.percentile(err, 99) < 0.08  # measured 0.050, 0.052
     # Coverage and depth are exact: the first sheet counts from the region's surface.
     np.testing.assert_array_equal(depth < 1e9, dr < 1e9)
     seen = depth < 1e9
@@ -379,7 +379,7 @@ def test_camera_inside_the_volume(ct):
     rgba, depth = render_splat(v, cam, tf, g)
     rr, _ = reference(v, cam, tf, g)
     assert np.isfinite(rgba).all() and rr[..., 3].mean() > 0.3
-    assert np.abs(rgba - rr).mean() < 0.03
+    assert np.abs(rgba - rr).mean() < 0.03  # measured 0.016
     assert np.all(depth[depth < 1e9] >= 1e-3 - 1e-7)
 
 
