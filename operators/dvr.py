@@ -157,16 +157,19 @@ def _render_layer(scene):
 
 @contextmanager
 def _changed(items):
-    """Set ``(owner, attribute, value)`` items, then put the old values back."""
-    old = []
-    try:
+    """Set ``(owner, attribute, value)`` items, then put the old values back.
+
+    Old values go back in the same order (not reversed): an image format is restored before
+    its colour depth, which the format would otherwise clamp (EXR has no 8 bits).
+    """
+    old = [(owner, name, getattr(owner, name)) for owner, name, _ in items]  # all first:
+    try:  # setting one (5.x media_type) may change another (file_format)
         for owner, name, value in items:
-            old.append((owner, name, getattr(owner, name)))
             if getattr(owner, name) != value:
                 setattr(owner, name, value)
         yield
     finally:
-        for owner, name, value in reversed(old):
+        for owner, name, value in old:
             if getattr(owner, name) != value:
                 setattr(owner, name, value)
 

@@ -30,7 +30,8 @@ from ..volumeevm_addon._transfer import PRESETS, TransferFunction
 from . import _jobs, api, dvr
 from .build import active_volume
 
-__all__ = ["setup_compositor", "transfer_function", "load_preset", "render_volume",
+__all__ = ["setup_compositor", "transfer_function", "load_preset", "set_transfer_function",
+           "render_volume",
            "ensure_ramp", "CT_RANGE"]
 
 #: Node names of the compositor set-up (found again, never duplicated).
@@ -99,7 +100,22 @@ def load_preset(settings, name, vol_obj=None):
     if name.startswith("ct_") and vol_obj is not None and units != "HU":
         (a, b), (c, d) = CT_RANGE, data_range
         points[:, 0] = c + (points[:, 0] - a) * (d - c) / (b - a)
+    set_transfer_function(settings, TransferFunction(points, name=name))
+    if settings.preset != name:
+        settings.preset = name
+
+
+def set_transfer_function(settings, tf):
+    """Write ``tf`` into the settings' colour ramp, value range and opacity length.
+
+    A ramp holds at most 32 elements; ``tf`` must not have more control points.
+    """
+    points = np.asarray(tf.points, np.float64)
+    if len(points) > 32:
+        raise VolumeEVMError(f"tf: a colour ramp holds 32 points, the function has {len(points)}")
     lo, hi = float(points[0, 0]), float(points[-1, 0])
+    if hi <= lo:
+        hi = lo + 1.0
     texture = settings.ramp
     if texture is None:
         texture = bpy.data.textures.new(RAMP_NAME, "BLEND")
@@ -119,8 +135,7 @@ def load_preset(settings, name, vol_obj=None):
         element.position = float(position)
         element.color = tuple(float(v) for v in row[1:5])
     settings.value_lo, settings.value_hi = lo, hi
-    if settings.preset != name:
-        settings.preset = name
+    settings.unit_length_mm = tf.unit_length_mm
 
 
 # ---------------------------------------------------------------------------- compositor

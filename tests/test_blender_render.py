@@ -129,6 +129,13 @@ CAMERAS = {
 }
 
 
+#: Smallest IoU per method. Ray casting (exact coverage of region cells), splatting and the
+#: reference match exactly here; shear-warp samples each ray once per slice, so rays that only
+#: clip a corner of a region voxel between two slices miss it (measured 0.964-0.970 on these
+#: views; intermediate_scale does not change it).
+SILHOUETTE_IOU = {"raycast": 0.99, "splat": 0.99, "reference": 0.99, "shear_warp": 0.95}
+
+
 @pytest.mark.parametrize("case", sorted(CAMERAS))
 def test_opaque_silhouette_equals_surface_mesh_render(ext, dvr, skull, case):
     """Opaque DVR silhouette = Cycles' silhouette of the EVM surface mesh, same camera."""
@@ -143,19 +150,20 @@ def test_opaque_silhouette_equals_surface_mesh_render(ext, dvr, skull, case):
         skull.scale = (scale, scale, scale)
     surface = ext.operators.api.make_mesh(skull)
     mesh_pass = dvr.render_scene(scene)  # the surface mesh by Cycles
-    result = dvr.render_dvr(skull, opaque_tf(ext), method="raycast", hide_surface=True)
     w = spec["size"][0] * spec["percentage"] // 100
     h = spec["size"][1] * spec["percentage"] // 100
-    assert result.rgba.shape == (h, w, 4)
     assert mesh_pass.rgba.shape == (h, w, 4)
     mesh_mask = mesh_pass.rgba[..., 3] > 0.5
     assert np.array_equal(mesh_mask, mesh_pass.depth < 1e9)
-    dvr_mask = result.dvr_rgba[..., 3] > 0.5
     assert 0.05 < mesh_mask.mean() < 0.8  # the skull is in view, not everywhere
-    value = iou(mesh_mask, dvr_mask)
-    print(f"IoU {case}: {value:.4f} ({int((mesh_mask ^ dvr_mask).sum())} pixels differ of "
-          f"{int(mesh_mask.sum())})")
-    assert value >= 0.99
+    for method, bound in SILHOUETTE_IOU.items():
+        result = dvr.render_dvr(skull, opaque_tf(ext), method=method, hide_surface=True)
+        assert result.rgba.shape == (h, w, 4)
+        dvr_mask = result.dvr_rgba[..., 3] > 0.5
+        value = iou(mesh_mask, dvr_mask)
+        print(f"IoU {case} {method}: {value:.4f} ({int((mesh_mask & ~dvr_mask).sum())} missing, "
+              f"{int((dvr_mask & ~mesh_mask).sum())} extra of {int(mesh_mask.sum())})")
+        assert value >= bound, method
     # The scene pass hid the surface: nothing but the DVR in the composite.
     assert np.all(result.scene.rgba[..., 3] == 0)
     assert surface.hide_render is False  # put back
@@ -228,7 +236,11 @@ def test_operator_end_to_end(ext, dvr, skull, tmp_path):
     assert s.ramp is not None and len(s.ramp.color_ramp.elements) == 5
     assert s.value_lo == pytest.approx(0.0, abs=1e-6)
     assert s.value_hi == pytest.approx(skull.volumeevm.value_max, rel=1e-6)
+    formats = scene.render.image_settings
+    before = {k: getattr(formats, k) for k in ("file_format", "color_depth", "color_mode")}
     assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert {k: getattr(formats, k) for k in before} == before  # scene's output format kept
+    assert scene.render.use_compositing and not scene.view_layers[0].use_pass_z
     image = bpy.data.images[dvr.DEFAULT_IMAGE]
     assert tuple(image.size) == (60, 40) and image.is_float and image.alpha_mode == "PREMUL"
     pixels = np.empty(60 * 40 * 4, np.float32)
