@@ -381,3 +381,38 @@ def test_compositor_setup_and_f12_include_the_dvr(ext, dvr, skull, tmp_path):
     srgb = np.where(expected[..., :3] <= 0.0031308, 12.92 * expected[..., :3],
                     1.055 * np.clip(expected[..., :3], 0.0031308, None) ** (1 / 2.4) - 0.055)
     np.testing.assert_allclose(got, np.clip(srgb, 0, 1), atol=2.5 / 255)
+
+
+# ---------------------------------------------------------------------------- UI
+def test_render_panel_draws_and_the_job_runs_from_the_modal_driver(ext, dvr, skull, tmp_path):
+    from test_blender_ui import Recorder, _Context, _driver, _ticks, texts
+
+    scene = bpy.context.scene
+    panel_cls = ext.ui.render_panel.VOLUMEEVM_PT_render
+
+    def draw():
+        calls = []
+        panel = type("P", (), {})()
+        panel.layout = Recorder(calls)
+        panel_cls.draw(panel, bpy.context)
+        return calls
+
+    calls = draw()  # no ramp, no camera yet
+    assert "Load a preset to edit the ramp" in texts(calls)
+    assert "The scene has no camera" in texts(calls)
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (48, 40))
+    settings_for(scene, skull, tmp_path)
+    calls = draw()
+    assert any(name == "template_color_ramp" for name, _, _ in calls)
+    assert any(name == "operator" and args[0] == "volumeevm.render_dvr" for name, args, _ in calls)
+    assert len([name for name, _, _ in calls if name == "progress"]) == 8  # the histogram
+    # The UI path: scene pass on the main thread, the volume render in the worker thread.
+    tf = ext.operators.render.transfer_function(scene.volumeevm_render)
+    op = _driver(ext, lambda: dvr.render_dvr_job(scene, skull, tf, method="shear_warp"))
+    context = _Context()
+    assert op.start(context) == {"RUNNING_MODAL"}
+    assert _ticks(op, context, limit=1000) == {"FINISHED"}
+    image = bpy.data.images[dvr.DEFAULT_IMAGE]
+    assert tuple(image.size) == (48, 40)
+    assert max(image.pixels[3::4]) > 0.5
