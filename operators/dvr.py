@@ -50,8 +50,9 @@ from ..volumeevm_addon._transfer import TransferFunction
 from . import _jobs, api, exr
 from .camera import camera_from_blender
 
-__all__ = ["render_dvr", "render_dvr_job", "render_scene", "composite_over", "output_depth",
-           "volume_for_render", "put_image", "DVRResult", "SceneRender", "DEFAULT_IMAGE"]
+__all__ = ["render_dvr", "render_dvr_job", "render_dvr_animation", "view_signature",
+           "frame_path", "render_scene", "composite_over", "output_depth", "volume_for_render",
+           "put_image", "DVRResult", "SceneRender", "DEFAULT_IMAGE"]
 
 #: Name of the composite Image datablock (the DVR alone is ``DEFAULT_IMAGE + " DVR"``).
 DEFAULT_IMAGE = "VolumeEVM Render"
@@ -277,6 +278,45 @@ def write_png(image, path, scene, *, overwrite=False):
     return path
 
 
+#: Custom property of the DVR image: the view it was rendered for (see :func:`view_signature`).
+VIEW_KEY = "volumeevm_view"
+
+
+def view_signature(scene, camera_object=None):
+    """A string naming what a DVR image depends on besides the volume: frame, camera (placement
+    and lens), resolution. The compositor's render_pre check compares it (``render.py``)."""
+    obj = scene.camera if camera_object is None else camera_object
+    r = scene.render
+    parts = [f"frame {scene.frame_current}",
+             f"size {r.resolution_x}x{r.resolution_y}@{r.resolution_percentage}%",
+             f"aspect {r.pixel_aspect_x:.6g}:{r.pixel_aspect_y:.6g}"]
+    if obj is None:
+        parts.append("no camera")
+    else:
+        m = np.round(np.array(obj.matrix_world, np.float64), 6) + 0.0  # no -0.0
+        cam = obj.data
+        lens = getattr(cam, "lens", 0.0)
+        parts.append(f"camera {obj.name} {getattr(cam, 'type', '')} lens {lens:.6g} ortho "
+                     f"{getattr(cam, 'ortho_scale', 0.0):.6g} shift "
+                     f"{getattr(cam, 'shift_x', 0.0):.6g},{getattr(cam, 'shift_y', 0.0):.6g} "
+                     f"fit {getattr(cam, 'sensor_fit', '')} matrix {m.ravel().tolist()}")
+    return "; ".join(parts)
+
+
+def frame_path(path, frame):
+    """``path`` with its last run of ``#`` replaced by the zero-padded frame number (or
+    ``_####`` added before the suffix when it has none), as Blender names animation frames."""
+    path = str(path)
+    end = path.rfind("#")
+    if end < 0:
+        stem = Path(path)
+        return str(stem.with_name(f"{stem.stem}_{frame:04d}{stem.suffix}"))
+    start = end
+    while start > 0 and path[start - 1] == "#":
+        start -= 1
+    return f"{path[:start]}{frame:0{end - start + 1}d}{path[end + 1:]}"
+
+
 def _abspath(path):
     return str(Path(bpy.path.abspath(path))) if path else ""
 
@@ -313,6 +353,7 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
         raise VolumeEVMError(f"scene render is {scene_pass.depth.shape[::-1]} pixels, the camera "
                              f"{camera.shape[::-1]}")
     options = dict(options or {})
+    signature = view_signature(scene, camera_object)
 
     def steps():
         yield 0.2, f"volume render ({method}, {mode})"
@@ -329,6 +370,7 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     def commit(result):
         result.image = put_image(image_name, result.rgba)
         result.dvr_image = put_image(f"{image_name} DVR", result.dvr_rgba)
+        result.dvr_image[VIEW_KEY] = signature
         if exr_path:
             result.exr_path = str(exr.write_exr(exr_path, result.rgba, result.depth,
                                                 overwrite=overwrite))
@@ -383,3 +425,50 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
         scene, volume_obj, tf, method=method, mode=mode, options=options,
         camera_object=camera_object, image_name=image_name, exr_path=exr_path,
         png_path=png_path, overwrite=overwrite, hide_surface=hide_surface))
+
+
+def render_dvr_animation(volume_obj, tf, *, scene=None, frames=None, exr_path="", png_path="",
+                         overwrite=False, **options):
+    """Render VolumeEVM for every frame: frame set, scene pass, DVR, composite, files.
+
+    F12 animations cannot make a depth-correct DVR (the scene cannot be rendered again from
+    inside its own render), so this loop renders each frame itself.
+
+    Parameters
+    ----------
+    volume_obj, tf
+        As for :func:`render_dvr`.
+    scene : bpy.types.Scene, optional
+    frames : iterable of int, optional
+        Default: the scene's frame range and step.
+    exr_path, png_path : str
+        File name patterns; the last run of ``#`` becomes the frame number (see
+        :func:`frame_path`). "" = no files.
+    overwrite : bool
+    **options
+        Passed to :func:`render_dvr` (method, mode, options, camera_object, hide_surface...).
+
+    Returns
+    -------
+    list of (int, DVRResult)
+        The images hold the last frame; the scene is back at its current frame afterwards.
+    """
+    scene = bpy.context.scene if scene is None else scene
+    if frames is None:
+        frames = range(scene.frame_start, scene.frame_end + 1, scene.frame_step)
+    frames = [int(f) for f in frames]
+    current = scene.frame_current
+    results = []
+    try:
+        for number, frame in enumerate(frames):
+            if bpy.app.background:
+                print(_jobs.progress_line(number / max(len(frames), 1), f"frame {frame}"),
+                      flush=True)
+            scene.frame_set(frame)
+            results.append((frame, render_dvr(
+                volume_obj, tf, scene=scene, overwrite=overwrite,
+                exr_path=frame_path(exr_path, frame) if exr_path else "",
+                png_path=frame_path(png_path, frame) if png_path else "", **options)))
+    finally:
+        scene.frame_set(current)
+    return results

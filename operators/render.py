@@ -14,12 +14,18 @@ Operators:
 Caveat of the compositor path: the compositor lays the DVR image as it was last rendered. Render
 it (Render VolumeEVM) with the same camera, frame and resolution before F12; the volume's rays
 stop at the depth of the scene as it was then (the scene cannot be rendered again from inside
-its own render, so F12 alone cannot make a depth-correct DVR of a changed scene).
+its own render, so F12 alone cannot make a depth-correct DVR of a changed scene). A
+``render_pre`` handler (:func:`check_view`) prints a warning when F12 starts with a DVR image
+rendered for another frame, camera or resolution. For animations use Render VolumeEVM
+Animation (``volumeevm.render_dvr_animation``, :func:`.dvr.render_dvr_animation`), which
+renders scene pass, DVR and composite frame by frame.
 
 The transfer function is a colour ramp (a Blend texture's ``color_ramp``): element position
 ``p`` stands for the value ``lo + p (hi - lo)`` in the data's own units, its colour for the
 straight colour and its alpha for the opacity per ``unit_length_mm`` mm of ray.
 """
+
+import atexit
 
 import bpy
 import numpy as np
@@ -264,27 +270,8 @@ class VOLUMEEVM_OT_render_dvr(_jobs.JobOperator, bpy.types.Operator):
 
     def job(self, context):
         scene = context.scene
-        settings = scene.volumeevm_render
-        if self.volume:
-            vol = bpy.data.objects.get(self.volume)
-            if vol is None:
-                raise VolumeEVMError(f"no object named {self.volume!r}")
-        else:
-            vol = render_volume(context, settings)
-            if vol is None:
-                raise VolumeEVMError("choose the volume to render (or select one)")
-        vol = api.volume_object(vol)
-        ensure_ramp(settings)
-        tf = transfer_function(settings)
-        vevm_spacing = tuple(vol.volumeevm.spacing)
-        options = dvr.method_options(settings.method, settings.quality, vevm_spacing,
-                                     shading=settings.shading, termination=settings.termination)
-        return dvr.render_dvr_job(
-            scene, vol, tf, method=settings.method, mode=settings.mode, options=options,
-            image_name=settings.image_name or dvr.DEFAULT_IMAGE,
-            exr_path=settings.exr_path if settings.use_exr else "",
-            png_path=settings.png_path if settings.use_png else "",
-            overwrite=settings.overwrite, hide_surface=settings.hide_surface)
+        vol, tf, kwargs = _job_arguments(context, scene.volumeevm_render, self.volume)
+        return dvr.render_dvr_job(scene, vol, tf, **kwargs)
 
     def finished(self, context, result):
         h, w = result.rgba.shape[:2]
@@ -300,6 +287,108 @@ class VOLUMEEVM_OT_render_dvr(_jobs.JobOperator, bpy.types.Operator):
         for area in (screen.areas if screen is not None else ()):
             if area.type == "IMAGE_EDITOR":
                 area.spaces.active.image = result.image
+
+
+def _job_arguments(context, settings, volume_name=""):
+    """Volume, transfer function and keyword arguments of a render from the settings."""
+    if volume_name:
+        vol = bpy.data.objects.get(volume_name)
+        if vol is None:
+            raise VolumeEVMError(f"no object named {volume_name!r}")
+    else:
+        vol = render_volume(context, settings)
+        if vol is None:
+            raise VolumeEVMError("choose the volume to render (or select one)")
+    vol = api.volume_object(vol)
+    ensure_ramp(settings)
+    tf = transfer_function(settings)
+    options = dvr.method_options(settings.method, settings.quality, tuple(vol.volumeevm.spacing),
+                                 shading=settings.shading, termination=settings.termination)
+    return vol, tf, dict(
+        method=settings.method, mode=settings.mode, options=options,
+        image_name=settings.image_name or dvr.DEFAULT_IMAGE,
+        exr_path=settings.exr_path if settings.use_exr else "",
+        png_path=settings.png_path if settings.use_png else "",
+        overwrite=settings.overwrite, hide_surface=settings.hide_surface)
+
+
+class VOLUMEEVM_OT_render_dvr_animation(bpy.types.Operator):
+    """Render VolumeEVM for every frame of the scene's range (scene pass, volume render and
+    composite per frame), writing the EXR/PNG files with the frame number ('#' in the names)"""
+
+    bl_idname = "volumeevm.render_dvr_animation"
+    bl_label = "Render VolumeEVM Animation"
+    bl_options = {"REGISTER"}
+
+    volume: StringProperty(name="Volume", options={"SKIP_SAVE"},
+                           description="Name of the volume object (default: as Render VolumeEVM)")
+
+    @classmethod
+    def poll(cls, context):
+        return VOLUMEEVM_OT_render_dvr.poll(context)
+
+    def execute(self, context):
+        scene = context.scene
+        wm = context.window_manager
+        try:
+            vol, tf, kwargs = _job_arguments(context, scene.volumeevm_render, self.volume)
+            if not (kwargs["exr_path"] or kwargs["png_path"]):
+                raise VolumeEVMError("choose an EXR or PNG file name for the frames")
+            wm.progress_begin(scene.frame_start, scene.frame_end)
+            try:
+                results = dvr.render_dvr_animation(vol, tf, scene=scene, **kwargs)
+            finally:
+                wm.progress_end()
+        except _jobs.REPORTED_ERRORS as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        empty = [frame for frame, result in results if not result.visible]
+        if empty:
+            self.report({"WARNING"}, f"nothing of the volume seen in frames {empty}")
+        self.report({"INFO"}, f"rendered {len(results)} frames")
+        return {"FINISHED"}
+
+
+def _compositor_image(scene):
+    """The image the scene's VolumeEVM compositor node shows, or None."""
+    tree = getattr(scene, "compositing_node_group", None)
+    if tree is None and not hasattr(scene, "compositing_node_group"):
+        tree = scene.node_tree if scene.use_nodes else None
+    node = tree.nodes.get(NODE_IMAGE) if tree is not None else None
+    if node is None or node.mute or node.image is None:
+        return None
+    return node.image
+
+
+@bpy.app.handlers.persistent
+def check_view(scene, *_args):
+    """render_pre: warn when the compositor's DVR image was rendered for another view."""
+    image = _compositor_image(scene)
+    if image is None or not scene.render.use_compositing:
+        return
+    stored = image.get(dvr.VIEW_KEY)
+    if stored != dvr.view_signature(scene):
+        print(f"[volumeevm] warning: {image.name!r} was rendered for another frame, camera or "
+              f"resolution than this render's; run Render VolumeEVM again (or Render VolumeEVM "
+              f"Animation)", flush=True)
+
+
+_atexit_registered = False
+
+
+def add_handlers():
+    """Install the render_pre check (and its removal at exit: bpy 4.5 hangs otherwise)."""
+    global _atexit_registered
+    if check_view not in bpy.app.handlers.render_pre:
+        bpy.app.handlers.render_pre.append(check_view)
+    if not _atexit_registered:
+        atexit.register(remove_handlers)
+        _atexit_registered = True
+
+
+def remove_handlers():
+    while check_view in bpy.app.handlers.render_pre:
+        bpy.app.handlers.render_pre.remove(check_view)
 
 
 class VOLUMEEVM_OT_setup_compositor(bpy.types.Operator):
@@ -346,4 +435,5 @@ class VOLUMEEVM_OT_load_tf_preset(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = [VOLUMEEVM_OT_render_dvr, VOLUMEEVM_OT_setup_compositor, VOLUMEEVM_OT_load_tf_preset]
+CLASSES = [VOLUMEEVM_OT_render_dvr, VOLUMEEVM_OT_render_dvr_animation,
+           VOLUMEEVM_OT_setup_compositor, VOLUMEEVM_OT_load_tf_preset]

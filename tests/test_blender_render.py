@@ -416,3 +416,44 @@ def test_render_panel_draws_and_the_job_runs_from_the_modal_driver(ext, dvr, sku
     image = bpy.data.images[dvr.DEFAULT_IMAGE]
     assert tuple(image.size) == (48, 40)
     assert max(image.pixels[3::4]) > 0.5
+
+
+# ---------------------------------------------------------------------------- frames
+def test_animation_renders_every_frame_and_f12_warns_of_a_stale_dvr(ext, dvr, skull, tmp_path,
+                                                                     capfd):
+    scene = bpy.context.scene
+    cam = add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (40, 32))
+    cam.keyframe_insert("location", frame=1)
+    cam.location.x += 0.08
+    cam.keyframe_insert("location", frame=2)
+    scene.frame_start, scene.frame_end = 1, 2
+    scene.frame_set(1)
+    settings_for(scene, skull, tmp_path, use_png=True, png_path=str(tmp_path / "f_##.png"),
+                 use_exr=True, exr_path=str(tmp_path / "f_##.exr"))
+    assert bpy.ops.volumeevm.render_dvr_animation() == {"FINISHED"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f_01.exr", "f_01.png", "f_02.exr",
+                                                          "f_02.png"]
+    assert scene.frame_current == 1
+    frames = []
+    for frame in (1, 2):
+        with OpenEXR.File(str(tmp_path / f"f_{frame:02d}.exr"), separate_channels=True) as f:
+            frames.append(f.parts[0].channels["A"].pixels)
+    assert (frames[0] > 0.5).any() and not np.array_equal(frames[0], frames[1])
+    # Each frame's image equals a single render at that frame.
+    scene.frame_set(2)
+    single = dvr.render_dvr(skull, ext.operators.render.transfer_function(scene.volumeevm_render),
+                            method="raycast", image_name="single")
+    np.testing.assert_allclose(frames[1], single.rgba[..., 3], atol=1e-6)
+    # F12 with the compositor: quiet when the DVR matches the view, a warning when it does not.
+    assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
+    scene.volumeevm_render.image_name = "single"
+    assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
+    capfd.readouterr()
+    bpy.ops.render.render()
+    assert "[volumeevm] warning" not in capfd.readouterr().out
+    scene.frame_set(1)
+    bpy.ops.render.render()
+    assert "rendered for another frame, camera or resolution" in capfd.readouterr().out
+    assert dvr.frame_path("/x/a.png", 7) == "/x/a_0007.png"
+    assert dvr.frame_path("/x/a_###_b.exr", 12) == "/x/a_012_b.exr"

@@ -172,6 +172,7 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         if _jobs.CURRENT is not None:
             layout.label(text="Press Esc to cancel", icon="INFO")
         layout.operator("volumeevm.render_dvr", icon="RENDER_STILL")
+        layout.operator("volumeevm.render_dvr_animation", icon="RENDER_ANIMATION")
         layout.operator("volumeevm.setup_compositor", icon="NODE_COMPOSITING")
         if context.scene.camera is None:
             layout.label(text="The scene has no camera", icon="ERROR")
