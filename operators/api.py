@@ -45,10 +45,9 @@ from ..volumeevm_addon import (
     ToolOperation,
     VolumeEVM,
     VolumeEVMError,
-    check_closed_mesh,
     read_volume,
-    voxelize_mesh,
 )
+from ..volumeevm_addon._voxelize import box_evm, voxelize_mesh_evm
 from ..volumeevm_addon._volume import grid_to_world, index_to_physical
 from . import _jobs, _runtime, sidecar
 
@@ -530,46 +529,13 @@ def tool_to_grid(vevm, volume_matrix, tool_matrix):
 
 
 def voxelize_tool(vertices, faces, to_grid, shape):
-    """The EVM of a tool's voxels: ``EVM.from_mask(voxelize_mesh(vertices, faces, shape,
-    to_grid))``, computed on the sub-grid of the tool's bounding box only.
-
-    The vertices are mapped to index space exactly as :func:`voxelize_mesh` maps them, then
-    moved by a non-negative integer offset no larger than their smallest coordinates. That
-    subtraction is exact in float64 (the result is a multiple of the operand's ulp and not
-    larger in magnitude), and the voxelization is invariant under integer translations (the
-    tie rule perturbs each centre by the same infinitesimals) and under mirroring (inside is a
-    winding number other than zero), so the voxels are the same as on the whole grid; only
-    the cost (mask and EVM) shrinks to the box.
-    """
-    shape = tuple(int(n) for n in shape)
+    """The EVM of a tool's voxels (the core's :func:`voxelize_mesh_evm`); a clip box that is
+    axis-aligned in the grid is made from its corners directly (:func:`box_evm`)."""
     matrix = np.asarray(to_grid, np.float64)
-    verts = np.ascontiguousarray(vertices, np.float64)
-    if (matrix.shape != (4, 4) or verts.ndim != 2 or verts.shape[1:] != (3,) or not len(verts)
-            or not np.isfinite(verts).all() or not np.isfinite(matrix).all()):
-        return EVM.from_mask(voxelize_mesh(vertices, faces, shape, to_grid))  # its own error
-    linear = matrix[:3, :3]
-    pts = verts @ linear.T + matrix[:3, 3]  # as voxelize_mesh computes them
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    extent = np.asarray(shape, np.float64) - 0.5
-    if np.any(hi <= -0.5) or np.any(lo >= extent) or np.abs(pts).max() > 1e15:
-        return EVM.from_mask(voxelize_mesh(vertices, faces, shape, to_grid))  # its error
-    if faces is _BOX_FACES and np.count_nonzero(linear - np.diag(np.diag(linear))) == 0:
-        # An axis-aligned box [x0, x1] x ... holds exactly the centres x0 <= i < x1 (the
-        # tie rule of voxelize_mesh): its EVM is the 8 corners of the lattice box.
-        low = np.clip(np.ceil(lo), 0, shape).astype(np.int64)
-        high = np.clip(np.ceil(hi), 0, shape).astype(np.int64)
-        if np.any(high <= low):
-            return EVM()
-        ends = np.stack([low, high])
-        corners = [[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-        return EVM(ends[np.array(corners), [0, 1, 2]])
-    offset = np.clip(np.floor(lo), 0, None).astype(np.int64)
-    top = np.minimum(np.floor(hi).astype(np.int64) + 1, shape)
-    if np.any(top <= offset):  # meets the grid but holds no voxel centre
-        check_closed_mesh(verts, faces)  # still refuse an open mesh
-        return EVM()
-    mask = voxelize_mesh(pts - offset, faces, tuple(int(n) for n in top - offset), np.eye(4))
-    return EVM.from_mask(mask, offset=tuple(int(n) for n in offset))
+    if faces is _BOX_FACES and np.count_nonzero(matrix[:3, :3] - np.diag(np.diag(matrix[:3, :3]))) == 0:
+        corners = np.asarray(vertices, np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+        return box_evm(corners.min(axis=0), corners.max(axis=0), shape)
+    return voxelize_mesh_evm(vertices, faces, shape, to_grid)
 
 
 def _digest(*arrays):

@@ -616,3 +616,34 @@ def test_small_mesh_between_centres_is_empty():
     vertices, faces = box([0.2, 0.2, 0.2], [0.8, 0.8, 0.8])
     mask = voxelize_mesh(vertices, faces, (3, 3, 3), np.eye(4))
     assert mask.shape == (3, 3, 3) and not mask.any()
+
+
+# ---------------------------------------------------------------------- EVM on the tool's box
+@pytest.mark.parametrize("name", ["mesh_tool_nut", "mesh_tool_fandisk"])
+def test_evm_on_the_tool_box_equals_the_whole_grid(name):
+    """A tool in a bigger grid, partly outside it: same voxels as voxelizing the whole grid."""
+    from volumeevm_addon import EVM
+    from volumeevm_addon._voxelize import voxelize_mesh_evm
+
+    vertices, faces = load_mesh(name)
+    matrix, shape = fit_to_grid(vertices, 30, rotation((1, 2, 3), 0.7))
+    matrix[:3, 3] += (17.25, -9.5, 6.0)  # sticks out of the grid at y < 0
+    grid = (60, 40, 50)
+    expected = EVM.from_mask(voxelize_mesh(vertices, faces, grid, matrix))
+    assert voxelize_mesh_evm(vertices, faces, grid, matrix) == expected
+    assert not expected.is_empty()
+    with pytest.raises(VolumeEVMError, match="wholly outside"):
+        far = matrix.copy()
+        far[:3, 3] += 500
+        voxelize_mesh_evm(vertices, faces, grid, far)
+
+
+def test_box_evm_follows_the_tie_rule_of_a_box_mesh():
+    from volumeevm_addon import EVM
+    from volumeevm_addon._voxelize import box_evm
+
+    for lo, hi in [((1.0, 2.0, 0.5), (6.0, 4.0, 3.5)), ((-3.2, 1.7, 2.0), (4.9, 9.0, 2.6)),
+                   ((0.4, 0.4, 0.4), (0.6, 0.6, 0.6))]:
+        vertices, faces = box(lo, hi)
+        expected = EVM.from_mask(voxelize_mesh(vertices, faces, (8, 8, 8), np.eye(4)))
+        assert box_evm(lo, hi, (8, 8, 8)) == expected

@@ -9,7 +9,7 @@ from ._mesh import Polygons
 from ._stack import EditStack, ToolOperation
 from ._volume import BLENDER_UNITS_PER_MM, Volume
 from ._volumeevm import VolumeEVM
-from ._voxelize import check_closed_mesh, voxelize_mesh
+from ._voxelize import box_evm, check_closed_mesh, voxelize_mesh, voxelize_mesh_evm
 from .readers import SUPPORTED_EXTENSIONS, read_volume
 
 __all__ = [
@@ -22,7 +22,9 @@ __all__ = [
     "Volume",
     "VolumeEVM",
     "VolumeEVMError",
+    "box_evm",
     "check_closed_mesh",
     "read_volume",
     "voxelize_mesh",
+    "voxelize_mesh_evm",
 ]

@@ -16,7 +16,7 @@ import numpy as np
 
 from ._errors import VolumeEVMError
 
-__all__ = ["MeshCheck", "check_closed_mesh", "voxelize_mesh"]
+__all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "voxelize_mesh", "voxelize_mesh_evm"]
 
 # Shewchuk's forward error bounds for orient2d / orient3d evaluated in float64 ("Adaptive
 # Precision Floating-Point Arithmetic and Fast Robust Geometric Predicates", 1997): if
@@ -513,3 +513,53 @@ def _fill_columns(column, start, step, shape):
     marks = marks.reshape(nx, ny, nz + 1)
     np.cumsum(marks, axis=2, dtype=np.int8, out=marks)
     return marks[:, :, :nz] != 0
+
+
+def voxelize_mesh_evm(vertices, faces, shape, to_grid):
+    """The EVM of :func:`voxelize_mesh`'s voxels, computed on the tool's bounding box only.
+
+    A tool usually covers a small part of the grid; the mask and its EVM are made for the
+    sub-grid of the tool's bounding box and placed with an integer offset. The vertices are
+    mapped to index space exactly as :func:`voxelize_mesh` maps them and then moved by a
+    non-negative integer no larger than their smallest coordinates; that subtraction is exact in
+    float64, and the voxelization is invariant under integer translations (the tie rule perturbs
+    every centre alike), so the voxels are the same as on the whole grid.
+
+    Parameters and errors are those of :func:`voxelize_mesh`.
+    """
+    from ._evm import EVM
+
+    verts, tris = _as_mesh(vertices, faces)
+    shape = _as_shape(shape)
+    matrix = _as_affine(to_grid)
+    pts = verts @ matrix[:3, :3].T + matrix[:3, 3]  # as voxelize_mesh computes them
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    extent = np.asarray(shape, np.float64) - 0.5
+    # Past 1e15 (< 2**53) a float64 may be coarser than 1 and the shift would round: whole grid.
+    if np.any(hi <= -0.5) or np.any(lo >= extent) or not np.abs(pts).max() <= 1e15:
+        return EVM.from_mask(voxelize_mesh(verts, tris, shape, matrix))  # its result or error
+    offset = np.clip(np.floor(lo), 0, None).astype(np.int64)
+    top = np.minimum(np.floor(hi).astype(np.int64) + 1, shape)
+    if np.any(top <= offset):  # meets the grid but holds no voxel centre
+        check_closed_mesh(verts, tris)  # an open mesh is still refused
+        return EVM()
+    mask = voxelize_mesh(pts - offset, tris, tuple(int(n) for n in top - offset), np.eye(4))
+    return EVM.from_mask(mask, offset=tuple(int(n) for n in offset))
+
+
+def box_evm(lo, hi, shape):
+    """The EVM of the voxels whose centres lie in the axis-aligned box ``[lo, hi]`` (index space).
+
+    The tie rule of :func:`voxelize_mesh` for a box: centre ``i`` is inside when
+    ``lo <= i < hi`` on every axis, so the voxels are ``ceil(lo) <= i < ceil(hi)``, clipped to
+    the grid; their EVM is the box's 8 corners.
+    """
+    from ._evm import EVM
+
+    low = np.clip(np.ceil(np.asarray(lo, np.float64)), 0, shape).astype(np.int64)
+    high = np.clip(np.ceil(np.asarray(hi, np.float64)), 0, shape).astype(np.int64)
+    if np.any(high <= low):
+        return EVM()
+    ends = np.stack([low, high])
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    return EVM(ends[corners, [0, 1, 2]])
