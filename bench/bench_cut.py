@@ -40,10 +40,7 @@ Usage: ``.venv/py313/bin/python bench/bench_cut.py --repeat 5 --out bench/result
 import argparse
 import json
 import os
-import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -52,6 +49,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench._common import best_time, run_facts, write_json  # noqa: E402
 from volumeevm_addon import (  # noqa: E402
     EVM,
     EditStack,
@@ -76,19 +74,6 @@ PLACEMENTS = (
     ("fandisk_rotated", "fandisk", (200.23, 110.39, 70.27), (30.0, 20.0, 45.0)),
 )
 MOVE_VOXELS = (3, 2, 1)
-
-
-def best_time(function, repeat, setup=None):
-    """Best wall time of ``repeat`` calls of ``function`` (``setup`` runs untimed before each)."""
-    best = float("inf")
-    result = None
-    for _ in range(repeat):
-        if setup is not None:
-            setup()
-        start = time.perf_counter()
-        result = function()
-        best = min(best, time.perf_counter() - start)
-    return best, result
 
 
 def rotation(degrees):
@@ -492,15 +477,10 @@ def main():
             continue
         met = checks[name] >= target if "speedup" in name else checks[name] < target
         print(f"target {name}: {checks[name]:.3f} (target {target}) {'met' if met else 'NOT met'}")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
     result = {
         "benchmark": "cut",
-        "commit": commit,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
+        **run_facts(),
         **versions,
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "load_average_before": load_before,
         "load_average_after": os.getloadavg(),
         "repeat": args.repeat,
@@ -513,13 +493,7 @@ def main():
         "rows": rows,
         "stack": stack,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_cut.json"
-    handle, temporary = tempfile.mkstemp(dir=args.out, suffix=".tmp")
-    with os.fdopen(handle, "w") as file:
-        json.dump(result, file, indent=1)
-    os.replace(temporary, path)
-    print(f"wrote {path}")
+    write_json(args.out / "bench_cut.json", result)
 
 
 if __name__ == "__main__":

@@ -52,7 +52,6 @@ import os
 import platform
 import subprocess
 import sys
-import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -63,6 +62,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench" / "peers"))
 
+from bench._common import atomic_path, run_facts, write_json  # noqa: E402
 from volumeevm_addon import VolumeEVM  # noqa: E402
 from volumeevm_addon._camera import Camera  # noqa: E402
 from volumeevm_addon._render import METHODS, render  # noqa: E402
@@ -179,10 +179,8 @@ def reference(vevm, cam, tf, cache_dir, label, extra):
     ignore = cache_dir / ".gitignore"
     if not ignore.exists():  # the cache never goes into git
         ignore.write_text("*\n")
-    handle, tmp = tempfile.mkstemp(dir=cache_dir, suffix=".npz")
-    with os.fdopen(handle, "wb") as f:
+    with atomic_path(path) as temporary, open(temporary, "wb") as f:
         np.savez(f, rgba=rgba, seconds=seconds, key=key_src)
-    os.replace(tmp, path)
     return rgba, seconds, False
 
 
@@ -386,10 +384,8 @@ def save_panel(path, images, columns=4):
     if panel.width > 1024:
         f = 1024 / panel.width
         panel = panel.resize((1024, max(1, int(panel.height * f))))
-    handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png")
-    os.close(handle)
-    panel.save(tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as temporary:
+        panel.save(temporary, format="PNG")
 
 
 def save_chart(path, rows):
@@ -420,11 +416,9 @@ def save_chart(path, rows):
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle("VolumeEVM DVR: ours (blue) and peers (red)", fontsize=10)
     fig.tight_layout()
-    handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png")
-    os.close(handle)
-    fig.savefig(tmp, dpi=90)
+    with atomic_path(path) as temporary:
+        fig.savefig(temporary, dpi=90, format="png")
     plt.close(fig)
-    os.replace(tmp, path)
     return True
 
 
@@ -543,12 +537,7 @@ def main():
     args.out.mkdir(parents=True, exist_ok=True)
     rows, notes, cases = [], [], []
     load_start = os.getloadavg()
-    # the code measured is the code at the start (others may commit while the bench runs)
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                           cwd=REPO, capture_output=True, text=True).stdout.split("\n")
-    dirty = sorted(line[3:] for line in dirty if line.strip())
+    facts = run_facts()  # the code measured is the code at the start
     for name in [c for c in args.cases.split(",") if c]:
         cases.append(run_case(name, args, rows, notes))
     print_table(rows)
@@ -568,8 +557,7 @@ def main():
                                                     if k != "case"}))
     result = {
         "benchmark": "dvr",
-        "commit": commit, "modified_files_at_start": dirty,
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **facts,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {cpu_model()}",
         "threads_env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                                                        "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")},
@@ -592,13 +580,7 @@ def main():
     }
     if args.images and save_chart(args.out / "dvr_speed_error.png", rows):
         print(f"wrote {args.out / 'dvr_speed_error.png'}")
-    path = args.out / "bench_dvr.json"
-    handle, tmp = tempfile.mkstemp(dir=args.out, suffix=".tmp")
-    with os.fdopen(handle, "w") as f:
-        json.dump(result, f, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist")
-                  else str(o))
-    os.replace(tmp, path)
-    print(f"wrote {path}")
+    write_json(args.out / "bench_dvr.json", result)
 
 
 if __name__ == "__main__":

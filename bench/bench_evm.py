@@ -16,12 +16,7 @@ Usage: ``python bench/bench_evm.py --out bench/results``
 
 import argparse
 import json
-import os
-import platform
-import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,21 +24,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench._common import best_time, run_facts, write_json  # noqa: E402
 from volumeevm_addon import EVM, VolumeEVM  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 TARGETS = {"extract_mesh_speedup_vs_marching_cubes": 3.0, "mesh_faces_per_unit_face_bone": 0.4,
            "bytes_vs_dense_bone": 0.35}
-
-
-def best_time(function, repeat):
-    """Best wall time of ``repeat`` calls, and the last result."""
-    best = float("inf")
-    for _ in range(repeat):
-        start = time.perf_counter()
-        result = function()
-        best = min(best, time.perf_counter() - start)
-    return best, result
 
 
 def unit_faces(mask):
@@ -136,26 +122,16 @@ def main():
     for name, target in TARGETS.items():
         better = checks[name] >= target if "speedup" in name else checks[name] <= target
         print(f"target {name}: {checks[name]:.3f} (target {target}) {'met' if better else 'NOT met'}")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
     result = {
         "benchmark": "evm_core",
-        "commit": commit,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        **run_facts(),
         **versions,
+        "timing": f"best of {args.repeat} calls, inputs built beforehand",
         "targets": TARGETS,
         "measured": checks,
         "rows": rows,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "bench_evm.json"
-    handle, temporary = tempfile.mkstemp(dir=args.out, suffix=".tmp")
-    with os.fdopen(handle, "w") as file:
-        json.dump(result, file, indent=1)
-    os.replace(temporary, path)
-    print(f"wrote {path}")
+    write_json(args.out / "bench_evm.json", result)
 
 
 if __name__ == "__main__":
