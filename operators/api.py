@@ -909,3 +909,6 @@ def apply_stack(obj):
         state = stack_state(vol_obj)
         state.result = result
     return result
+
+
+from .dvr import render_dvr, render_dvr_animation  # noqa: E402,F401  (Render VolumeEVM, see dvr)
