@@ -304,6 +304,8 @@ def _job_arguments(context, settings, volume_name=""):
     tf = transfer_function(settings)
     options = dvr.method_options(settings.method, settings.quality, tuple(vol.volumeevm.spacing),
                                  shading=settings.shading, termination=settings.termination)
+    if settings.mode == "xray":
+        options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
     return vol, tf, dict(
         method=settings.method, mode=settings.mode, options=options,
         image_name=settings.image_name or dvr.DEFAULT_IMAGE,

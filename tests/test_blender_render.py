@@ -457,3 +457,20 @@ def test_animation_renders_every_frame_and_f12_warns_of_a_stale_dvr(ext, dvr, sk
     assert "rendered for another frame, camera or resolution" in capfd.readouterr().out
     assert dvr.frame_path("/x/a.png", 7) == "/x/a_0007.png"
     assert dvr.frame_path("/x/a_###_b.exr", 12) == "/x/a_012_b.exr"
+
+
+def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):
+    scene = bpy.context.scene
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (48, 36))
+    s = settings_for(scene, skull, tmp_path)
+    s.xray_scale = 0.01
+    ui = ext.ui.render_panel
+    for method, *_ in ui.METHOD_ITEMS:
+        for mode, *_ in ui.MODE_ITEMS:
+            s.method, s.mode = method, mode
+            assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+            pixels = np.array(bpy.data.images[f"{dvr.DEFAULT_IMAGE} DVR"].pixels[:], np.float32)
+            alpha = pixels.reshape(36, 48, 4)[..., 3]
+            assert np.isfinite(pixels).all(), (method, mode)
+            assert 0.1 < alpha.mean() < 0.5 and alpha.max() > 0.9, (method, mode)

@@ -58,6 +58,12 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
     termination: FloatProperty(
         name="Early Termination", default=0.99, min=0.5, max=1.0,
         description="Rays stop once this opaque (over mode); 1 composites every sample")
+    xray_scale: FloatProperty(
+        name="X-Ray Scale", default=0.01, min=0.0, soft_max=1.0, precision=4,
+        description="X-ray attenuation per mm of ray per data unit above the offset")
+    xray_offset: FloatProperty(
+        name="X-Ray Offset", default=0.0, precision=3,
+        description="Density of zero attenuation (data units, e.g. -1000 for CT air)")
     preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="ct_bone",
                          update=_preset_changed,
                          description="Load a preset into the colour ramp and value range")
@@ -134,6 +140,9 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         col.prop(settings, "quality")
         col.prop(settings, "termination")
         col.prop(settings, "shading")
+        if settings.mode == "xray":
+            col.prop(settings, "xray_scale")
+            col.prop(settings, "xray_offset")
 
         box = layout.box()
         box.label(text="Transfer Function", icon="COLOR")
