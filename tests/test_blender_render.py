@@ -474,3 +474,31 @@ def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):
             alpha = pixels.reshape(36, 48, 4)[..., 3]
             assert np.isfinite(pixels).all(), (method, mode)
             assert 0.1 < alpha.mean() < 0.5 and alpha.max() > 0.9, (method, mode)
+
+
+def test_the_tool_stack_result_is_rendered(ext, dvr, skull):
+    """A volume with CAD tools renders the stack's result, not the bare VolumeEVM."""
+    api = ext.operators.api
+    scene = bpy.context.scene
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (48, 40))
+    bare = dvr.render_dvr(skull, bone_tf())
+    mesh = bpy.data.meshes.new("Box")
+    h = 0.08
+    corners = [(x, y, z) for x in (-h, h) for y in (-h, h) for z in (-h, h)]
+    mesh.from_pydata(corners, [], [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6),
+                                   (0, 2, 6, 4), (1, 5, 7, 3)])
+    box = bpy.data.objects.new("Box", mesh)
+    box.location = (0.05, 0.0, 0.2)
+    scene.collection.objects.link(box)
+    result = api.add_tool(skull, box, "cut")
+    assert result.voxel_count < api.get_vevm(skull).voxel_count
+    box.hide_render = True  # the tool itself stays out of the picture here
+    cut = dvr.render_dvr(skull, bone_tf())
+    from volumeevm.volumeevm_addon._render import render
+
+    cam = ext.operators.camera.camera_from_blender(scene)
+    want, _ = render(result, cam, bone_tf(), method="raycast",
+                     matrix_world=np.array(skull.matrix_world))
+    np.testing.assert_allclose(cut.dvr_rgba, want, atol=1e-6)
+    assert not np.allclose(cut.dvr_rgba, bare.dvr_rgba, atol=1e-3)
