@@ -770,7 +770,7 @@ def _leap(p0, sv, blo, bhi, eps, backward):
 
 def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None, step_mm=None,
                    skip_empty=True, termination=0.99, shading=None, xray_scale=1.0,
-                   xray_offset=0.0, block=8, chunk_rays=65536):
+                   xray_offset=0.0, block=8, chunk_rays=262144):
     """Ray cast a VolumeEVM with the EVM as space-leaping structure.
 
     Parameters
@@ -801,7 +801,9 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
     block : int
         Edge (voxels) of the space-leaping blocks.
     chunk_rays : int
-        Rays marched together (bounds memory).
+        Rays marched together (bounds memory: the default, a 512² image at once, peaks near
+        170 MB for the CT head beside the cached tables; fewer Python steps than smaller
+        chunks).
 
     Returns
     -------
