@@ -34,7 +34,6 @@ front of the volume can show a one-pixel fringe; motion blur and panoramic camer
 supported; a render border is ignored (the whole frame is rendered).
 """
 
-import os
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass

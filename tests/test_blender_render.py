@@ -249,8 +249,8 @@ def test_operator_end_to_end(ext, dvr, skull, tmp_path):
     assert np.isfinite(composite).all()
     # Equal to the core render over the scene render (rays stopped at the scene depth).
     tf = ext.operators.render.transfer_function(s)
-    expected = dvr.render_dvr(skull, tf, method="raycast", image_name="check",
-                              options=dvr.method_options("raycast", 1.0, s.volume.volumeevm.spacing))
+    options = dvr.method_options("raycast", 1.0, skull.volumeevm.spacing)
+    expected = dvr.render_dvr(skull, tf, method="raycast", image_name="check", options=options)
     from volumeevm.volumeevm_addon._render import render
 
     cam = ext.operators.camera.camera_from_blender(scene)
