@@ -86,15 +86,15 @@ def drill(scene, tip, direction, *, radius=0.01, length=0.16, segments=32):
 
 def skull_transfer_function():
     """Bone-like classification in the skull's own density units (0 .. 5.4, region >= 2.9):
-    transparent below the isovalue, ivory and denser towards the top of the range; opacity per
-    mm (voxels are about 3.9 mm)."""
+    transparent at the isovalue (so the region's voxel faces do not show) and ivory, denser
+    towards the top of the range; opacity per mm (voxels are about 3.9 mm)."""
     from volumeevm.volumeevm_addon._transfer import TransferFunction
 
     return TransferFunction([
-        (2.6, 0.80, 0.62, 0.50, 0.00),
-        (2.9, 0.85, 0.68, 0.55, 0.015),
-        (3.8, 0.93, 0.85, 0.72, 0.05),
-        (5.43, 1.00, 0.98, 0.92, 0.25),
+        (2.9, 0.80, 0.62, 0.50, 0.00),
+        (3.4, 0.85, 0.68, 0.55, 0.03),
+        (4.2, 0.93, 0.85, 0.72, 0.08),
+        (5.43, 1.00, 0.98, 0.92, 0.30),
     ], name="skull bone")
 
 
