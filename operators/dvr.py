@@ -206,7 +206,10 @@ def render_scene(scene, *, camera_object=None, hide=()):
     path = folder / "scene.exr"
     try:
         with _changed(items):
-            bpy.ops.render.render(scene=scene.name, layer=layer.name)
+            try:
+                bpy.ops.render.render(scene=scene.name, layer=layer.name)
+            except RuntimeError as error:  # e.g. an engine that needs a GPU, headless
+                raise VolumeEVMError(f"scene render ({r.engine}) failed: {error}") from None
             result = bpy.data.images.get("Render Result")
             if result is None:
                 raise VolumeEVMError(f"scene {scene.name!r}: the render produced no result")
