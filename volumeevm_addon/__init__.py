@@ -3,10 +3,13 @@
 NumPy only; never imports ``bpy``, so it works in plain Python as well as inside Blender.
 """
 
+from ._camera import Camera
 from ._errors import VolumeEVMError
 from ._evm import EVM
 from ._mesh import Polygons
+from ._render import render
 from ._stack import EditStack, ToolOperation
+from ._transfer import TransferFunction
 from ._volume import BLENDER_UNITS_PER_MM, Volume
 from ._volumeevm import VolumeEVM
 from ._voxelize import box_evm, check_closed_mesh, voxelize_mesh, voxelize_mesh_evm
@@ -14,17 +17,20 @@ from .readers import SUPPORTED_EXTENSIONS, read_volume
 
 __all__ = [
     "BLENDER_UNITS_PER_MM",
+    "Camera",
     "EVM",
     "EditStack",
     "Polygons",
     "SUPPORTED_EXTENSIONS",
     "ToolOperation",
+    "TransferFunction",
     "Volume",
     "VolumeEVM",
     "VolumeEVMError",
     "box_evm",
     "check_closed_mesh",
     "read_volume",
+    "render",
     "voxelize_mesh",
     "voxelize_mesh_evm",
 ]
