@@ -7,7 +7,7 @@ Python API (``operators.api``); ``ui`` the property groups and the sidebar tab.
 import bpy
 
 from . import operators, ui
-from .operators import import_volume, render, sidecar, tools
+from .operators import _handlers, import_volume, render, sidecar, tools
 from .ui import panels, props, render_panel
 
 
@@ -21,15 +21,11 @@ def register():
     bpy.types.TOPBAR_MT_file_import.append(import_volume.menu_import)
     bpy.types.STATUSBAR_HT_header.append(panels.draw_status)
     render_panel.register()
-    render.add_handlers()
-    sidecar.add_handlers()
-    tools.add_handlers()
+    _handlers.install(render.HANDLERS + sidecar.HANDLERS + tools.HANDLERS)
 
 
 def unregister():
-    tools.remove_handlers()
-    sidecar.remove_handlers()
-    render.remove_handlers()
+    _handlers.uninstall()
     render_panel.unregister()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)
     bpy.types.TOPBAR_MT_file_import.remove(import_volume.menu_import)

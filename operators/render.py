@@ -25,7 +25,6 @@ The transfer function is a colour ramp (a Blend texture's ``color_ramp``): eleme
 straight colour and its alpha for the opacity per ``unit_length_mm`` mm of ray.
 """
 
-import atexit
 
 import bpy
 import numpy as np
@@ -375,22 +374,7 @@ def check_view(scene, *_args):
               f"Animation)", flush=True)
 
 
-_atexit_registered = False
-
-
-def add_handlers():
-    """Install the render_pre check (and its removal at exit: bpy 4.5 hangs otherwise)."""
-    global _atexit_registered
-    if check_view not in bpy.app.handlers.render_pre:
-        bpy.app.handlers.render_pre.append(check_view)
-    if not _atexit_registered:
-        atexit.register(remove_handlers)
-        _atexit_registered = True
-
-
-def remove_handlers():
-    while check_view in bpy.app.handlers.render_pre:
-        bpy.app.handlers.render_pre.remove(check_view)
+HANDLERS = (("render_pre", check_view),)
 
 
 class VOLUMEEVM_OT_setup_compositor(bpy.types.Operator):

@@ -38,6 +38,8 @@ def session_dir():
     """This session's temporary folder for sidecars of unsaved builds (made on first use)."""
     global _session_dir
     if _session_dir is None or not _session_dir.is_dir():
+        if _session_dir is None:
+            atexit.register(_remove_session_dir)  # the session's temporary sidecars go at exit
         _session_dir = Path(tempfile.mkdtemp(prefix="volumeevm-"))
     return _session_dir
 
@@ -214,30 +216,4 @@ def on_load_post(*_args):
             print(f"[volumeevm] {error}")
 
 
-_HANDLERS = (
-    (bpy.app.handlers.save_pre, on_save_pre),
-    (bpy.app.handlers.save_post, on_save_post),
-    (bpy.app.handlers.load_post, on_load_post),
-)
-_atexit_registered = False
-
-
-def add_handlers():
-    """Install the handlers (and the clean-up at exit)."""
-    global _atexit_registered
-    for handlers, function in _HANDLERS:
-        if function not in handlers:
-            handlers.append(function)
-    if not _atexit_registered:
-        # The bpy module (4.5) hangs at interpreter exit while persistent handlers remain, so
-        # they are removed at exit; the session's temporary sidecars go too.
-        atexit.register(remove_handlers)
-        atexit.register(_remove_session_dir)
-        _atexit_registered = True
-
-
-def remove_handlers():
-    """Remove the handlers again."""
-    for handlers, function in _HANDLERS:
-        while function in handlers:
-            handlers.remove(function)
+HANDLERS = (("save_pre", on_save_pre), ("save_post", on_save_post), ("load_post", on_load_post))

@@ -22,7 +22,6 @@ Undo and redo restore the entries, ``vevm_path`` and the surface mesh with its s
 ``EditStack`` when the base path changed) and rewrite the mesh only if it does not match.
 """
 
-import atexit
 import traceback
 
 import bpy
@@ -307,29 +306,8 @@ def on_undo_redo(*_args):
         _refresh_safely(obj, depsgraph)
 
 
-_HANDLERS = (
-    (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update_post),
-    (bpy.app.handlers.undo_post, on_undo_redo),
-    (bpy.app.handlers.redo_post, on_undo_redo),
-)
-_atexit_registered = False
-
-
-def add_handlers():
-    """Install the handlers (removed again at exit, as ``sidecar`` does)."""
-    global _atexit_registered
-    for handlers, function in _HANDLERS:
-        if function not in handlers:
-            handlers.append(function)
-    if not _atexit_registered:
-        atexit.register(remove_handlers)
-        _atexit_registered = True
-
-
-def remove_handlers():
-    for handlers, function in _HANDLERS:
-        while function in handlers:
-            handlers.remove(function)
+HANDLERS = (("depsgraph_update_post", on_depsgraph_update_post), ("undo_post", on_undo_redo),
+            ("redo_post", on_undo_redo))
 
 
 CLASSES = [
