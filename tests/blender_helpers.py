@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "volumeevm"
@@ -43,3 +44,20 @@ def mesh_arrays(mesh):
     totals = np.empty(len(mesh.polygons), np.int32)
     mesh.polygons.foreach_get("loop_total", totals)
     return co.reshape(-1, 3), indices, starts, totals
+
+
+@pytest.fixture(scope="module")
+def ext():
+    """The extension from the source tree, registered for the test module that imports this."""
+    module = addon()
+    module.register()
+    yield module
+    module.unregister()
+
+
+@pytest.fixture(autouse=True)
+def fresh(ext):
+    """Every test starts and ends with an empty scene."""
+    reset_blender()
+    yield
+    reset_blender()

@@ -11,27 +11,12 @@ import bpy
 import numpy as np
 import OpenEXR
 import pytest
-from blender_helpers import REPO, addon, reset_blender
+from blender_helpers import REPO, ext, fresh  # noqa: F401 (fixtures)
 from mathutils import Vector
 
 SKULL = REPO / "sample_blends" / "data" / "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9
 CENTRE = Vector((0.124, 0.124, 0.115))  # middle of the skull's grid (Blender units)
-
-
-@pytest.fixture(scope="module")
-def ext():
-    module = addon()
-    module.register()
-    yield module
-    module.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh(ext):
-    reset_blender()
-    yield
-    reset_blender()
 
 
 @pytest.fixture

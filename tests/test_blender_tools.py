@@ -13,26 +13,11 @@ import bpy
 import numpy as np
 import pytest
 from mathutils import Matrix
-from blender_helpers import addon, mesh_arrays, reset_blender
+from blender_helpers import ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
 
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the head
 CT_BONE_HU = 300.0
 BACKGROUND = -5000  # below every CT value: marks voxels outside the region in to_dense
-
-
-@pytest.fixture(scope="module")
-def ext():
-    module = addon()
-    module.register()
-    yield module
-    module.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh(ext):
-    reset_blender()
-    yield
-    reset_blender()
 
 
 @pytest.fixture

@@ -11,24 +11,9 @@ import time
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import addon, reset_blender
+from blender_helpers import ext, fresh  # noqa: F401 (fixtures)
 
 SKULL = "ct_skull_cgal.npy"
-
-
-@pytest.fixture(scope="module")
-def ext():
-    module = addon()
-    module.register()
-    yield module
-    module.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh(ext):
-    reset_blender()
-    yield
-    reset_blender()
 
 
 # ---------------------------------------------------------------------------- DICOM, menu, drop

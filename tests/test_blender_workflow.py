@@ -12,27 +12,11 @@ from pathlib import Path
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import REPO, addon, mesh_arrays, reset_blender
+from blender_helpers import REPO, ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
 
 SKULL_THRESHOLD = 2.9  # CGAL meshes this skull at 2.9
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the head
 CT_BONE_HU = 300.0
-
-
-@pytest.fixture(scope="module")
-def ext():
-    """The extension from the source tree, registered for this module."""
-    module = addon()
-    module.register()
-    yield module
-    module.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh(ext):
-    reset_blender()
-    yield
-    reset_blender()
 
 
 @pytest.fixture

@@ -11,19 +11,7 @@ import pytest
 
 from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)):
-    """Camera-to-world matrix of a camera at ``eye`` looking at ``target`` (+Y up-ish)."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
-    return m
+from render_helpers import look_at
 
 
 # ---------------------------------------------------------------------------- core rules

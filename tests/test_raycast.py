@@ -10,45 +10,11 @@ from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._evm import EVM
 from volumeevm_addon._raycast import _Blocks, render_raycast, render_raycast_navigate
-from volumeevm_addon._reference import render_reference
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon._volume import grid_to_world
 from volumeevm_addon._volumeevm import VolumeEVM
-
-MODES = ("over", "under", "xray", "mip")
-XRAY = {"xray_scale": 2e-4, "xray_offset": -1024.0}
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)):
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
-    return m
-
-
-def centre(vevm, g):
-    return g[:3, 3] + g[:3, :3] @ ((np.array(vevm.shape) - 1) / 2.0)
-
-
-def camera(kind, g, vevm, offset, scale, res=(36, 30), up=(0.0, 0.0, 1.0), **kw):
-    c = centre(vevm, g)
-    m = look_at(c + np.asarray(offset), c, up)
-    if kind == "ORTHO":
-        return Camera.orthographic(m, scale, resolution_x=res[0], resolution_y=res[1],
-                                   clip_start=1e-4, **kw)
-    return Camera.perspective(m, 50.0, resolution_x=res[0], resolution_y=res[1],
-                              clip_start=1e-4, **kw)
-
-
-def reference(vevm, cam, tf, g, **kw):
-    return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), g, vevm.spacing, cam,
-                            tf, **kw)
+from render_helpers import MODES, XRAY, camera, centre, look_at, reference
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,7 @@ from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._reference import Shading, render_reference
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, index_to_physical
+from render_helpers import look_at
 
 BU = BLENDER_UNITS_PER_MM
 
@@ -25,18 +26,6 @@ def rotation(axis, angle):
         [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
         [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)],
     ])
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)):
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
-    return m
 
 
 def grid_matrix(spacing, origin=(0.0, 0.0, 0.0), rot=None, obj_translation=(0.0, 0.0, 0.0)):

@@ -16,23 +16,9 @@ from volumeevm_addon._render import render
 from volumeevm_addon._shear_warp import _LAYOUTS, _View, render_shear_warp
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, grid_to_world
+from render_helpers import MODES, look_at
 
 BU = BLENDER_UNITS_PER_MM
-MODES = ("over", "under", "xray", "mip")
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)):
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    if np.linalg.norm(r) < 1e-9:  # looking along `up`
-        r = np.cross(f, (0.0, 1.0, 0.0))
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
-    return m
 
 
 def centre_of(g, shape):
