@@ -12,10 +12,10 @@ everything outside the region transparent, which is the exactness contract every
 """
 
 
+from ._reference import MODES
 from ._volume import grid_to_world
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
-MODES = ("over", "under", "xray", "mip")
 
 
 def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None, matrix_world=None,

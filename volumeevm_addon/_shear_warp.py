@@ -107,15 +107,11 @@ import numpy as np
 from ._camera import BACKGROUND_DEPTH
 from ._densities import TABLE_ORDERS
 from ._errors import VolumeEVMError
-from ._reference import Shading
+from ._raycast import check_common
+from ._reference import MODES, Shading
 
 __all__ = ["render_shear_warp", "MODES"]
 
-MODES = ("over", "under", "xray", "mip")
-_CAMERA_API = ("rays", "axial_depth", "project", "shape", "clip_start", "clip_end", "is_ortho",
-               "forward", "position")
-_TF_API = ("evaluate", "table", "straight_table", "quantize", "transparent_between",
-           "unit_length_mm")
 _ERT_EVERY = 8
 """Slices between two updates of the early-ray-termination bounding box."""
 _MAX_INTERMEDIATE = 1 << 26
@@ -338,39 +334,12 @@ def _window(codes, box, a0, a1, b0, b1):
 
 def _check(vevm, camera, tf, grid_to_world, mode, depth_in, termination, lut_size, xray_scale,
            xray_offset):
-    if mode not in MODES:
-        raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
-    if not all(hasattr(vevm, a) for a in ("evm", "table", "shape", "spacing", "to_dense")):
-        raise VolumeEVMError(f"vevm: expected a VolumeEVM, got {type(vevm).__name__}")
-    if not all(hasattr(camera, a) for a in _CAMERA_API):
-        raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
-    if mode != "xray" and not all(hasattr(tf, a) for a in _TF_API):
-        raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
-    g = np.asarray(grid_to_world, dtype=np.float64)
-    if g.shape != (4, 4) or not np.all(np.isfinite(g)) or not np.allclose(g[3], (0, 0, 0, 1)):
-        raise VolumeEVMError("grid_to_world: expected a finite affine 4x4 matrix")
-    if abs(np.linalg.det(g[:3, :3])) < 1e-300 or np.linalg.cond(g[:3, :3]) > 1e12:
-        raise VolumeEVMError("grid_to_world: the 3x3 part is singular")
-    if depth_in is not None:
-        depth_in = np.asarray(depth_in, dtype=np.float64)
-        if depth_in.shape != tuple(camera.shape):
-            raise VolumeEVMError(
-                f"depth_in: shape {depth_in.shape} differs from the image's {camera.shape}")
-        if np.isnan(depth_in).any():
-            raise VolumeEVMError(
-                f"depth_in: {int(np.isnan(depth_in).sum())} NaN values; use 1e10 for no geometry")
-    try:
-        termination = float(termination)
-        xray_scale, xray_offset = float(xray_scale), float(xray_offset)
-    except (TypeError, ValueError):
-        raise VolumeEVMError("termination/xray_scale/xray_offset: expected numbers") from None
-    if not 0.0 < termination <= 1.0:
-        raise VolumeEVMError(f"termination: must be in (0, 1], got {termination!r}")
-    if not np.isfinite(xray_scale) or xray_scale < 0 or not np.isfinite(xray_offset):
-        raise VolumeEVMError(f"xray_scale/xray_offset: need finite numbers, scale >= 0, got "
-                             f"{xray_scale!r}, {xray_offset!r}")
+    """The renderers' shared checks (:func:`._raycast.check_common`) and the LUT size."""
+    checked = check_common(vevm, camera, tf, grid_to_world, mode, depth_in, termination,
+                           xray_scale, xray_offset)
     if int(lut_size) != lut_size or not 2 <= lut_size < 32767:
         raise VolumeEVMError(f"lut_size: an integer in [2, 32767), got {lut_size!r}")
+    g, depth_in, termination, xray_scale, xray_offset = checked
     return g, depth_in, termination, int(lut_size), xray_scale, xray_offset
 
 
