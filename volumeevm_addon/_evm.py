@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _sweep
-from ._errors import VolumeEVMError
 
 ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six lexicographic axis orders "ABC": A slowest."""
@@ -387,20 +386,3 @@ def _overlap(a, b):
     if (lo >= hi).any():
         return None
     return tuple(int(x) for x in lo), tuple(int(x) for x in hi)
-
-
-def evm_from_boxes(lo, hi):
-    """EVM of a union of quasi-disjoint boxes: the XOR of all their corners."""
-    lo = np.asarray(lo, np.int64)
-    hi = np.asarray(hi, np.int64)
-    corners = [np.where([sx, sy, sz], hi, lo) for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)]
-    if len(lo) == 0:
-        return EVM()
-    return EVM._from_keys(_sweep.parity(_sweep.pack(np.concatenate(corners))))
-
-
-def check_region(evm, what="region"):
-    """Raise :class:`VolumeEVMError` when ``evm`` is empty."""
-    if evm.is_empty():
-        raise VolumeEVMError(f"the {what} is empty")
-    return evm
