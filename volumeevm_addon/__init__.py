@@ -6,6 +6,7 @@ NumPy only; never imports ``bpy``, so it works in plain Python as well as inside
 from ._camera import Camera
 from ._errors import VolumeEVMError
 from ._evm import EVM
+from ._images import read_exr, write_exr, write_png
 from ._mesh import Polygons
 from ._render import render
 from ._stack import EditStack, ToolOperation
@@ -29,8 +30,11 @@ __all__ = [
     "VolumeEVMError",
     "box_evm",
     "check_closed_mesh",
+    "read_exr",
     "read_volume",
     "render",
     "voxelize_mesh",
     "voxelize_mesh_evm",
+    "write_exr",
+    "write_png",
 ]

@@ -1,0 +1,172 @@
+"""Image files of DVR results: OpenEXR (R, G, B, A, Z) and PNG previews, written atomically.
+
+Arrays are ``(H, W)`` or ``(H, W, 4)`` with row 0 at the **top** (the renderers' order; Blender
+images are bottom row first). Files are written to a temporary name in the target folder and
+renamed into place, so a reader never sees half a file; an existing file is replaced only when
+``overwrite=True``.
+
+EXR goes through the ``OpenEXR`` module (PyPI ``OpenEXR`` >= 3.3), imported when first needed.
+PNG needs nothing beyond NumPy and the standard library.
+"""
+
+import os
+import struct
+import tempfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import VolumeEVMError
+
+__all__ = ["write_exr", "read_exr", "write_png", "atomic_target", "temporary_beside",
+           "replace_atomically", "write_atomically", "exr_channels", "openexr_module"]
+
+
+def openexr_module():
+    """The ``OpenEXR`` module, or None when it is not installed."""
+    try:
+        import OpenEXR
+    except ImportError:
+        return None
+    return OpenEXR
+
+
+def atomic_target(path, *, overwrite):
+    """Check that ``path`` may be written and make its folder; returns it as a ``Path``.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``path`` exists and ``overwrite`` is False, or names a folder.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise VolumeEVMError(f"{path}: is a folder, not a file name")
+    if path.exists() and not overwrite:
+        raise VolumeEVMError(f"{path}: exists; choose another name or allow overwriting")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def temporary_beside(path):
+    """A new empty file in ``path``'s folder with the same suffix (for an atomic write)."""
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix,
+                                         dir=path.parent)
+    os.close(handle)
+    return Path(temporary)
+
+
+def replace_atomically(temporary, path):
+    """Give ``temporary`` the usual file mode and rename it to ``path``."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    os.chmod(temporary, 0o666 & ~mask)  # mkstemp makes 0600
+    os.replace(temporary, path)
+
+
+def write_atomically(path, overwrite, write):
+    """Call ``write(temporary)`` on a new file beside ``path``, then rename it onto ``path``."""
+    path = atomic_target(path, overwrite=overwrite)
+    temporary = temporary_beside(path)
+    try:
+        write(temporary)
+        replace_atomically(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def exr_channels(rgba, depth=None):
+    """The named float32 channels of an RGBA (+ Z) image, checked."""
+    rgba = np.ascontiguousarray(rgba, np.float32)
+    if rgba.ndim != 3 or rgba.shape[2] != 4:
+        raise VolumeEVMError(f"rgba: expected (H, W, 4), got shape {rgba.shape}")
+    channels = {name: np.ascontiguousarray(rgba[..., i]) for i, name in enumerate("RGBA")}
+    if depth is not None:
+        depth = np.ascontiguousarray(depth, np.float32)
+        if depth.shape != rgba.shape[:2]:
+            raise VolumeEVMError(f"depth: expected shape {rgba.shape[:2]}, got {depth.shape}")
+        channels["Z"] = depth
+    return channels
+
+
+def write_exr(path, rgba, depth=None, *, overwrite=False):
+    """Write an RGBA (+ Z) float image to an OpenEXR file (ZIP compressed), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+    rgba : (H, W, 4) ndarray
+        Premultiplied, scene-linear colour and alpha; row 0 at the top.
+    depth : (H, W) ndarray, optional
+        Axial depth (Blender units) for the ``Z`` channel (1e10 where nothing is seen).
+    overwrite : bool
+        Replace an existing file (default False: raise instead).
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    exr = openexr_module()
+    if exr is None:
+        raise VolumeEVMError(f"{path}: writing EXR needs the OpenEXR module (pip install OpenEXR)")
+    channels = exr_channels(rgba, depth)
+
+    def write(temporary):
+        header = {"compression": exr.ZIP_COMPRESSION, "type": exr.scanlineimage}
+        parts = {name: exr.Channel(name, data) for name, data in channels.items()}
+        with exr.File(header, parts) as file:
+            file.write(str(temporary))
+
+    return write_atomically(path, overwrite, write)
+
+
+def read_exr(path):
+    """Every channel of an OpenEXR file (all parts), by its full name.
+
+    Returns
+    -------
+    dict of str to (H, W) ndarray of np.float32
+        E.g. ``{"R": ..., "Z": ...}`` or ``{"ViewLayer.Depth.Z": ...}``; row 0 at the top.
+    """
+    exr = openexr_module()
+    if exr is None:
+        raise VolumeEVMError(f"{path}: reading EXR needs the OpenEXR module (pip install OpenEXR)")
+    channels = {}
+    with exr.File(str(path), separate_channels=True) as file:
+        for part in file.parts:
+            for name, channel in part.channels.items():
+                channels[name] = np.asarray(channel.pixels, np.float32)
+    return channels
+
+
+def write_png(path, rgba, *, overwrite=False):
+    """Write a premultiplied, linear RGBA image as an 8-bit sRGB PNG preview, atomically.
+
+    Colour is un-premultiplied and encoded with the sRGB transfer function; alpha stays linear
+    (PNG stores straight alpha).
+    """
+    rgba = np.asarray(rgba, np.float64)
+    if rgba.ndim != 3 or rgba.shape[2] != 4:
+        raise VolumeEVMError(f"rgba: expected (H, W, 4), got shape {rgba.shape}")
+    alpha = np.clip(rgba[..., 3:], 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        colour = np.where(alpha > 0, rgba[..., :3] / alpha, 0.0)
+    colour = np.clip(colour, 0.0, 1.0)
+    srgb = np.where(colour <= 0.0031308, 12.92 * colour, 1.055 * colour ** (1 / 2.4) - 0.055)
+    pixels = np.round(np.concatenate([srgb, alpha], axis=2) * 255).astype(np.uint8)
+    h, w = pixels.shape[:2]
+    rows = np.concatenate([np.zeros((h, 1), np.uint8), pixels.reshape(h, w * 4)], axis=1)
+
+    def chunk(kind, data):
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    png = (b"\x89PNG\r\n\x1a\n"
+           + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 6, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6))
+           + chunk(b"IEND", b""))
+    return write_atomically(path, overwrite, lambda temporary: Path(temporary).write_bytes(png))
