@@ -44,6 +44,7 @@ import numpy as np
 
 from ..volumeevm_addon import VolumeEVMError
 from ..volumeevm_addon._camera import BACKGROUND_DEPTH
+from ..volumeevm_addon._files import atomic_target, write_atomically
 from ..volumeevm_addon._render import METHODS, MODES, render
 from ..volumeevm_addon._transfer import TransferFunction
 from . import _jobs, api, exr
@@ -262,22 +263,18 @@ def put_image(name, rgba):
 
 def write_png(image, path, scene, *, overwrite=False):
     """Save an Image as PNG through the scene's colour management (what F12 would save)."""
-    path = exr.atomic_target(path, overwrite=overwrite)
-    temporary = exr.temporary_beside(path)
     settings = scene.render.image_settings
     items = []
     if hasattr(settings, "media_type"):
         items.append((settings, "media_type", "IMAGE"))
     items += [(settings, "file_format", "PNG"), (settings, "color_mode", "RGBA"),
               (settings, "color_depth", "8")]
-    try:
+
+    def save(temporary):
         with _changed(items):
             image.save_render(str(temporary), scene=scene)
-        exr.replace_atomically(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
-    return path
+
+    return write_atomically(path, save, overwrite=overwrite)
 
 
 #: Custom property of the DVR image: the view it was rendered for (see :func:`view_signature`).
@@ -339,7 +336,7 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     exr_path, png_path = _abspath(exr_path), _abspath(png_path)
     for path in (exr_path, png_path):
         if path:
-            exr.atomic_target(path, overwrite=overwrite)  # fail before the slow part
+            atomic_target(path, overwrite=overwrite)  # fail before the slow part
     vevm = volume_for_render(vol_obj)
     matrix_world = np.array(vol_obj.matrix_world, np.float64)
     hide = []

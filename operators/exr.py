@@ -8,9 +8,9 @@ import numpy as np
 
 from ..volumeevm_addon import VolumeEVMError
 from ..volumeevm_addon import _images
-from ..volumeevm_addon._images import atomic_target, replace_atomically, temporary_beside
+from ..volumeevm_addon._files import write_atomically
 
-__all__ = ["write_exr", "read_exr", "atomic_target", "replace_atomically", "temporary_beside"]
+__all__ = ["write_exr", "read_exr"]
 
 
 def _oiio():
@@ -31,7 +31,7 @@ def write_exr(path, rgba, depth=None, *, overwrite=False):
     if _images.openexr_module() is not None:
         return _images.write_exr(path, rgba, depth, overwrite=overwrite)
     channels = _images.exr_channels(rgba, depth)
-    return _images.write_atomically(path, overwrite, lambda temporary: _write_oiio(temporary, channels))
+    return write_atomically(path, lambda temporary: _write_oiio(temporary, channels), overwrite=overwrite)
 
 
 def _write_oiio(path, channels):

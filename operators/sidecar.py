@@ -27,6 +27,7 @@ from pathlib import Path
 import bpy
 
 from ..volumeevm_addon import VolumeEVM, VolumeEVMError
+from ..volumeevm_addon._files import write_atomically
 from . import _runtime
 
 _session_dir = None
@@ -123,23 +124,8 @@ def save_new(uid, vevm):
     return path
 
 
-def _umask():
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
 def _copy_atomic(src, dst):
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent)
-    os.close(handle)
-    try:
-        shutil.copyfile(src, temporary)
-        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; use the usual mode
-        os.replace(temporary, dst)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    write_atomically(dst, lambda temporary: shutil.copyfile(src, temporary), overwrite=True)
 
 
 def _free_target(obj, blend_path):

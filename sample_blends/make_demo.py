@@ -12,9 +12,7 @@ in it gives demo.png again) and prints progress lines.
 
 import argparse
 import importlib.util
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -152,18 +150,14 @@ def stage(scene, surface, size):
 
 def render_png(scene, path):
     """Render to ``path`` atomically (a temporary file in the same folder, then a rename)."""
-    handle, temporary = tempfile.mkstemp(prefix=".demo.", suffix=".png", dir=path.parent)
-    os.close(handle)
-    try:
-        scene.render.filepath = temporary
+
+    from volumeevm.volumeevm_addon._files import write_atomically
+
+    def render(temporary):
+        scene.render.filepath = str(temporary)
         bpy.ops.render.render(write_still=True)
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.chmod(temporary, 0o666 & ~mask)  # mkstemp makes 0600
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+
+    write_atomically(path, render, overwrite=True)
 
 
 def main(argv):

@@ -95,7 +95,7 @@ def test_save_load_round_trip(tmp_path, bone):
 def test_save_never_overwrites_unasked(tmp_path, bone):
     path = tmp_path / "user.vevm"
     path.write_bytes(b"the user's own file")
-    with pytest.raises(FileExistsError):
+    with pytest.raises(VolumeEVMError, match="user.vevm: exists"):
         bone.save(path)
     assert path.read_bytes() == b"the user's own file"
     bone.save(path, overwrite=True)

@@ -1,26 +1,22 @@
 """Image files of DVR results: OpenEXR (R, G, B, A, Z) and PNG previews, written atomically.
 
 Arrays are ``(H, W)`` or ``(H, W, 4)`` with row 0 at the **top** (the renderers' order; Blender
-images are bottom row first). Files are written to a temporary name in the target folder and
-renamed into place, so a reader never sees half a file; an existing file is replaced only when
-``overwrite=True``.
+images are bottom row first). Files are written atomically (:mod:`._files`); an existing file is
+replaced only when ``overwrite=True``.
 
 EXR goes through the ``OpenEXR`` module (PyPI ``OpenEXR`` >= 3.3), imported when first needed.
 PNG needs nothing beyond NumPy and the standard library.
 """
 
-import os
 import struct
-import tempfile
 import zlib
-from pathlib import Path
 
 import numpy as np
 
 from ._errors import VolumeEVMError
+from ._files import write_atomically
 
-__all__ = ["write_exr", "read_exr", "write_png", "atomic_target", "temporary_beside",
-           "replace_atomically", "write_atomically", "exr_channels", "openexr_module"]
+__all__ = ["write_exr", "read_exr", "write_png", "exr_channels", "openexr_module"]
 
 
 def openexr_module():
@@ -30,52 +26,6 @@ def openexr_module():
     except ImportError:
         return None
     return OpenEXR
-
-
-def atomic_target(path, *, overwrite):
-    """Check that ``path`` may be written and make its folder; returns it as a ``Path``.
-
-    Raises
-    ------
-    VolumeEVMError
-        If ``path`` exists and ``overwrite`` is False, or names a folder.
-    """
-    path = Path(path)
-    if path.is_dir():
-        raise VolumeEVMError(f"{path}: is a folder, not a file name")
-    if path.exists() and not overwrite:
-        raise VolumeEVMError(f"{path}: exists; choose another name or allow overwriting")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-def temporary_beside(path):
-    """A new empty file in ``path``'s folder with the same suffix (for an atomic write)."""
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix,
-                                         dir=path.parent)
-    os.close(handle)
-    return Path(temporary)
-
-
-def replace_atomically(temporary, path):
-    """Give ``temporary`` the usual file mode and rename it to ``path``."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    os.chmod(temporary, 0o666 & ~mask)  # mkstemp makes 0600
-    os.replace(temporary, path)
-
-
-def write_atomically(path, overwrite, write):
-    """Call ``write(temporary)`` on a new file beside ``path``, then rename it onto ``path``."""
-    path = atomic_target(path, overwrite=overwrite)
-    temporary = temporary_beside(path)
-    try:
-        write(temporary)
-        replace_atomically(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def exr_channels(rgba, depth=None):
@@ -121,7 +71,7 @@ def write_exr(path, rgba, depth=None, *, overwrite=False):
         with exr.File(header, parts) as file:
             file.write(str(temporary))
 
-    return write_atomically(path, overwrite, write)
+    return write_atomically(path, write, overwrite=overwrite)
 
 
 def read_exr(path):
@@ -169,4 +119,4 @@ def write_png(path, rgba, *, overwrite=False):
            + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 6, 0, 0, 0))
            + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6))
            + chunk(b"IEND", b""))
-    return write_atomically(path, overwrite, lambda temporary: Path(temporary).write_bytes(png))
+    return write_atomically(path, lambda temporary: temporary.write_bytes(png), overwrite=overwrite)

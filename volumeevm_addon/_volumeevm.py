@@ -7,13 +7,12 @@ the other principal axes are made from it when a view asks for them, and cached.
 
 Files: one ``.vevm`` file is a NumPy ``.npz`` archive of plain arrays (never pickled objects),
 with a format name and version, the geometry as JSON, and SHA-256 checksums of the vertices and
-the table; it is written atomically (temporary file, then rename).
+the table; it is written atomically (:mod:`._files`).
 """
 
 import hashlib
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import numpy as np
 from ._densities import TABLE_ORDERS, TableIndex
 from ._errors import VolumeEVMError
 from ._evm import EVM
+from ._files import write_atomically
 from ._volume import index_to_physical
 
 FORMAT = "volumeevm"
@@ -263,21 +263,16 @@ class VolumeEVM:
 
     def save(self, path, *, overwrite=False):
         """Write one ``.vevm`` file atomically; refuses to replace a file unless ``overwrite``."""
-        path = Path(path)
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(handle, "wb") as file:
+
+        def write(temporary):
+            with open(temporary, "wb") as file:
                 np.savez(file, format=np.array(FORMAT), version=np.array(VERSION),
                          meta=np.array(json.dumps(self._meta())),
                          vertices=self.evm.vertices, table=self._tables[0])
                 file.flush()
                 os.fsync(file.fileno())
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+
+        return write_atomically(path, write, overwrite=overwrite)
 
     @classmethod
     def load(cls, path):
