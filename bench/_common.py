@@ -1,15 +1,17 @@
-"""What every benchmark shares: best-of-N timing, the run's facts, atomic output files."""
+"""What every benchmark shares: best-of-N timing, the run's facts, JSON results written atomically."""
 
 import json
 import os
 import platform
 import subprocess
-import tempfile
+import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from volumeevm_addon._files import write_atomically  # noqa: E402
 
 
 def best_time(function, repeat, setup=None):
@@ -45,23 +47,8 @@ def run_facts():
     }
 
 
-@contextmanager
-def atomic_path(path):
-    """A temporary path beside ``path`` to write to; renamed onto ``path`` when the block ends
-    without error, removed otherwise."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(handle)
-    try:
-        yield temporary
-        os.replace(temporary, path)
-    finally:
-        Path(temporary).unlink(missing_ok=True)
-
-
 def write_json(path, data):
     """Write ``data`` as indented JSON, atomically (NumPy values become lists or numbers)."""
-    with atomic_path(path) as temporary, open(temporary, "w") as file:
-        json.dump(data, file, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    text = json.dumps(data, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    write_atomically(path, lambda temporary: temporary.write_text(text), overwrite=True)
     print(f"wrote {path}")

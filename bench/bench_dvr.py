@@ -62,7 +62,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench" / "peers"))
 
-from bench._common import atomic_path, run_facts, write_json  # noqa: E402
+from bench._common import run_facts, write_json  # noqa: E402
+from volumeevm_addon._files import write_atomically  # noqa: E402
 from volumeevm_addon import VolumeEVM  # noqa: E402
 from volumeevm_addon._camera import Camera  # noqa: E402
 from volumeevm_addon._render import METHODS, render  # noqa: E402
@@ -179,8 +180,8 @@ def reference(vevm, cam, tf, cache_dir, label, extra):
     ignore = cache_dir / ".gitignore"
     if not ignore.exists():  # the cache never goes into git
         ignore.write_text("*\n")
-    with atomic_path(path) as temporary, open(temporary, "wb") as f:
-        np.savez(f, rgba=rgba, seconds=seconds, key=key_src)
+    write_atomically(path, lambda temporary: np.savez(temporary, rgba=rgba, seconds=seconds,
+                                                      key=key_src), overwrite=True)
     return rgba, seconds, False
 
 
@@ -384,8 +385,7 @@ def save_panel(path, images, columns=4):
     if panel.width > 1024:
         f = 1024 / panel.width
         panel = panel.resize((1024, max(1, int(panel.height * f))))
-    with atomic_path(path) as temporary:
-        panel.save(temporary, format="PNG")
+    write_atomically(path, lambda temporary: panel.save(temporary, format="PNG"), overwrite=True)
 
 
 def save_chart(path, rows):
@@ -416,8 +416,8 @@ def save_chart(path, rows):
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle("VolumeEVM DVR: ours (blue) and peers (red)", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as temporary:
-        fig.savefig(temporary, dpi=90, format="png")
+    write_atomically(path, lambda temporary: fig.savefig(temporary, dpi=90, format="png"),
+                     overwrite=True)
     plt.close(fig)
     return True
 
