@@ -4,6 +4,8 @@ import numpy as np
 
 from volumeevm_addon._camera import Camera
 from volumeevm_addon._reference import render_reference
+from volumeevm_addon._transfer import TransferFunction
+from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 
 MODES = ("over", "under", "xray", "mip")
 XRAY = {"xray_scale": 2e-4, "xray_offset": -1024.0}  # CT: attenuation from -1024 HU up
@@ -46,3 +48,27 @@ def reference(vevm, cam, tf, g, **kw):
     """The dense reference render of a VolumeEVM (the region as the mask)."""
     return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), g, vevm.spacing, cam,
                             tf, **kw)
+
+
+def box_chords_mm(g, lo, hi, cam):
+    """Chord (mm) of every pixel ray with the index-space box [lo, hi] (world face planes)."""
+    o, d = (x.reshape(-1, 3) for x in cam.rays())
+    a = g[:3, :3]
+    c_lo = g[:3, 3] + a @ np.asarray(lo, float)
+    c_hi = g[:3, 3] + a @ np.asarray(hi, float)
+    tin = np.full(len(o), -np.inf)
+    tout = np.full(len(o), np.inf)
+    for ax in range(3):
+        n = np.cross(a[:, (ax + 1) % 3], a[:, (ax + 2) % 3])
+        p, q = sorted((n @ c_lo, n @ c_hi))
+        po, pd = o @ n, d @ n
+        with np.errstate(divide="ignore"):
+            ta, tb = (p - po) / pd, (q - po) / pd
+        tin = np.maximum(tin, np.minimum(ta, tb))
+        tout = np.minimum(tout, np.maximum(ta, tb))
+    return (np.maximum(tout - tin, 0) / BU).reshape(cam.shape)
+
+
+def const_tf(alpha, rgb=(0.9, 0.6, 0.3)):
+    """The same colour and opacity for every density."""
+    return TransferFunction([(-1e6, *rgb, alpha), (1e6, *rgb, alpha)])

@@ -14,7 +14,7 @@ from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon._volume import grid_to_world
 from volumeevm_addon._volumeevm import VolumeEVM
-from render_helpers import MODES, XRAY, camera, centre, look_at, reference
+from render_helpers import MODES, XRAY, box_chords_mm, camera, centre, const_tf, look_at, reference
 
 
 @pytest.fixture(scope="module")
@@ -44,10 +44,6 @@ def bone(ct):
     a, sp = ct
     v = VolumeEVM.from_array(a, 150, spacing=sp)
     return v, grid_to_world(v.spacing, v.origin), TransferFunction.preset("ct_bone")
-
-
-def const_tf(alpha, rgb=(0.9, 0.6, 0.3)):
-    return TransferFunction([(-1e6, *rgb, alpha), (1e6, *rgb, alpha)])
 
 
 # ---------------------------------------------------------------------------- exactness
@@ -104,24 +100,6 @@ def test_blocks_cover_what_samples_can_read():
 
 
 # ---------------------------------------------------------------------------- closed forms
-def box_chords_mm(g, lo, hi, cam):
-    """Chord (mm) of every pixel ray with the index-space box [lo, hi] (world face planes)."""
-    o, d = (x.reshape(-1, 3) for x in cam.rays())
-    a = g[:3, :3]
-    c_lo = g[:3, 3] + a @ np.asarray(lo, float)
-    c_hi = g[:3, 3] + a @ np.asarray(hi, float)
-    tin = np.full(len(o), -np.inf)
-    tout = np.full(len(o), np.inf)
-    for ax in range(3):
-        n = np.cross(a[:, (ax + 1) % 3], a[:, (ax + 2) % 3])
-        p, q = sorted((n @ c_lo, n @ c_hi))
-        po, pd = o @ n, d @ n
-        with np.errstate(divide="ignore"):
-            ta, tb = (p - po) / pd, (q - po) / pd
-        tin = np.maximum(tin, np.minimum(ta, tb))
-        tout = np.minimum(tout, np.maximum(ta, tb))
-    return (np.maximum(tout - tin, 0) / BU).reshape(cam.shape)
-
 
 @pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
 def test_homogeneous_box_closed_form(kind):
