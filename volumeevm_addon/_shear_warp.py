@@ -107,8 +107,8 @@ import numpy as np
 from ._camera import BACKGROUND_DEPTH
 from ._densities import TABLE_ORDERS
 from ._errors import VolumeEVMError
-from ._raycast import check_common
-from ._reference import MODES, Shading
+from ._raycast import check_common, check_shading
+from ._reference import MODES
 
 __all__ = ["render_shear_warp", "MODES"]
 
@@ -246,22 +246,6 @@ def _gradients(layout, vevm):
         out[1:, k] = grad[chosen] if layout.region_only else grad.ravel()
     layout.gradients = out
     return out
-
-
-def _check_shading(shading):
-    """``None``/``False`` -> None, ``True`` -> ``Shading()``, a dict -> ``Shading(**dict)``."""
-    if shading is None or shading is False:
-        return None
-    if shading is True:
-        return Shading()
-    if isinstance(shading, dict):
-        unknown = set(shading) - {"ambient", "diffuse", "specular", "shininess"}
-        if unknown:
-            raise VolumeEVMError(f"shading: unknown keys {sorted(unknown)}")
-        return Shading(**shading)
-    if isinstance(shading, Shading):
-        return shading
-    raise VolumeEVMError(f"shading: None, True, a dict or a Shading, got {shading!r}")
 
 
 def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
@@ -609,7 +593,7 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     if not 0.1 <= intermediate_scale <= 8.0:
         raise VolumeEVMError(
             f"intermediate_scale: a number in [0.1, 8], got {intermediate_scale!r}")
-    shading = _check_shading(shading) if mode in ("over", "under") else None
+    shading = check_shading(shading) if mode in ("over", "under") else None
     h, w = camera.shape
     rgba_out = np.zeros((h, w, 4), np.float32)
     depth_out = np.full((h, w), BACKGROUND_DEPTH, np.float32)
