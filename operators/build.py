@@ -6,6 +6,22 @@ from bpy.props import BoolProperty, FloatProperty
 from . import _jobs, api
 
 
+def poll_volume(cls, context, *, built):
+    """The volume an operator acts on (``built``: with its VolumeEVM), or None with the poll
+    message saying why the button is disabled."""
+    obj = active_volume(context)
+    if obj is None:
+        cls.poll_message_set("Select a volume object (File > Import > Volume (VolumeEVM))")
+        return None
+    if built and not obj.volumeevm.vevm_path:
+        cls.poll_message_set("No VolumeEVM built yet: build one first")
+        return None
+    if _jobs.CURRENT is not None:
+        cls.poll_message_set(f"Busy: {_jobs.CURRENT.label}")
+        return None
+    return obj
+
+
 def active_volume(context):
     """The volume object of the active object, or None."""
     obj = context.active_object
@@ -39,13 +55,7 @@ class VOLUMEEVM_OT_build_vevm(_jobs.JobOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if active_volume(context) is None:
-            cls.poll_message_set("Select a volume object (File > Import > Volume (VolumeEVM))")
-            return False
-        if _jobs.CURRENT is not None:
-            cls.poll_message_set(f"Busy: {_jobs.CURRENT.label}")
-            return False
-        return True
+        return poll_volume(cls, context, built=False) is not None
 
     def job(self, context):
         obj = active_volume(context)

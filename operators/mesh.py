@@ -3,7 +3,7 @@
 import bpy
 
 from . import _jobs, api
-from .build import active_volume
+from .build import active_volume, poll_volume
 
 
 class VOLUMEEVM_OT_make_mesh(_jobs.JobOperator, bpy.types.Operator):
@@ -16,17 +16,7 @@ class VOLUMEEVM_OT_make_mesh(_jobs.JobOperator, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = active_volume(context)
-        if obj is None:
-            cls.poll_message_set("Select a volume object (File > Import > Volume (VolumeEVM))")
-            return False
-        if not obj.volumeevm.vevm_path:
-            cls.poll_message_set("Build the VolumeEVM first")
-            return False
-        if _jobs.CURRENT is not None:
-            cls.poll_message_set(f"Busy: {_jobs.CURRENT.label}")
-            return False
-        return True
+        return poll_volume(cls, context, built=True) is not None
 
     def job(self, context):
         return api.mesh_job(context, active_volume(context))

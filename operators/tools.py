@@ -28,22 +28,7 @@ import bpy
 from bpy.props import BoolProperty, FloatProperty, IntProperty
 
 from . import _jobs, _runtime, api
-from .build import active_volume
-
-
-def _volume_poll(cls, context):
-    """The volume the tool operators act on, or None (with the poll message set)."""
-    obj = active_volume(context)
-    if obj is None:
-        cls.poll_message_set("Select a volume object (File > Import > Volume (VolumeEVM))")
-        return None
-    if not obj.volumeevm.vevm_path:
-        cls.poll_message_set("No VolumeEVM built yet: build one first")
-        return None
-    if _jobs.CURRENT is not None:
-        cls.poll_message_set(f"Busy: {_jobs.CURRENT.label}")
-        return None
-    return obj
+from .build import active_volume, poll_volume
 
 
 class _AddToolOperator:
@@ -54,7 +39,7 @@ class _AddToolOperator:
 
     @classmethod
     def poll(cls, context):
-        obj = _volume_poll(cls, context)
+        obj = poll_volume(cls, context, built=True)
         if obj is None:
             return False
         if cls.operation != "largest":
@@ -147,7 +132,7 @@ class _StackOperator:
 
     @classmethod
     def poll(cls, context):
-        obj = _volume_poll(cls, context)
+        obj = poll_volume(cls, context, built=True)
         if obj is None:
             return False
         if not len(obj.volumeevm.tools):
