@@ -5,6 +5,7 @@ The repository root is the extension package; tests import it under the name ``v
 """
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -13,6 +14,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "volumeevm"
+CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the CT head
+CT_BONE_HU = 300.0
 
 
 def addon():
@@ -61,3 +64,26 @@ def fresh(ext):
     reset_blender()
     yield
     reset_blender()
+
+
+def write_ct_crop(path, data_dir):
+    """Write the CT crop as ``.npy`` with its JSON sidecar (spacing, HU); returns the array."""
+    meta = json.loads((data_dir / "ct_head_invesalius.json").read_text())
+    array = np.ascontiguousarray(np.load(data_dir / "ct_head_invesalius.npy")[CT_CROP])
+    np.save(path, array)
+    side = {k: meta[k] for k in ("spacing_mm", "spacing_known", "units", "axis_order", "dtype")}
+    side["shape"] = list(array.shape)
+    Path(path).with_suffix(".json").write_text(json.dumps(side))
+    return array
+
+
+@pytest.fixture
+def core(ext):
+    """The core as the extension imports it (same classes as the operators use)."""
+    return ext.volumeevm_addon
+
+
+@pytest.fixture
+def api(ext):
+    """The extension's script API."""
+    return ext.operators.api

@@ -5,7 +5,6 @@ Apply, undo and saved files; against the core called directly on the same triang
 Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 """
 
-import json
 import math
 from pathlib import Path
 
@@ -13,38 +12,23 @@ import bpy
 import numpy as np
 import pytest
 from mathutils import Matrix
-from blender_helpers import ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
+from blender_helpers import (  # noqa: F401 (fixtures)
+    CT_BONE_HU, api, core, ext, fresh, mesh_arrays, write_ct_crop)
 
-CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the head
-CT_BONE_HU = 300.0
 BACKGROUND = -5000  # below every CT value: marks voxels outside the region in to_dense
 
 
 @pytest.fixture
-def core(ext):
-    return ext.volumeevm_addon
-
-
-@pytest.fixture
-def api(ext):
-    return ext.operators.api
-
-
-@pytest.fixture(scope="module")
-def crop_array(data_dir):
-    return np.ascontiguousarray(np.load(data_dir / "ct_head_invesalius.npy")[CT_CROP])
-
-
-@pytest.fixture
-def ct_crop(tmp_path, data_dir, crop_array):
+def ct_crop(tmp_path, data_dir):
     """The crop as .npy with its JSON sidecar (spacing, HU)."""
-    meta = json.loads((data_dir / "ct_head_invesalius.json").read_text())
     path = tmp_path / "ct_crop.npy"
-    np.save(path, crop_array)
-    side = {k: meta[k] for k in ("spacing_mm", "spacing_known", "units", "axis_order", "dtype")}
-    side["shape"] = list(crop_array.shape)
-    path.with_suffix(".json").write_text(json.dumps(side))
+    write_ct_crop(path, data_dir)
     return path
+
+
+@pytest.fixture
+def crop_array(ct_crop):
+    return np.load(ct_crop)
 
 
 @pytest.fixture

@@ -12,34 +12,17 @@ from pathlib import Path
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import REPO, ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
+from blender_helpers import (  # noqa: F401 (fixtures)
+    CT_BONE_HU, CT_CROP, REPO, api, core, ext, fresh, mesh_arrays, write_ct_crop)
 
 SKULL_THRESHOLD = 2.9  # CGAL meshes this skull at 2.9
-CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the head
-CT_BONE_HU = 300.0
-
-
-@pytest.fixture
-def core(ext):
-    """The core as the extension imports it (same classes as the operators use)."""
-    return ext.volumeevm_addon
-
-
-@pytest.fixture
-def api(ext):
-    return ext.operators.api
 
 
 @pytest.fixture
 def ct_crop_npy(tmp_path, data_dir):
     """A crop of the real CT head as .npy with its JSON sidecar (spacing, HU)."""
-    meta = json.loads((data_dir / "ct_head_invesalius.json").read_text())
-    array = np.load(data_dir / "ct_head_invesalius.npy")[CT_CROP]
     path = tmp_path / "ct_crop.npy"
-    np.save(path, np.ascontiguousarray(array))
-    side = {k: meta[k] for k in ("spacing_mm", "spacing_known", "units", "axis_order", "dtype")}
-    side["shape"] = list(array.shape)
-    path.with_suffix(".json").write_text(json.dumps(side))
+    write_ct_crop(path, data_dir)
     return path
 
 
