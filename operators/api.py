@@ -607,6 +607,16 @@ def _signature(state, entries):
     return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
 
+def _stack_state_of(vol_obj):
+    """The runtime stack state of a volume object (an empty one made on first use)."""
+    uid = vol_obj.volumeevm.uid
+    state = _runtime.stack_state(uid, vol_obj.name)
+    if state is None:
+        state = _runtime.StackState()
+        _runtime.put_stack_state(uid, vol_obj.name, state)
+    return state
+
+
 def stack_state(obj):
     """The runtime state of a volume's tool stack (made, or re-synced, from its properties).
 
@@ -614,11 +624,7 @@ def stack_state(obj):
     build, Apply, or undo/redo restoring another path) a new ``EditStack`` starts from it.
     """
     vol_obj = volume_object(obj)
-    s = vol_obj.volumeevm
-    state = _runtime.stack_state(s.uid, vol_obj.name)
-    if state is None:
-        state = _runtime.StackState()
-        _runtime.put_stack_state(s.uid, vol_obj.name, state)
+    state = _stack_state_of(vol_obj)
     base = sidecar.load_vevm(vol_obj)
     path = str(sidecar.resolve(vol_obj))
     if state.stack is None or state.base_path != path or state.stack.base is not base:
@@ -755,13 +761,7 @@ def refresh(vol_obj, depsgraph, *, create=False, force=False, extra=None):
 
 def stack_problem(obj, text):
     """Record a problem of a volume's tool stack (shown in the sidebar)."""
-    vol_obj = volume_object(obj)
-    s = vol_obj.volumeevm
-    state = _runtime.stack_state(s.uid, vol_obj.name)
-    if state is None:
-        state = _runtime.StackState()
-        _runtime.put_stack_state(s.uid, vol_obj.name, state)
-    state.problem = text
+    _stack_state_of(volume_object(obj)).problem = text
 
 
 def refresh_quietly(vol_obj, depsgraph):
