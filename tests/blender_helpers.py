@@ -78,6 +78,14 @@ def write_ct_crop(path, data_dir):
 
 
 @pytest.fixture
+def ct_crop_npy(tmp_path, data_dir):
+    """A crop of the real CT head as .npy with its JSON sidecar (spacing, HU)."""
+    path = tmp_path / "ct_crop.npy"
+    write_ct_crop(path, data_dir)
+    return path
+
+
+@pytest.fixture
 def core(ext):
     """The core as the extension imports it (same classes as the operators use)."""
     return ext.volumeevm_addon

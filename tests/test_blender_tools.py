@@ -13,28 +13,20 @@ import numpy as np
 import pytest
 from mathutils import Matrix
 from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, core, ext, fresh, mesh_arrays, write_ct_crop)
+    CT_BONE_HU, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
 
 BACKGROUND = -5000  # below every CT value: marks voxels outside the region in to_dense
 
 
 @pytest.fixture
-def ct_crop(tmp_path, data_dir):
-    """The crop as .npy with its JSON sidecar (spacing, HU)."""
-    path = tmp_path / "ct_crop.npy"
-    write_ct_crop(path, data_dir)
-    return path
+def crop_array(ct_crop_npy):
+    return np.load(ct_crop_npy)
 
 
 @pytest.fixture
-def crop_array(ct_crop):
-    return np.load(ct_crop)
-
-
-@pytest.fixture
-def volume(api, ct_crop):
+def volume(api, ct_crop_npy):
     """The crop imported, built at the bone threshold and meshed: (volume object, base)."""
-    obj = api.import_volume(ct_crop)
+    obj = api.import_volume(ct_crop_npy)
     base = api.build(obj, CT_BONE_HU)
     api.make_mesh(obj)
     bpy.context.view_layer.objects.active = obj
@@ -284,10 +276,10 @@ def test_api_add_tool_same_as_operator(api, core, data_dir, volume):
 
 
 # ---------------------------------------------------------------------------- errors
-def test_poll_messages(api, core, data_dir, ct_crop):
+def test_poll_messages(api, core, data_dir, ct_crop_npy):
     with pytest.raises(RuntimeError, match="Select a volume object"):
         bpy.ops.volumeevm.tool_cut()
-    vol = api.import_volume(ct_crop)
+    vol = api.import_volume(ct_crop_npy)
     with pytest.raises(RuntimeError, match="No VolumeEVM built yet"):
         bpy.ops.volumeevm.tool_keep()
     api.build(vol, CT_BONE_HU)

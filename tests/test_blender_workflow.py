@@ -13,17 +13,9 @@ import bpy
 import numpy as np
 import pytest
 from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, CT_CROP, REPO, api, core, ext, fresh, mesh_arrays, write_ct_crop)
+    CT_BONE_HU, CT_CROP, REPO, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
 
 SKULL_THRESHOLD = 2.9  # CGAL meshes this skull at 2.9
-
-
-@pytest.fixture
-def ct_crop_npy(tmp_path, data_dir):
-    """A crop of the real CT head as .npy with its JSON sidecar (spacing, HU)."""
-    path = tmp_path / "ct_crop.npy"
-    write_ct_crop(path, data_dir)
-    return path
 
 
 @pytest.fixture
