@@ -37,7 +37,13 @@ Pipeline
    that is still needed (early ray termination) and, for ``"over"``/``"under"``, to the part
    holding voxels that the transfer function does not make transparent (cached per transfer
    function). Slices whose density range is transparent are skipped.
-4. **Classification** is pre-classification: each voxel's density is quantized once per transfer
+4. **Samples along the rays** (``slices_per_voxel = k``, Shear-Warp Deluxe's intermediate
+   slices): each voxel slice ``s`` owns the slab of its cells, ``c`` in ``[s - 1/2, s + 1/2)``,
+   and takes ``k`` samples at the centres of ``k`` equal parts of it; a sample between the
+   slice planes is the linear blend of the bilinear samples of ``s`` and its neighbour (so
+   trilinear, with the clamp policy of the sample's nearest voxel, which is in ``s``). ``k = 1``
+   is VolPack's one sample per slice, on the plane. The opacity is corrected for ``Δ / k``.
+   **Classification** ``"pre"`` (VolPack): each voxel's density is quantized once per transfer
    function (:meth:`TransferFunction.quantize`) and looked up in the premultiplied table
    :meth:`TransferFunction.table` computed once per view with the opacity corrected for the
    physical distance between consecutive samples along the ray, ``Δ = |diag(spacing) · d / d_c|``
@@ -51,7 +57,10 @@ Pipeline
    ``"mip"`` and ``"xray"`` interpolate densities instead (post-classification, as the
    reference does): MIP classifies the maximum with the transfer function's opacity as given,
    X-ray accumulates ``μ·Δ`` with ``μ = xray_scale · max(d - xray_offset, 0)`` per mm and gives
-   ``1 - exp(-Σ μΔ)`` as grey premultiplied RGBA.
+   ``1 - exp(-Σ μΔ)`` as grey premultiplied RGBA. ``"post"`` does the same for ``"over"`` and
+   ``"under"``: densities (and, with shading, the per-voxel gradients) are interpolated, then
+   classified through the table and lit per sample, the reference's order; slabs whose two
+   slices' density range is transparent are skipped.
 5. **Boundary policy "clamp"** (:mod:`._reference`), in the slice: a sample is transparent if the
    voxel nearest to it (its cell) is outside the region; otherwise the bilinear weights of
    outside voxels are dropped and the others renormalised. Outside voxels are never read: their
@@ -80,9 +89,9 @@ Depth
   holding the maximum, if its class is not transparent), taken from the **nearest**
   intermediate pixel (depths are not blended); ``1e10`` where there is none.
 
-Known limits: in-slice bilinear interpolation only (inter-slice aliasing), one intermediate
-pixel per voxel by default (zooming in blurs unless ``intermediate_scale`` > 1),
-pre-classification smooths boundaries, and in perspective
+Known limits: by default one sample per slice (inter-slice aliasing unless
+``slices_per_voxel`` > 1), one intermediate pixel per voxel (zooming in blurs unless
+``intermediate_scale`` > 1), pre-classification smooths boundaries, and in perspective
 rays far from the principal axis are sampled more sparsely (the seams between the passes of an
 eye inside the region show as changes of sampling). The principal axis switches at 45°:
 on brainsmall at half resolution (MRI preset, orthographic, 64x48, azimuth 40°..50°) the mean
@@ -110,7 +119,12 @@ from ._errors import VolumeEVMError
 from ._raycast import check_common, check_shading
 from ._reference import MODES
 
-__all__ = ["render_shear_warp", "MODES"]
+__all__ = ["render_shear_warp", "MODES", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
+
+SLICES_PER_VOXEL = (1, 2, 3, 4, 8)
+"""Allowed samples per voxel slice along the rays (Shear-Warp Deluxe's intermediate slices)."""
+CLASSIFICATIONS = ("pre", "post")
+"""Classify voxels, then interpolate colours ("pre"), or interpolate densities, then classify."""
 
 _ERT_EVERY = 8
 """Slices between two updates of the early-ray-termination bounding box."""
@@ -147,6 +161,8 @@ class _Layout:
         Per code, the voxel's index-space gradient, made when shading first needs it.
     classes : WeakKeyDictionary
         Per transfer function and table size, its :class:`_Classes`.
+    tables : dict
+        The per-code channels post-classification interpolates (:func:`_post_table`).
     """
 
     def __init__(self, boxes, codes, values, ranges, axes, region_only):
@@ -159,6 +175,7 @@ class _Layout:
         self.values32 = values.astype(np.float32)
         self.ranges = ranges
         self.classes = weakref.WeakKeyDictionary()  # TransferFunction -> {lut_size: _Classes}
+        self.tables = {}  # what post-classification interpolates (_post_table)
 
 
 def _region_layout(vevm, axis):
@@ -248,27 +265,56 @@ def _gradients(layout, vevm):
     return out
 
 
-def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
-    """Premultiplied, step-corrected RGBA (and region weight 1) of every voxel, lit by a
-    Blinn–Phong headlight along the view direction: the per-view table of shaded
-    pre-classification, ``(5, codes)``, indexed by code (column 0: outside)."""
-    grads = _gradients(layout, vevm)
+def _light(grads, view, shading):
+    """Blinn–Phong headlight along the view direction for index-space gradients ``(..., 3)``:
+    the factor on the straight colour and the specular term added to it (the reference's
+    ``_shade``), both ``(...)`` float32."""
     normals = _transform(grads, view.inv[:3, :3])  # to world: the inverse transpose
-    norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    norm = np.sqrt(np.einsum("...i,...i->...", normals, normals))
     has = norm > 0
-    cos = np.abs(_transform(normals, view.light[:, None])[:, 0]) / np.where(has, norm, 1.0)
+    cos = np.abs(_transform(normals, view.light[:, None])[..., 0]) / np.where(has, norm, 1.0)
     cos[~has] = 1.0
     lit = np.float32(shading.ambient) + np.float32(shading.diffuse) * cos
     glint = np.where(has, np.float32(shading.specular) * cos ** np.float32(shading.shininess),
                      np.float32(0.0))
+    return lit, glint
+
+
+def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
+    """Premultiplied, step-corrected RGBA (and region weight 1) of every voxel, lit by a
+    Blinn–Phong headlight along the view direction: the per-view table of shaded
+    pre-classification, ``(5, codes)``, indexed by code (column 0: outside)."""
+    lit, glint = _light(_gradients(layout, vevm), view, shading)
     rows = classes.rows
-    straight = np.zeros((3, lut_size + 1), np.float32)
-    straight[:, 1:] = tf.straight_table(n=lut_size)[:, :3].T
     out = np.take(lut, rows, axis=1)
-    rgb = np.take(straight, rows, axis=1) * lit + glint
+    rgb = np.take(_straight_rgb(tf, lut_size), rows, axis=1) * lit + glint
     np.minimum(rgb, 1.0, out=rgb)
     out[:3] = rgb * out[3]
     return out
+
+
+def _straight_rgb(tf, lut_size):
+    """Straight colours of the table rows, ``(3, lut_size + 1)``, column 0 (outside) black."""
+    straight = np.zeros((3, lut_size + 1), np.float32)
+    straight[:, 1:] = tf.straight_table(n=lut_size)[:, :3].T
+    return straight
+
+
+def _post_table(layout, vevm, with_gradients):
+    """Per code, what post-classification interpolates, channels first: the density, the
+    index-space gradient (``with_gradients``) and the region weight (0 for code 0). Cached
+    on the layout."""
+    key = "post_shaded" if with_gradients else "post"
+    table = layout.tables.get(key)
+    if table is None:
+        rows = [layout.values32[None]]
+        if with_gradients:
+            rows.append(_gradients(layout, vevm).T)
+        weight = np.ones((1, len(layout.values)), np.float32)
+        weight[0, 0] = 0.0
+        table = np.ascontiguousarray(np.concatenate(rows + [weight]), dtype=np.float32)
+        layout.tables[key] = table
+    return table
 
 
 class _Classes:
@@ -507,7 +553,8 @@ class _View:
 
 def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
                       skip_empty=True, termination=0.99, shading=None, intermediate_scale=1.0,
-                      lut_size=4096, xray_scale=1.0, xray_offset=0.0):
+                      slices_per_voxel=1, classification="pre", lut_size=4096, xray_scale=1.0,
+                      xray_offset=0.0):
     """Render a VolumeEVM by shear-warp (module docstring: factorization, policy, depth).
 
     Parameters
@@ -538,6 +585,14 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         interpolation (pre-classification): per-voxel gradients (reference's central
         differences) are computed once per principal axis and cached; each view lights them
         along one direction (perspective: eye to the region's centre).
+    slices_per_voxel : {1, 2, 3, 4, 8}
+        Samples along each ray per voxel slice (module docstring, 4): 1 is VolPack's one sample
+        per slice; more interpolate between slices (trilinear), at that many times the cost.
+    classification : {"pre", "post"}
+        ``"pre"``: classify (and light) voxels, then interpolate colours (VolPack); ``"post"``:
+        interpolate densities (and gradients), then classify and light each sample, as the
+        reference does (sharper boundaries, narrow transfer-function features kept). Only
+        ``"over"`` and ``"under"``; ``"xray"`` and ``"mip"`` always interpolate densities.
     intermediate_scale : float
         Intermediate pixels per voxel along each in-slice axis (VolPack: 1). Above 1 the slices
         are resampled more finely (bilinear, per-row and per-column weights), which keeps
@@ -593,6 +648,12 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     if not 0.1 <= intermediate_scale <= 8.0:
         raise VolumeEVMError(
             f"intermediate_scale: a number in [0.1, 8], got {intermediate_scale!r}")
+    if slices_per_voxel not in SLICES_PER_VOXEL:
+        raise VolumeEVMError(
+            f"slices_per_voxel: one of {SLICES_PER_VOXEL}, got {slices_per_voxel!r}")
+    if classification not in CLASSIFICATIONS:
+        raise VolumeEVMError(
+            f"classification: one of {CLASSIFICATIONS}, got {classification!r}")
     shading = check_shading(shading) if mode in ("over", "under") else None
     h, w = camera.shape
     rgba_out = np.zeros((h, w, 4), np.float32)
@@ -605,7 +666,8 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         if view.empty:
             continue
         image, rank, front = _composite(vevm, view, layout, camera, g, tf, mode, depth_in,
-                                        termination, shading, lut_size, xray_scale, xray_offset)
+                                        termination, shading, lut_size, xray_scale, xray_offset,
+                                        int(slices_per_voxel), classification)
         _warp(view, camera, image, rank, front, rgba_out, depth_out)
     return rgba_out, depth_out
 
@@ -639,33 +701,68 @@ def _passes(vevm, camera, g):
     return [(int(k // 2), 1 if k % 2 else -1, key == k) for k in np.unique(key)]
 
 
+def _samples(slices, step, per_voxel):
+    """Front-to-back samples of the slice loop: ``(slice, offset)`` per sample, the sample at
+    ``c = slice + offset``. Each voxel slice owns the slab ``[s - 1/2, s + 1/2)`` (its cells)
+    and takes ``per_voxel`` samples at the centres of equal parts of it; one sample per slice
+    is the slice plane itself."""
+    offsets = (np.arange(per_voxel) + 0.5) / per_voxel - 0.5
+    if step < 0:
+        offsets = offsets[::-1]
+    owner = np.repeat(slices, per_voxel)
+    return owner, np.tile(offsets, len(slices))
+
+
+def _slab_box(boxes, full, s, s2):
+    """Box of slice ``s`` a sample between slices ``s`` and ``s2`` (None: none) may take
+    something from: the union of their ``boxes`` (what may be visible) within slice ``s``'s
+    region box ``full`` (a sample whose nearest voxel is outside is transparent)."""
+    t = boxes[s]
+    if s2 is None or boxes[s2, 1] <= boxes[s2, 0] or boxes[s2, 3] <= boxes[s2, 2]:
+        return t
+    u = boxes[s2]
+    if t[1] > t[0] and t[3] > t[2]:
+        u = (min(t[0], u[0]), max(t[1], u[1]), min(t[2], u[2]), max(t[3], u[3]))
+    f = full[s]
+    return (max(u[0], f[0]), min(u[1], f[1]), max(u[2], f[2]), min(u[3], f[3]))
+
+
 def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, shading, lut_size,
-               xray_scale, xray_offset):
+               xray_scale, xray_offset, per_voxel, classification):
     """The slice loop: returns the intermediate premultiplied RGBA, the front-to-back rank of
     the depth sample per pixel (``_NEVER`` where none) and, per rank, the slice coordinate of
     the front end of its samples."""
     hi, wi = view.size
-    slices = view.slices
-    order = slices if mode != "under" else slices[::-1]
-    ranks = np.arange(len(slices)) if mode != "under" else np.arange(len(slices))[::-1]
-    alpha_s, beta_a, beta_b = view.shifted_maps(order.astype(np.float64))
-    k0, kp, kq = view.depth_coefficients(order.astype(np.float64))
+    owner, offset = _samples(view.slices, view.step, per_voxel)
+    centre = owner + offset
+    ranks = np.arange(len(owner))
+    if mode == "under":
+        owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
+    alpha_s, beta_a, beta_b = view.shifted_maps(owner + offset)
+    k0, kp, kq = view.depth_coefficients(owner + offset)
     limit = None if depth_in is None else view.depth_limit(camera, g, depth_in)
     far_min = camera.clip_end if limit is None else float(limit.min())
     near = camera.clip_start
-    post = mode in ("xray", "mip")
+    delta = view.delta / per_voxel
+    post = mode in ("xray", "mip") or classification == "post"
+    n_slices = len(layout.boxes)
     if post:
-        tight = layout.boxes
+        table = _post_table(layout, vevm, shading is not None)
+        boxes = layout.boxes
+        ranges = layout.ranges if mode in ("over", "under") else None
     else:
         classes = _classes(layout, tf, lut_size)
-        tight = classes.tight
+        boxes = classes.tight
+    if mode in ("over", "under"):
         # Channels first (R, G, B, A, region weight), row 0 for outside voxels: every plane
         # of a slice's samples is then contiguous.
         lut = np.zeros((5, lut_size + 1), np.float32)
-        lut[:4, 1:] = tf.table(n=lut_size, step_mm=view.delta).T
+        lut[:4, 1:] = tf.table(n=lut_size, step_mm=delta).T
         lut[4, 1:] = 1.0
-        voxels = None if shading is None else _shaded_voxels(layout, vevm, classes, tf, lut,
-                                                             lut_size, view, shading)
+        if shading is not None and post:
+            straight = _straight_rgb(tf, lut_size)
+        elif shading is not None:
+            voxels = _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading)
     rank_map = np.full((hi, wi), _NEVER, np.int32)
     if mode in ("over", "under"):
         image = np.zeros((4, hi, wi), np.float32)
@@ -673,30 +770,46 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         image = np.zeros((hi, wi), np.float32)
         if mode == "mip":
             image.fill(_UNSEEN)
-    delta = np.float32(view.delta)
     active = [0, hi, 0, wi]
-    for n, s in enumerate(order):
-        t = tight[s]
-        if t[1] <= t[0] or t[3] <= t[2]:
+    for n, s in enumerate(owner):
+        t = offset[n]
+        s2 = s + (1 if t > 0 else -1) if t != 0 else None
+        if s2 is not None and not 0 <= s2 < n_slices:
+            s2 = None
+        if post and ranges is not None:
+            pair = [s] if s2 is None else [s, s2]
+            if tf.transparent_between(ranges[pair, 0].min(), ranges[pair, 1].max()):
+                continue
+        box = _slab_box(boxes, layout.boxes, s, s2)
+        if box[1] <= box[0] or box[3] <= box[2]:
             continue
         al, ba, bb = alpha_s[n], beta_a[n], beta_b[n]
-        rows = _span(t[0], t[1], al, ba, active[0], active[1])
-        cols = _span(t[2], t[3], al, bb, active[2], active[3])
+        rows = _span(box[0], box[1], al, ba, active[0], active[1])
+        cols = _span(box[2], box[3], al, bb, active[2], active[3])
         if rows is None or cols is None:
             continue
         p0, p1, ia, fa = rows
         q0, q1, ib, fb = cols
-        codes = _window(layout.codes[s], layout.boxes[s], ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
-        if post:
-            src = np.empty((2,) + codes.shape, np.float32)
-            np.take(layout.values32, codes, out=src[0])
-            np.greater(codes, 0, out=src[1])
-        elif voxels is not None:
-            src = np.take(voxels, codes, axis=1)
-        else:
-            src = np.take(lut, np.take(classes.rows, codes), axis=1)
-        sample, inside = _resample(src, ia - ia[0], fa, ib - ib[0], fb, view.constant)
-        box = (slice(p0, p1), slice(q0, q1))
+        window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
+        parts = [(s, 1.0 - abs(t))] + ([] if s2 is None else [(s2, abs(t))])
+        for k, (sl, weight) in enumerate(parts):
+            codes = _window(layout.codes[sl], layout.boxes[sl], *window)
+            if post:
+                src = np.take(table, codes, axis=1)
+            elif shading is not None:
+                src = np.take(voxels, codes, axis=1)
+            else:
+                src = np.take(lut, np.take(classes.rows, codes), axis=1)
+            part, near_in = _bilinear(src, ia - ia[0], fa, ib - ib[0], fb, view.constant)
+            if k == 0:
+                out, inside = part, near_in
+                if s2 is not None:
+                    out *= np.float32(weight)
+            else:
+                part *= np.float32(weight)
+                out += part
+        sample = _normalise(out, inside)
+        area = (slice(p0, p1), slice(q0, q1))
         # Depth test, only where the slice's depth range crosses a limit.
         corners = [k0[n] + kp[n] * pp + kq[n] * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
         clipped = min(corners) < near or max(corners) >= far_min
@@ -704,44 +817,46 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             dep = (k0[n] + kp[n] * np.arange(p0, p1, dtype=np.float64)[:, None]
                    + kq[n] * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
             inside &= dep >= near
-            inside &= dep < (camera.clip_end if limit is None else limit[box])
-        if post:
+            inside &= dep < (camera.clip_end if limit is None else limit[area])
+        if mode in ("xray", "mip"):
             value = sample[0]
             if mode == "xray":
                 np.subtract(value, np.float32(xray_offset), out=value)
                 np.maximum(value, 0, out=value)
-                value *= np.float32(xray_scale) * delta
+                value *= np.float32(xray_scale * delta)
                 if view.ratio is not None:
-                    value *= view.ratio[box]
+                    value *= view.ratio[area]
                 value *= inside
-                image[box] += value
+                image[area] += value
                 hit = value > 0
+                hit &= rank_map[area] == _NEVER
             else:
                 # Ties (within float32 rounding of the renormalised weights) keep the first,
                 # frontmost sample, as the reference does.
-                current = image[box]
+                current = image[area]
                 bar = current + np.float32(_TIE) * np.maximum(np.abs(current), 1)
-                better = inside & (value > bar)
-                np.copyto(image[box], value, where=better)
-                hit = better
-            if mode == "xray":
-                hit &= rank_map[box] == _NEVER
-            np.copyto(rank_map[box], ranks[n], where=hit)
+                hit = inside & (sample[0] > bar)
+                np.copyto(image[area], sample[0], where=hit)
+            np.copyto(rank_map[area], ranks[n], where=hit)
             continue
-        c = sample
+        if post:
+            c = _post_classify(sample, inside, lut, tf, lut_size, view,
+                               shading, straight if shading is not None else None)
+        else:
+            c = sample
         if view.ratio is not None:
-            _correct(c, view.ratio[box])
-        if clipped:  # (_resample already made samples with an outside nearest voxel zero)
+            _correct(c, view.ratio[area])
+        if clipped or post:  # (pre: _normalise already made outside samples zero)
             c *= inside
         hit = c[3] > 0
-        target = image[(slice(None),) + box]
+        target = image[(slice(None),) + area]
         if mode == "over":
             trans = 1.0 - target[3]
             if termination < 1.0:  # terminated rays take nothing more
                 np.putmask(trans, target[3] >= termination, 0.0)
             c *= trans
             target += c
-            np.copyto(rank_map[box], ranks[n], where=hit & (rank_map[box] == _NEVER))
+            np.copyto(rank_map[area], ranks[n], where=hit & (rank_map[area] == _NEVER))
             if (n + 1) % _ERT_EVERY == 0:
                 active = _active_box(image, termination, active)
                 if active is None:
@@ -750,7 +865,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             keep = 1.0 - c[3]
             target *= keep
             target += c
-            np.copyto(rank_map[box], ranks[n], where=hit)
+            np.copyto(rank_map[area], ranks[n], where=hit)
     if mode == "xray":
         rgba = np.empty((4, hi, wi), np.float32)
         rgba[...] = 1.0 - np.exp(-image)
@@ -764,7 +879,26 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             rgba[ch][seen] = straight[:, ch] * straight[:, 3]
         rank_map[~seen | (rgba[3] <= 0)] = _NEVER
         image = rgba
-    return image, rank_map, slices.astype(np.float64) - 0.5 * view.step
+    return image, rank_map, centre - 0.5 * view.step / per_voxel
+
+
+def _post_classify(sample, inside, lut, tf, lut_size, view, shading, straight):
+    """Premultiplied, step-corrected RGBA (4, ...) of interpolated densities ``sample[0]``
+    (and, with shading, gradients ``sample[1:4]``) through the table ``lut``."""
+    rows = tf.quantize(sample[0], n=lut_size)
+    rows += 1
+    rows *= inside  # row 0: transparent
+    c = np.take(lut[:4], rows, axis=1)
+    if shading is not None:
+        grads = np.moveaxis(sample[1:4], 0, -1)
+        lit, glint = _light(grads, view, shading)
+        rgb = np.take(straight, rows, axis=1)
+        rgb *= lit
+        rgb += glint
+        np.minimum(rgb, 1.0, out=rgb)
+        rgb *= c[3]
+        c[:3] = rgb
+    return c
 
 
 def _span(t0, t1, alpha, beta, lo, hi):
@@ -789,12 +923,11 @@ def _span(t0, t1, alpha, beta, lo, hi):
     return p0, p1, i, f
 
 
-def _resample(src, ia, fa, ib, fb, constant):
+def _bilinear(src, ia, fa, ib, fb, constant):
     """Bilinear samples of a slice window ``src`` (channels first; the last channel is 1
     inside the region) at ``x = ia + fa`` (rows) and ``y = ib + fb`` (columns), window
-    coordinates, with the clamp policy: weights of outside voxels dropped and renormalised,
-    transparent where the nearest voxel is outside. Returns the renormalised channels (all but
-    the last) and ``inside``.
+    coordinates, not yet renormalised; and ``inside``: whether each sample's nearest voxel is
+    in the region.
 
     ``constant``: the fractions are the same for all rows and all columns (a translated slice,
     ``ia``/``ib`` consecutive): four shifted views instead of gathers.
@@ -818,12 +951,18 @@ def _resample(src, ia, fa, ib, fb, constant):
         out *= 1 - fa2
         out += np.take(cols, ia + 1, axis=1) * fa2
         inside = np.take(near_b, ia + (fa >= 0.5), axis=0) > 0
+    return out, inside
+
+
+def _normalise(out, inside):
+    """The clamp policy on interpolated channels ``out`` (last: the summed weight of region
+    voxels): the others divided by that weight, zero where the nearest voxel is outside."""
     weight = out[-1]
     np.maximum(weight, np.float32(1e-30), out=weight)
     scale = inside / weight
     result = out[:-1]
     result *= scale
-    return result, inside
+    return result
 
 
 def _correct(c, ratio):
