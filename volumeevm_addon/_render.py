@@ -9,9 +9,14 @@ Boundary policy ("clamp", :mod:`._reference`): voxels outside the region are tra
 never read; interpolation at the region's surface uses only the region's voxels (weights
 renormalised). Rendering a VolumeEVM therefore equals rendering the dense volume with
 everything outside the region transparent, which is the exactness contract every method keeps.
+
+Resolution levels (:mod:`._levels`): ``level="auto"`` renders a volume much finer than the
+image's pixels from a coarser VolumeEVM (cached on the VolumeEVM); the exactness contract holds
+for the level rendered, and the default ``level="full"`` renders the VolumeEVM itself.
 """
 
 
+from ._levels import level_factor
 from ._reference import MODES
 from ._volume import grid_to_world
 
@@ -19,7 +24,7 @@ METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
 
 
 def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None, matrix_world=None,
-           **options):
+           level="full", **options):
     """Render ``vevm`` seen by ``camera`` with transfer function ``tf``.
 
     Parameters
@@ -34,6 +39,13 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Axial depth (Blender units) of the scene's geometry; rays stop there.
     matrix_world : (4, 4) array_like, optional
         Placement of the volume object in the scene (identity by default).
+    level : {"full", "auto"} or int
+        Resolution level: ``"full"`` (default) renders ``vevm`` itself; an integer ``f >= 2``
+        renders ``vevm.level(f)``, ``f`` times coarser voxels; ``"auto"`` picks the coarsest
+        power of two whose voxels are still no wider than a pixel where the volume is nearest
+        the camera (:func:`._levels.auto_factor`). A coarser level scales a given ``step_mm``
+        by the factor (the ray casters keep their samples per voxel). The reference method
+        ignores it: it is the full-resolution oracle.
     **options
         Method-specific quality settings.
 
@@ -49,11 +61,17 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
+    factor = level_factor(level, vevm.shape, to_world, camera)
     if method == "reference":
         from ._reference import render_reference
 
         return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), to_world,
                                 vevm.spacing, camera, tf, mode=mode, depth_in=depth_in, **options)
+    if factor > 1:
+        vevm = vevm.level(factor)
+        to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
+        if options.get("step_mm") is not None:
+            options["step_mm"] = options["step_mm"] * factor
     renderer = _renderers()[method]
     return renderer(vevm, camera, tf, to_world, mode=mode, depth_in=depth_in, **options)
 

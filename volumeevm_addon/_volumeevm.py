@@ -63,6 +63,7 @@ class VolumeEVM:
         self.upper = upper
         self._tables = {0: table}
         self._indices = {}
+        self._levels = {}
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -132,6 +133,15 @@ class VolumeEVM:
         if axis not in self._indices:
             self._indices[axis] = TableIndex(self.evm, TABLE_ORDERS[axis])
         return self._indices[axis](voxels)
+
+    def level(self, factor):
+        """This VolumeEVM at ``factor`` times coarser voxels (:func:`._levels.coarsen`): made on
+        first use and cached, so only the levels views ask for are ever built."""
+        if factor not in self._levels:
+            from ._levels import coarsen
+
+            self._levels[factor] = coarsen(self, factor)
+        return self._levels[factor]
 
     def to_dense(self, background=0):
         """The full grid: the region's densities, ``background`` everywhere else."""

@@ -1,0 +1,140 @@
+"""Coarser resolution levels of a VolumeEVM: model no more than a view needs.
+
+A volume much finer than the image's pixels costs time (every voxel is visited) and aliases
+(voxels narrower than a pixel make moiré). Level ``f`` (an integer factor >= 2) renders it from
+a coarser VolumeEVM instead, built on demand and cached on the VolumeEVM (:meth:`.level`):
+
+- **Grid**: coarse voxel ``(I, J, K)`` is the block of fine voxels ``[fI, fI + f) x [fJ, fJ + f)
+  x [fK, fK + f)``; the coarse grid is ``ceil(shape / f)``, its spacing ``f`` times the fine one
+  and its origin at the centre of block ``(0, 0, 0)`` (fine index ``(f - 1) / 2``), so physical
+  positions agree: the coarse box covers the fine one (more at the far end when ``f`` does not
+  divide the shape).
+- **Region**: a coarse voxel is in the region when *any* of its block's fine voxels is. Thin
+  structures (a one-voxel plate or shell) survive at every level, thickened to one coarse
+  voxel; the silhouette grows by less than one coarse voxel, i.e. less than a pixel when the
+  level is chosen by :func:`auto_factor`. The other choice, a majority rule (at least half the
+  block), was measured against it (ray casting, RMSE of the level's image to the full level's):
+  on bulk objects it is a little closer (CT head at level 2: 0.037 against 0.042; Marschner–Lobb
+  81³: 0.048 against 0.052; shear-warp on the CT: 0.039 against 0.034), but it drops thin
+  structures: a one-voxel plate 64³ at level 4 vanishes (RMSE 0.23, nothing drawn) where the
+  any rule draws it thickened (0.11); a shell likewise (0.26 against 0.17).
+- **Densities**: the mean of the region's fine voxels in the block (voxels outside the region
+  have no density), so a constant region stays exactly constant. Tables are float32 (float64
+  when the fine table is).
+
+The coarse region is made from the region's mask one coarse slab (``f`` fine slices) at a time;
+the table lists voxels in C order, so each slab's densities are one contiguous stretch of it and
+no dense copy of the densities is made.
+"""
+
+import numpy as np
+
+from ._errors import VolumeEVMError
+from ._evm import EVM
+
+__all__ = ["coarsen", "auto_factor", "level_factor", "LEVELS"]
+
+LEVELS = ("full", "auto")
+"""The named levels ``render`` accepts besides an integer factor."""
+
+
+def coarsen(vevm, factor):
+    """The VolumeEVM of ``vevm`` at ``factor`` times coarser voxels (see the module notes).
+
+    Parameters
+    ----------
+    vevm : VolumeEVM
+    factor : int
+        Fine voxels per coarse voxel along each axis, >= 2.
+
+    Returns
+    -------
+    VolumeEVM
+        Same orientation, units, threshold; ``spacing * factor``; origin at the centre of the
+        first block.
+    """
+    from ._volumeevm import VolumeEVM
+
+    f = int(factor)
+    if f != factor or f < 2:
+        raise VolumeEVMError(f"level factor: must be an integer >= 2, got {factor!r}")
+    fine = np.array(vevm.shape)
+    shape = -(-fine // f)
+    dtype = np.float64 if vevm.table().dtype == np.float64 else np.float32
+    mask = vevm.evm.to_mask(vevm.shape)
+    table = vevm.table()
+    start = 0
+    coarse_mask = np.zeros(shape, bool)
+    coarse_table = []
+    padded = shape * f
+    for i in range(shape[0]):
+        # One coarse slab: f fine slices padded to whole blocks, summed block by block.
+        block_mask = np.zeros((f, padded[1], padded[2]), bool)
+        block_sum = np.zeros((f, padded[1], padded[2]), np.float64)
+        x0, x1 = i * f, min((i + 1) * f, fine[0])
+        slab = mask[x0:x1]
+        count = int(np.count_nonzero(slab))
+        block_mask[: x1 - x0, : fine[1], : fine[2]] = slab
+        block_sum[: x1 - x0, : fine[1], : fine[2]][slab] = table[start:start + count]
+        start += count
+        split = (f, shape[1], f, shape[2], f)
+        counts = block_mask.reshape(split).sum(axis=(0, 2, 4))
+        sums = block_sum.reshape(split).sum(axis=(0, 2, 4))
+        inside = counts > 0
+        coarse_mask[i] = inside
+        coarse_table.append(sums[inside] / counts[inside])
+    spacing = np.array(vevm.spacing) * f
+    shift = vevm.orientation @ (np.array(vevm.spacing) * (f - 1) / 2.0)
+    return VolumeEVM(EVM.from_mask(coarse_mask), np.concatenate(coarse_table).astype(dtype),
+                     shape=tuple(shape), spacing=tuple(spacing),
+                     origin=tuple(np.array(vevm.origin) + shift), orientation=vevm.orientation,
+                     units=vevm.units, threshold=vevm.threshold, upper=vevm.upper)
+
+
+def auto_factor(shape, grid_to_world, camera):
+    """The coarsest level whose voxels are still no wider than one image pixel.
+
+    Rule: with ``s`` the largest voxel edge in world units (the columns of ``grid_to_world``)
+    and ``p`` the smaller pixel edge in world units where the volume is nearest the camera
+    (orthographic: the view plane over the resolution; perspective: that at unit distance times
+    the smallest axial depth of the volume's box, at least the near clip), the factor is the
+    largest power of two ``f`` with ``f * s <= p`` (1 when a voxel already covers a pixel or
+    more), and never more than the grid's largest side.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        The fine grid.
+    grid_to_world : (4, 4) ndarray
+        Voxel-centre indices to world units (:func:`._volume.grid_to_world`).
+    camera : Camera
+
+    Returns
+    -------
+    int
+    """
+    g = np.asarray(grid_to_world, dtype=np.float64)
+    voxel = float(np.linalg.norm(g[:3, :3], axis=0).max())
+    xmin, xmax, ymin, ymax = camera.viewplane
+    pixel = min((xmax - xmin) / camera.width, (ymax - ymin) / camera.height)
+    if not camera.is_ortho:
+        n = np.asarray(shape, dtype=np.float64)
+        corners = np.array([[a, b, c] for a in (-0.5, n[0] - 0.5) for b in (-0.5, n[1] - 0.5)
+                            for c in (-0.5, n[2] - 0.5)])
+        nearest = camera.axial_depth(corners @ g[:3, :3].T + g[:3, 3]).min()
+        pixel *= max(float(nearest), camera.clip_start)
+    f = 1
+    while 2 * f * voxel <= pixel and 2 * f <= max(shape):
+        f *= 2
+    return f
+
+
+def level_factor(level, shape, grid_to_world, camera):
+    """The integer factor that ``level`` ("full", "auto" or an int >= 1) names for this view."""
+    if isinstance(level, str):
+        if level not in LEVELS:
+            raise VolumeEVMError(f"level must be one of {LEVELS} or an integer >= 1, got {level!r}")
+        return 1 if level == "full" else auto_factor(shape, grid_to_world, camera)
+    if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)) or level < 1:
+        raise VolumeEVMError(f"level must be one of {LEVELS} or an integer >= 1, got {level!r}")
+    return int(level)
