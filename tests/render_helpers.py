@@ -3,9 +3,9 @@
 import numpy as np
 
 from volumeevm_addon._camera import Camera
+from volumeevm_addon._phantoms import box_chords_mm as phantom_box_chords_mm
 from volumeevm_addon._reference import render_reference
 from volumeevm_addon._transfer import TransferFunction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 
 MODES = ("over", "under", "xray", "mip")
 XRAY = {"xray_scale": 2e-4, "xray_offset": -1024.0}  # CT: attenuation from -1024 HU up
@@ -51,22 +51,10 @@ def reference(vevm, cam, tf, g, **kw):
 
 
 def box_chords_mm(g, lo, hi, cam):
-    """Chord (mm) of every pixel ray with the index-space box [lo, hi] (world face planes)."""
-    o, d = (x.reshape(-1, 3) for x in cam.rays())
-    a = g[:3, :3]
-    c_lo = g[:3, 3] + a @ np.asarray(lo, float)
-    c_hi = g[:3, 3] + a @ np.asarray(hi, float)
-    tin = np.full(len(o), -np.inf)
-    tout = np.full(len(o), np.inf)
-    for ax in range(3):
-        n = np.cross(a[:, (ax + 1) % 3], a[:, (ax + 2) % 3])
-        p, q = sorted((n @ c_lo, n @ c_hi))
-        po, pd = o @ n, d @ n
-        with np.errstate(divide="ignore"):
-            ta, tb = (p - po) / pd, (q - po) / pd
-        tin = np.maximum(tin, np.minimum(ta, tb))
-        tout = np.minimum(tout, np.maximum(ta, tb))
-    return (np.maximum(tout - tin, 0) / BU).reshape(cam.shape)
+    """Chord (mm) of every pixel ray with the index-space box [lo, hi] given by its face planes
+    (voxel-centre index space): :func:`volumeevm_addon._phantoms.box_chords_mm` of the voxels
+    ``lo + 0.5 <= index < hi + 0.5``, in the argument order these tests use."""
+    return phantom_box_chords_mm(cam, g, np.add(lo, 0.5), np.add(hi, 0.5))
 
 
 def const_tf(alpha, rgb=(0.9, 0.6, 0.3)):
