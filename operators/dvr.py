@@ -11,8 +11,10 @@ script function :func:`render_dvr` run the same job):
    Every setting touched is put back afterwards.
 2. **Camera**: :func:`.camera.camera_from_blender` (the scene camera, or the one given).
 3. **Volume render** (a worker thread in the UI): the core's ``render(vevm, camera, tf,
-   method=, mode=, depth_in=scene_depth, matrix_world=volume.matrix_world)``; rays stop at the
-   scene's geometry. The VolumeEVM is the tool stack's result when the volume has tools.
+   method=, mode=, depth_in=scene_depth, matrix_world=volume.matrix_world, **options)``; rays
+   stop at the scene's geometry. The VolumeEVM is the tool stack's result when the volume has
+   tools. The Render setting Resolution (``level`` of :func:`method_options`, Auto by default)
+   renders a volume much finer than the image's pixels from a coarser level of it.
 4. **Composite** in NumPy, alpha over with premultiplied colour:
    ``out = dvr + (1 - dvr.a) · scene`` (all four channels). Output depth ``Z`` is the DVR's
    depth where the DVR is visible, else the scene's (axial, Blender units, 1e10 = nothing).
@@ -45,6 +47,7 @@ import numpy as np
 from ..volumeevm_addon import VolumeEVMError
 from ..volumeevm_addon._camera import BACKGROUND_DEPTH
 from ..volumeevm_addon._files import atomic_target, write_atomically
+from ..volumeevm_addon._levels import LEVELS
 from ..volumeevm_addon._render import METHODS, MODES, render
 from ..volumeevm_addon._transfer import TransferFunction
 from . import _jobs, api, exr
@@ -111,19 +114,23 @@ def output_depth(dvr_depth, scene_depth):
                     np.asarray(scene_depth, np.float32)).astype(np.float32)
 
 
-def method_options(method, quality, spacing, *, shading=False, termination=0.99):
+def method_options(method, quality, spacing, *, shading=False, termination=0.99, level="auto"):
     """The core's options for one quality setting (1 = each method's default sampling).
 
     ``quality`` scales the sampling density: shear-warp's intermediate pixels per voxel
     (``intermediate_scale``), the ray casters' samples per voxel (``step_mm`` = half the
     smallest voxel size / quality), the reference's (smallest voxel size / 16 / quality).
-    Splatting has no sampling setting (its kernel is fixed).
+    Splatting has no sampling setting (its kernel is fixed). ``level`` is the Render setting
+    Resolution: ``"auto"`` (default) renders a volume much finer than the pixels from a coarser
+    level, ``"full"`` every voxel (the core's ``render(level=...)``; the reference ignores it).
     """
     quality = float(quality)
     if not np.isfinite(quality) or quality <= 0:
         raise VolumeEVMError(f"quality: must be > 0, got {quality!r}")
+    if level not in LEVELS:
+        raise VolumeEVMError(f"level: one of {LEVELS}, got {level!r}")
     smallest = float(min(spacing))
-    options = {"termination": float(termination)}
+    options = {"termination": float(termination), "level": level}
     if shading:
         options["shading"] = True
     if method == "shear_warp":
@@ -351,7 +358,7 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     if scene_pass.depth.shape != camera.shape:
         raise VolumeEVMError(f"scene render is {scene_pass.depth.shape[::-1]} pixels, the camera "
                              f"{camera.shape[::-1]}")
-    options = dict(options or {})
+    options = {"level": "auto", **(options or {})}  # the Render setting Resolution's default
     signature = view_signature(scene, camera_object)
 
     def steps():
@@ -397,7 +404,8 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     method, mode : str
         As for the core's ``render`` (``"raycast"`` and ``"over"`` by default).
     options : dict, optional
-        Method options (see :func:`method_options`).
+        Method options (see :func:`method_options`); ``level`` is ``"auto"`` unless given, as
+        the Render setting Resolution is by default.
     camera_object : bpy.types.Object, optional
         Default: ``scene.camera``.
     image_name : str

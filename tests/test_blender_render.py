@@ -487,3 +487,30 @@ def test_the_tool_stack_result_is_rendered(ext, dvr, skull):
                      matrix_world=np.array(skull.matrix_world))
     np.testing.assert_allclose(cut.dvr_rgba, want, atol=1e-6)
     assert not np.allclose(cut.dvr_rgba, bare.dvr_rgba, atol=1e-3)
+
+
+def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dvr, skull):
+    """Resolution (Auto by default) reaches the core through method_options: a view with
+    pixels about 2.4 voxels wide renders from level 2 (an eighth of the work), near the full
+    render. The skull's bone is one or two voxels thick, and level 2 thickens it to one coarse
+    voxel: measured RMSE 0.113 to the full render on both bpy versions."""
+    scene = bpy.context.scene
+    s = scene.volumeevm_render
+    assert s.resolution == "auto"
+    assert [item[0] for item in ext.ui.render_panel.RESOLUTION_ITEMS] == ["auto", "full"]
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=True)  # ortho scale 0.36 BU
+    cycles(scene, (38, 30))  # 9.5 mm pixels, 3.9 mm voxels
+    vevm = ext.operators.api.get_vevm(skull)
+    spacing = skull.volumeevm.spacing
+    images = {}
+    for level in ("full", "auto"):
+        options = dvr.method_options("raycast", 1.0, spacing, level=level)
+        images[level] = dvr.render_dvr(skull, bone_tf(), options=options).dvr_rgba
+    assert list(vevm._levels) == [2]
+    assert vevm.level(2).voxel_count < vevm.voxel_count / 4
+    from volumeevm.volumeevm_addon._metrics import rmse
+
+    error = rmse(images["auto"], images["full"])
+    assert 1e-4 < error < 0.14, error
+    with pytest.raises(ext.volumeevm_addon.VolumeEVMError, match="level"):
+        dvr.method_options("raycast", 1.0, spacing, level="half")

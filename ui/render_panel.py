@@ -1,6 +1,6 @@
 """The sidebar's Render section and its settings (``Scene.volumeevm_render``).
 
-Method, mode and quality of the volume render; the transfer function as a colour ramp whose
+Method, mode, quality and resolution level of the volume render; the transfer function as a colour ramp whose
 positions map onto a value range in the data's units (histogram beside it); outputs.
 """
 
@@ -23,6 +23,11 @@ MODE_ITEMS = (
     ("under", "Under", "Emission-absorption, back to front"),
     ("xray", "X-Ray", "Attenuation: exp of minus the summed density"),
     ("mip", "MIP", "Maximum intensity along each ray, classified by the transfer function"),
+)
+RESOLUTION_ITEMS = (
+    ("auto", "Auto", "Render a volume much finer than the image's pixels from a coarser level "
+                     "whose voxels are still no wider than a pixel (faster, less aliasing)"),
+    ("full", "Full", "Render every voxel of the VolumeEVM"),
 )
 PRESET_ITEMS = (
     ("ct_bone", "CT Bone", "Bone, in Hounsfield units"),
@@ -53,6 +58,10 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
         description="Sampling density relative to the method's default: samples per voxel "
                     "along rays (ray casting, reference), intermediate pixels per voxel "
                     "(shear-warp); splatting has none")
+    resolution: EnumProperty(
+        name="Resolution", items=RESOLUTION_ITEMS, default="auto",
+        description="Resolution level of the volume render (the reference always renders every "
+                    "voxel)")
     shading: BoolProperty(name="Shading", default=False,
                           description="Gradient shading (Blinn-Phong, light from the camera)")
     termination: FloatProperty(
@@ -138,6 +147,7 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         col.prop(settings, "method")
         col.prop(settings, "mode")
         col.prop(settings, "quality")
+        col.prop(settings, "resolution")
         col.prop(settings, "termination")
         col.prop(settings, "shading")
         if settings.mode == "xray":
