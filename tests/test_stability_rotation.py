@@ -1,0 +1,194 @@
+"""Stability under rotation (``../shared/design/notes/dvr_evaluation.md`` §7.8), at CI size.
+
+- S1: Marschner–Lobb rotated about y through 45° (the principal-axis switch of shear-warp and of
+  axis-aligned splatting): per-frame RMSE to the reference, popping index, bias jump.
+- S2: the same across a switch while the view turns about the (1, 1, 1) diagonal, where the
+  slice family changes between all three axes.
+- S6: a thin plate and a spherical shell seen from 0° to 90°: integrated alpha follows the
+  reference's and no pixel the reference shows (alpha > 0.05) drops out.
+
+Every method renders every frame, and so does the reference; the measures are
+:mod:`volumeevm_addon._metrics`. Bounds are the measured values with modest headroom (stated at
+each). ``raycast_navigate`` renders the same image as ``raycast`` and is not repeated.
+"""
+
+import numpy as np
+import pytest
+
+from volumeevm_addon import VolumeEVM
+from volumeevm_addon._camera import Camera
+from volumeevm_addon._metrics import bias_jump, popping_index, rmse
+from volumeevm_addon._render import render
+from volumeevm_addon._transfer import TransferFunction
+from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon._volume import grid_to_world
+from render_helpers import centre, look_at, reference
+
+RES = 48
+# Shear-warp's default (VolPack's one sample per slice, pre-classified) and the setting that
+# removes its popping at the switch (module docstring of _shear_warp).
+METHODS = {"shear_warp": {}, "shear_warp_fine": {"slices_per_voxel": 2},
+           "splat": {}, "raycast": {}}
+PULSE = TransferFunction([(0.0, 1, 1, 1, 0), (0.4, 1, 1, 1, 0), (0.5, 1, 0.8, 0.6, 0.3),
+                          (0.6, 1, 1, 1, 0), (1.0, 1, 1, 1, 0)])
+RAMP = TransferFunction([(0.0, 0.9, 0.7, 0.5, 0.0), (1.0, 0.9, 0.7, 0.5, 0.9)])
+
+
+def marschner_lobb(n=41, fm=6.0, a=0.25):
+    """The Marschner–Lobb test signal on ``n``^3 voxels over [-1, 1]^3, values in [0, 1]."""
+    x = np.linspace(-1.0, 1.0, n)
+    px, py, pz = np.meshgrid(x, x, x, indexing="ij")
+    rho = np.cos(2 * np.pi * fm * np.cos(np.pi * np.hypot(px, py) / 2))
+    return (1 - np.sin(np.pi * pz / 2) + a * (1 + rho)) / (2 * (1 + a))
+
+
+def slab(distance, thickness=1.0):
+    """Part of a one-voxel box filter at ``distance`` (voxels) from a slab's middle plane that
+    lies in the slab: an antialiased thin layer whose values sum to ``thickness`` across it."""
+    half = thickness / 2
+    return np.clip(np.minimum(distance + 0.5, half) - np.maximum(distance - 0.5, -half), 0, 1)
+
+
+def orbit(vevm, g, direction, up):
+    """Orthographic ``RES``^2 camera looking at the grid's centre from ``direction``."""
+    c = centre(vevm, g)
+    size = float(np.linalg.norm(np.array(vevm.shape) * vevm.spacing)) * BU
+    d = np.asarray(direction, dtype=np.float64)
+    m = look_at(c + d / np.linalg.norm(d) * size, c, up)
+    return Camera.orthographic(m, 1.02 * size, resolution_x=RES, resolution_y=RES,
+                               clip_start=1e-4)
+
+
+def sweep(vevm, tf, directions, up):
+    """Images of every method and the reference, ``{name: (frames, H, W, 4)}``."""
+    g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
+    cams = [orbit(vevm, g, d, up) for d in directions]
+    out = {"reference": np.array([reference(vevm, cam, tf, g)[0] for cam in cams])}
+    for name, options in METHODS.items():
+        method = name.replace("_fine", "")
+        out[name] = np.array([render(vevm, cam, tf, method=method, **options)[0]
+                              for cam in cams])
+    return out
+
+
+def measures(images, angles, at):
+    ref = images["reference"]
+    return {name: {"rmse": max(rmse(a, b) for a, b in zip(frames, ref)),
+                   "popping": popping_index(frames, ref),
+                   "bias_jump": abs(bias_jump(angles, frames, ref, at=at))}
+            for name, frames in images.items() if name != "reference"}
+
+
+# ---------------------------------------------------------------------------- S1, S2
+S1_ANGLES = np.linspace(40.0, 50.0, 21)
+
+
+@pytest.fixture(scope="module")
+def ml():
+    return VolumeEVM.from_array(marschner_lobb(), -1.0)
+
+
+@pytest.fixture(scope="module")
+def s1(ml):
+    th = np.radians(S1_ANGLES)
+    dirs = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], axis=1)
+    return measures(sweep(ml, PULSE, dirs, up=(0.0, 1.0, 0.0)), S1_ANGLES, 45.0)
+
+
+# Measured (ML 41^3, pulse, 48^2): max per-frame RMSE, popping index, |bias jump| were
+# shear-warp 0.048, 2.92, 0.018 (2 slices per voxel: 0.047, 1.38, 0.005), splatting
+# 0.024-0.026, 3.30-3.41, 0.011-0.017, ray casting 0.0023, 1.18, 0.0002.
+S1_BOUNDS = {"shear_warp": (0.055, 3.5, 0.022), "shear_warp_fine": (0.053, 1.8, 0.007),
+             "splat": (0.031, 4.0, 0.021), "raycast": (0.003, 2.0, 0.001)}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_s1_rotation_through_45_degrees(s1, method):
+    assert _within(s1[method], S1_BOUNDS[method])
+
+
+def _within(got, bound):
+    return got["rmse"] < bound[0] and got["popping"] < bound[1] and got["bias_jump"] < bound[2]
+
+
+def diagonal_view(phi):
+    """View direction at ``phi`` degrees on the circle of directions perpendicular to the
+    (1, 1, 1) diagonal: its largest component (the principal axis) changes every 60 degrees,
+    through x, y and z."""
+    u = np.array([1.0, -1.0, 0.0]) / np.sqrt(2)
+    v = np.array([1.0, 1.0, -2.0]) / np.sqrt(6)
+    p = np.radians(phi)
+    return np.cos(p) * u + np.sin(p) * v
+
+
+# |x| = |z| at phi = 60 degrees (the switch from x to z slices): 55..65 in 1 degree steps.
+S2_SWITCH = 60.0
+S2_ANGLES = np.linspace(S2_SWITCH - 5.0, S2_SWITCH + 5.0, 11)
+
+
+@pytest.fixture(scope="module")
+def s2(ml):
+    dirs = [diagonal_view(phi) for phi in S2_ANGLES]
+    return measures(sweep(ml, PULSE, dirs, up=(1.0, 1.0, 1.0)), S2_ANGLES, S2_SWITCH)
+
+
+# Measured at 1 (0.5) degree steps: shear-warp 0.054, 2.01 (3.81), 0.011 (2 slices per voxel:
+# 0.051, 3.31 (5.03), 0.004: its jumps are not at the switch but image-plane aliasing of the
+# intermediate image, one ray per voxel), splatting 0.017, 1.29 (1.66), 0.003, ray casting
+# 0.0021, 1.38 (1.64), 0.0003.
+S2_BOUNDS = {"shear_warp": (0.06, 4.5, 0.014), "shear_warp_fine": (0.057, 6.0, 0.005),
+             "splat": (0.031, 4.0, 0.021), "raycast": (0.003, 2.0, 0.001)}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_s2_rotation_about_the_diagonal(s2, method):
+    assert _within(s2[method], S2_BOUNDS[method])
+
+
+# ---------------------------------------------------------------------------- S6
+S6_ANGLES = np.linspace(0.0, 90.0, 7)
+
+
+def thin_objects():
+    """A one-voxel plate perpendicular to x through the centre and a one-voxel spherical shell
+    of radius 12 voxels, 33^3, antialiased (values in [0, 1])."""
+    n = 33
+    idx = np.arange(n) - (n - 1) / 2
+    x, y, z = np.meshgrid(idx, idx, idx, indexing="ij")
+    return {"plate": VolumeEVM.from_array(slab(x), -1.0),
+            "shell": VolumeEVM.from_array(slab(np.sqrt(x * x + y * y + z * z) - 12.0), -1.0)}
+
+
+@pytest.fixture(scope="module")
+def s6():
+    """Per object and method: max relative deviation of integrated alpha from the
+    reference's over the sweep, and the number of drop-out pixels."""
+    out = {}
+    for name, vevm in thin_objects().items():
+        th = np.radians(S6_ANGLES)  # 0: face-on (along the plate's normal x), 90: edge-on
+        dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], axis=1)
+        images = sweep(vevm, RAMP, dirs, up=(0.0, 0.0, 1.0))
+        ref = images["reference"]
+        total = ref[..., 3].sum(axis=(1, 2))
+        shown = ref[..., 3] > 0.05
+        out[name] = {m: {"deviation": float(np.abs(f[..., 3].sum(axis=(1, 2)) / total - 1).max()),
+                         "dropouts": int((shown & (f[..., 3] <= 0)).sum())}
+                     for m, f in images.items() if m != "reference"}
+    return out
+
+
+# Max relative deviation of integrated alpha, measured plate / shell: shear-warp 0.62 / 0.049
+# (and drop-outs: 8 pixels on the shell at 15-degree steps, 28 on the plate at 10-degree
+# steps; with 2 slices per voxel none),
+# splatting 0.16 / 0.009, ray casting 0.058 / 0.003. Shear-warp's 0.62 is a known failure
+# (F14, the plate edge-on), not yet fixed.
+S6_BOUNDS = {"shear_warp": (0.7, 0.06), "shear_warp_fine": (0.7, 0.065),
+             "splat": (0.2, 0.012), "raycast": (0.07, 0.004)}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_s6_thin_plate_and_shell(s6, method):
+    plate, shell = s6["plate"][method], s6["shell"][method]
+    assert plate["deviation"] < S6_BOUNDS[method][0] and shell["deviation"] < S6_BOUNDS[method][1]
+    dropouts = plate["dropouts"] + shell["dropouts"]
+    assert dropouts <= 12 if method == "shear_warp" else dropouts == 0
