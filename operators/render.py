@@ -302,7 +302,8 @@ def _job_arguments(context, settings, volume_name=""):
     ensure_ramp(settings)
     tf = transfer_function(settings)
     options = dvr.method_options(settings.method, settings.quality, tuple(vol.volumeevm.spacing),
-                                 shading=settings.shading, termination=settings.termination)
+                                 shading=settings.shading, termination=settings.termination,
+                                 level=settings.resolution)
     if settings.mode == "xray":
         options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
     return vol, tf, dict(

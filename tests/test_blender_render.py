@@ -489,11 +489,13 @@ def test_the_tool_stack_result_is_rendered(ext, dvr, skull):
     assert not np.allclose(cut.dvr_rgba, bare.dvr_rgba, atol=1e-3)
 
 
-def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dvr, skull):
-    """Resolution (Auto by default) reaches the core through method_options: a view with
-    pixels about 2.4 voxels wide renders from level 2 (an eighth of the work), near the full
-    render. The skull's bone is one or two voxels thick, and level 2 thickens it to one coarse
-    voxel: measured RMSE 0.113 to the full render on both bpy versions."""
+def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dvr, skull,
+                                                                         tmp_path):
+    """Resolution (Auto by default) reaches the core through method_options, from the Render
+    operator too: a view with pixels about 2.4 voxels wide renders from level 2 (an eighth of
+    the work), near the full render. The skull's bone is one or two voxels thick, and level 2
+    thickens it to one coarse voxel: measured RMSE 0.113 to the full render on both bpy
+    versions."""
     scene = bpy.context.scene
     s = scene.volumeevm_render
     assert s.resolution == "auto"
@@ -502,6 +504,12 @@ def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dv
     cycles(scene, (38, 30))  # 9.5 mm pixels, 3.9 mm voxels
     vevm = ext.operators.api.get_vevm(skull)
     spacing = skull.volumeevm.spacing
+    settings_for(scene, skull, tmp_path, resolution="full")
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert not vevm._levels  # Full: no coarser level built
+    s.resolution = "auto"
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert list(vevm._levels) == [2]
     images = {}
     for level in ("full", "auto"):
         options = dvr.method_options("raycast", 1.0, spacing, level=level)
