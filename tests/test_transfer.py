@@ -107,6 +107,39 @@ def test_table_and_quantize():
     np.testing.assert_allclose(other, tf.classify(np.linspace(-1000, 1000, 64), 1.0), rtol=1e-6)
 
 
+def _segment_integral(tf, s_f, s_b, length, m=100000):
+    """Emission-absorption integral along a linear density ramp, by a fine midpoint sum."""
+    u = (np.arange(m) + 0.5) / m
+    straight = tf.evaluate(s_f + u * (s_b - s_f))
+    depth = -np.log1p(-straight[:, 3]) * length / m / tf.unit_length_mm
+    before = np.exp(-np.concatenate([[0.0], np.cumsum(depth)[:-1]]))
+    colour = ((before * -np.expm1(-depth))[:, None] * straight[:, :3]).sum(axis=0)
+    return np.r_[colour, -np.expm1(-depth.sum())]
+
+
+def test_preintegrated_table_against_fine_integration():
+    tf = TransferFunction([(0.0, 1, 0.5, 0.2, 0.0), (0.3, 0.2, 1, 0.3, 0.9),
+                           (0.32, 1, 1, 1, 0.95), (0.5, 0.1, 0.2, 1, 0.0), (1.0, 1, 1, 1, 0.2)],
+                          unit_length_mm=2.0)
+    n = 101
+    tab = tf.preintegrated_table(0.0, 1.0, n, step_mm=1.5, dtype=np.float64)
+    assert tab.shape == (n, n, 4) and not tab.flags.writeable
+    assert tf.preintegrated_table(0.0, 1.0, n, step_mm=1.5, dtype=np.float64) is tab
+    # Constant density: the point classification; a rising and a falling segment differ in
+    # colour (what lies in front hides what lies behind) but not in opacity.
+    np.testing.assert_allclose(tab[np.arange(n), np.arange(n)],
+                               tf.table(0.0, 1.0, n, step_mm=1.5, dtype=np.float64), atol=1e-15)
+    np.testing.assert_allclose(tab[..., 3], tab[..., 3].T, atol=1e-12)
+    assert np.abs(tab[..., :3] - tab[..., :3].transpose(1, 0, 2)).max() > 0.1
+    h = 1.0 / (n - 1)
+    for i, j in [(0, 100), (100, 0), (29, 33), (33, 29), (40, 41), (10, 60), (70, 45)]:
+        # measured max error 1.5e-4 (8 sub-samples per cell; kinks between grid values)
+        np.testing.assert_allclose(tab[i, j], _segment_integral(tf, i * h, j * h, 1.5),
+                                   atol=5e-4)
+    with pytest.raises(VolumeEVMError, match="step_mm"):
+        tf.preintegrated_table(step_mm=0.0)
+
+
 @pytest.mark.parametrize("name", PRESETS)
 def test_presets(name):
     tf = TransferFunction.preset(name, data_range=(0, 1000))

@@ -24,6 +24,12 @@ Conventions
   function is constant, so clamping loses nothing there). The straight table is computed once per
   ``(lo, hi, n)`` and cached on the instance; only the cheap opacity correction is redone for
   another step length. :meth:`TransferFunction.quantize` maps densities to table rows.
+- **Pre-integrated tables.** :meth:`TransferFunction.preintegrated_table` classifies a whole ray
+  segment of ``step_mm`` mm over which the density runs linearly from ``s_f`` (front) to ``s_b``
+  (back): the emission–absorption integral along it (Engel, Kraus & Ertl, "High-quality
+  pre-integrated volume rendering using hardware-accelerated pixel shading", Graphics Hardware
+  2001), so that transfer functions much narrower than the density change per step are not
+  missed between samples.
 """
 
 from dataclasses import dataclass, field
@@ -33,6 +39,12 @@ import numpy as np
 from ._errors import VolumeEVMError
 
 __all__ = ["TransferFunction", "PRESETS", "opacity_correction"]
+
+_PREINT_SUBSAMPLES = 8
+"""Midpoint sub-samples per table cell in :meth:`TransferFunction.preintegrated_table`."""
+_ALPHA_CAP = 1.0 - 1e-12
+"""Opacity 1 per unit length, as a finite extinction for pre-integration (``-ln 1e-12`` ≈ 27.6
+per unit length)."""
 
 PRESETS = ("ct_skin", "ct_bone", "ct_vessels", "mri", "microscopy")
 """Names accepted by :meth:`TransferFunction.preset`."""
@@ -314,6 +326,70 @@ class TransferFunction:
         out[:, :3] = tab[:, :3] * out[:, 3:4]
         return out.astype(dtype, copy=False)
 
+    def preintegrated_table(self, lo=None, hi=None, n=256, *, step_mm, dtype=np.float32):
+        """Premultiplied RGBA of ray segments of ``step_mm`` mm along which the density runs
+        linearly from ``s_f`` to ``s_b`` (pre-integrated classification).
+
+        Entry ``[i, j]`` is the segment from ``s_f = lo + i·h`` to ``s_b = lo + j·h``
+        (``h = (hi - lo)/(n - 1)``): opacity ``1 - exp(-∫τ)`` and colour ``∫ c·τ·exp(-∫τ)``
+        over the segment, with ``τ(s) = -ln(1 - alpha(s)) / unit_length_mm`` the extinction per
+        mm (opacity 1 taken as ``1 - 1e-12``) and ``c`` the straight colour: the full integral
+        with self-attenuation inside the segment, not the additive approximation. On the
+        diagonal (constant density) this is exactly :meth:`table`. Off it, each table cell
+        ``[s_m, s_m+1]`` the segment crosses is integrated with 8 midpoint sub-samples and the
+        cells are composited front to back; windows of cells are assembled from composites of
+        2^k cells, so the table costs O(n² log n). Cached per ``(lo, hi, n, step_mm)``.
+
+        The range must cover every density a segment's ends can take: unlike :meth:`table`,
+        clamping an end changes how much of the segment lies in each part of the function.
+
+        Parameters
+        ----------
+        lo, hi : float, optional
+            Density range (default: the control points' range).
+        n : int
+            Rows and columns (default 256).
+        step_mm : float
+            Segment length in mm, > 0.
+        dtype : dtype
+            Output type.
+
+        Returns
+        -------
+        (n, n, 4) ndarray
+            Read-only; rows ``s_f``, columns ``s_b``.
+        """
+        lo, hi, n = self._range(lo, hi, n)
+        d = float(_check_step(step_mm))
+        if d <= 0:
+            raise VolumeEVMError(f"step_mm: a pre-integrated segment needs a length > 0, got {d}")
+        key = ("preintegrated", lo, hi, n, d, np.dtype(dtype).str)
+        tab = self._cache.get(key)
+        if tab is None:
+            q = _PREINT_SUBSAMPLES
+            h = (hi - lo) / (n - 1)
+            s = lo + h * (np.arange(n - 1)[:, None] + (np.arange(q) + 0.5) / q)
+            straight = self.evaluate(s)  # (cells, q, 4)
+            tau = -np.log1p(-np.minimum(straight[..., 3], _ALPHA_CAP)) / self.unit_length_mm
+            colour = straight[..., :3]
+            out = np.empty((n, n, 4))
+            # Rising segments (j > i); falling ones are rising ones of the mirrored function
+            # (grid value i is value n - 1 - i of the mirror).
+            rows, starts = np.nonzero(np.add.outer(np.arange(n - 1), np.arange(n - 1)) < n - 1)
+            for sign in (1, -1):
+                c, t = _preintegrate_rising(tau[::sign, ::sign], colour[::sign, ::sign], d)
+                i, j = starts, starts + rows + 1
+                if sign == -1:
+                    i, j = n - 1 - i, n - 1 - j
+                out[i, j, :3] = c[rows, starts]
+                out[i, j, 3] = 1.0 - t[rows, starts]
+            diag = np.arange(n)
+            out[diag, diag] = self.table(lo, hi, n, step_mm=d, dtype=np.float64)
+            tab = out.astype(dtype)
+            tab.setflags(write=False)
+            self._cache[key] = tab
+        return tab
+
     def quantize(self, densities, lo=None, hi=None, n=4096):
         """Row of :meth:`table` for each density: ``rint((d - lo)/(hi - lo)·(n - 1))`` clipped to
         ``[0, n - 1]``; ``np.int32`` of the same shape as ``densities``."""
@@ -324,6 +400,45 @@ class TransferFunction:
         idx = np.rint((d - lo) * ((n - 1) / (hi - lo)))
         np.clip(idx, 0, n - 1, out=idx)
         return idx.astype(np.int32)
+
+
+def _preintegrate_rising(tau, colour, length):
+    """Premultiplied colour ``(n-1, n-1, 3)`` and transmittance ``(n-1, n-1)`` of rising
+    segments of ``length`` mm, indexed ``[δ - 1, i]`` for the segment from grid value ``i`` to
+    ``i + δ`` (entries with ``i + δ > n - 1`` are meaningless).
+
+    ``tau`` and ``colour`` are the extinction and straight colour at the sub-samples of each
+    cell, ``(cells, q)`` and ``(cells, q, 3)``. A segment crossing ``δ`` cells spends
+    ``length / δ`` in each; each cell is composited from its sub-samples, then windows of
+    ``2^k`` cells are composited from two of ``2^(k-1)`` and a window of ``δ`` cells from the
+    powers of two in ``δ``.
+    """
+    cells, q = tau.shape
+    delta = np.arange(1, cells + 1)[:, None]
+    trans = np.exp(-tau[None] * (length / (q * delta))[..., None])  # (δ, cell, q)
+    c = np.zeros((cells, cells, 3))
+    t = np.ones((cells, cells))
+    for k in range(q):
+        c += (t * (1.0 - trans[..., k]))[..., None] * colour[None, :, k]
+        t *= trans[..., k]
+    levels = [(c, t)]
+    width = 1
+    while 2 * width <= cells:
+        c0, t0 = levels[-1]
+        levels.append((c0[:, :-width] + t0[:, :-width, None] * c0[:, width:],
+                       t0[:, :-width] * t0[:, width:]))
+        width *= 2
+    rows = np.arange(cells)[:, None]
+    pos = np.broadcast_to(np.arange(cells)[None, :], (cells, cells)).copy()
+    acc_c = np.zeros((cells, cells, 3))
+    acc_t = np.ones((cells, cells))
+    for k, (ck, tk) in enumerate(levels):
+        take = ((delta >> k) & 1).astype(bool) & (pos + (1 << k) <= cells)
+        idx = np.minimum(pos, ck.shape[1] - 1)
+        acc_c = np.where(take[..., None], acc_c + acc_t[..., None] * ck[rows, idx], acc_c)
+        acc_t = np.where(take, acc_t * tk[rows, idx], acc_t)
+        pos += take << k
+    return acc_c, acc_t
 
 
 def _preset_points(name, data_range):
