@@ -64,6 +64,27 @@ def test_skip_empty_equals_dense_and_navigation(ct, kind, mode):
     np.testing.assert_allclose(d2, d1, rtol=1e-6)
 
 
+@pytest.mark.parametrize("mode", ["over", "under"])
+def test_jitter_and_preintegration_keep_the_contract(ct, mode):
+    """Space leaping and the navigation variant give the same image with both options (the
+    blocks widen their density ranges for segment ends); jitter is the same on every run."""
+    v, g, tf = bone(ct)
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.3, res=(23, 17))
+    opts = {"mode": mode, "jitter": True, "preintegrate": True, "step_mm": 1.5}
+    r1, d1 = render_raycast(v, cam, tf, g, **opts)
+    r0, d0 = render_raycast(v, cam, tf, g, skip_empty=False, **opts)
+    assert r1[..., 3].max() > 0.5
+    np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(d1, d0, rtol=1e-6)
+    r2, d2 = render_raycast_navigate(v, cam, tf, g, chunk_rays=101, **opts)
+    np.testing.assert_allclose(r2, r1, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(d2, d1, rtol=1e-6)
+    again, _ = render_raycast(v, cam, tf, g, chunk_rays=50, **opts)
+    np.testing.assert_array_equal(again, r1)
+    plain, _ = render_raycast(v, cam, tf, g, mode=mode, step_mm=1.5)
+    assert np.abs(r1 - plain).max() > 0.01  # the options change the image
+
+
 def test_skip_empty_equals_dense_brain_and_blocks(brain):
     a, sp = brain
     v = VolumeEVM.from_array(a, 40, spacing=sp)
@@ -101,17 +122,21 @@ def test_blocks_cover_what_samples_can_read():
 
 # ---------------------------------------------------------------------------- closed forms
 
+OPTIONS = [{}, {"jitter": True, "preintegrate": True}]
+
+
+@pytest.mark.parametrize("opts", OPTIONS)
 @pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
-def test_homogeneous_box_closed_form(kind):
-    """Region = the whole grid: every segment is inside, the last one is cut at the exit, so the
-    opacity is 1 - (1 - a0)^(L / 1 mm) for the exact chord L."""
+def test_homogeneous_box_closed_form(kind, opts):
+    """Region = the whole grid: every segment is inside, the first (jitter) and last are cut at
+    the entry and exit, so the opacity is 1 - (1 - a0)^(L / 1 mm) for the exact chord L."""
     shape, sp = (7, 9, 5), (0.7, 0.5, 1.3)
     v = VolumeEVM.from_array(np.full(shape, 5.0), 0, spacing=sp)
     g = grid_to_world(sp, (0, 0, 0))
     cam = camera(kind, g, v, (0.012, -0.01, 0.009), 0.012)
     tf = const_tf(0.15)
     for step in (0.3, None):
-        rgba, depth = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0)
+        rgba, depth = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0, **opts)
         chord = box_chords_mm(g, (-0.5,) * 3, np.array(shape) - 0.5, cam)
         assert (chord > 0).sum() > 200 and (chord == 0).sum() > 50
         expected = 1 - 0.85 ** chord
@@ -124,8 +149,9 @@ def test_homogeneous_box_closed_form(kind):
         assert np.all(depth[~hit] == BACKGROUND_DEPTH)
 
 
+@pytest.mark.parametrize("opts", OPTIONS)
 @pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
-def test_box_region_closed_form(kind):
+def test_box_region_closed_form(kind, opts):
     """A box region inside a larger grid: each sample counts the part of its segment that lies
     in region cells, so the chord is exact (steps up to the smallest voxel size) and so is the
     depth of the box's surface. A longer step only approximates it."""
@@ -143,7 +169,7 @@ def test_box_region_closed_form(kind):
     _, dr = reference(v, cam, tf, g)
     hit = chord > 1e-6
     for step in (0.25, None, 0.6):
-        rgba, depth = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0)
+        rgba, depth = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0, **opts)
         np.testing.assert_allclose(rgba[..., 3], expected, rtol=0, atol=2e-6)
         np.testing.assert_allclose(rgba[..., :3], expected[..., None] * (0.9, 0.6, 0.3),
                                    atol=2e-6)
@@ -373,3 +399,6 @@ def test_bad_input(ct):
         render_raycast(v, cam, "bone", g)
     with pytest.raises(VolumeEVMError, match="grid_to_world"):
         render_raycast(v, cam, tf, np.zeros((4, 4)))
+    for name in ("jitter", "preintegrate"):
+        with pytest.raises(VolumeEVMError, match=name):
+            render_raycast_navigate(v, cam, tf, g, **{name: 1})

@@ -22,8 +22,20 @@ with a fixed step, fast:
   neighbours, whose readability is at hand) count: the opacity is corrected for that length.
   The region's surface is therefore placed exactly (a homogeneous region gives the closed form
   ``1 - (1 - α)^(L/Δ0)`` for its exact chord ``L``) and so is the output depth.
+- **Jitter** (``jitter=True``, against banding at coarse steps): the lattice of each ray moves
+  back by its pixel's fraction of a step (a hash of the pixel, fixed); the first segment, from
+  the entry point, is shorter, so entry and exit stay exact.
 - **Classification** after interpolation (post-classification) through a lookup table of the
   transfer function (straight colour and step-corrected opacity), linearly interpolated.
+  With ``preintegrate=True`` (over, under) a segment wholly in region cells is classified by
+  the densities at its two ends through the pre-integrated table of the transfer function for
+  the step (:meth:`TransferFunction.preintegrated_table`, 256², over the range of the data and
+  the function, bilinear), shaded with the gradient at its middle. A shorter first or last
+  segment takes the table's entry for a full step with its opacity corrected for its length
+  (exact for the opacity: the optical depth of a ramp is proportional to its length; the colour
+  keeps its ratio to the opacity). Measured on a linear ramp with jitter (every first segment
+  partial): within 2.5e-3 of the reference, the table's resolution (7e-5 with 1024²). Segments
+  the region's surface cuts keep the point-sampled middle with the coverage correction.
 - **Modes**: ``"over"`` front to back with early ray termination (``termination``),
   ``"under"`` back to front, ``"xray"`` (``T = exp(-Σ μ Δ)``, μ per mm), ``"mip"`` (maximum
   density along the ray over points in region cells, classified without length correction;
@@ -80,6 +92,8 @@ _CACHE = weakref.WeakKeyDictionary()
 """Per VolumeEVM: the padded sampling tables and the block grid, made once."""
 
 _LUT_SIZE = 4096
+_PREINT_SIZE = 256
+"""Rows and columns of the pre-integrated table (over the data's and the function's range)."""
 _CAMERA_API = ("rays", "axial_depth", "shape", "clip_start", "clip_end", "project", "forward",
                "is_ortho", "position")
 _TF_API = ("evaluate", "transparent_between", "straight_table", "unit_length_mm", "value_range")
@@ -412,11 +426,12 @@ class _Blocks:
     """Coarse occupancy of the region (from the EVM's boxes) with per-block density ranges.
 
     Block ``b`` holds the cells ``b·B .. (b + 1)·B - 1``; it is occupied when a region voxel
-    lies within one voxel of them, and its range covers the densities of those voxels (what
-    trilinear interpolation in the block can read).
+    lies within one voxel of them, and its range covers the densities of the region voxels
+    within ``reach`` voxels of them (1: what trilinear interpolation at a sample in the block
+    can read; more for pre-integration, whose segment ends lie up to half a step away).
     """
 
-    def __init__(self, vevm, size):
+    def __init__(self, vevm, size, reach=1):
         self.size = size
         shape = np.array(vevm.shape, dtype=np.int64)
         self.nb = -(-shape // size)
@@ -438,10 +453,9 @@ class _Blocks:
         occ = diff.cumsum(0).cumsum(1).cumsum(2)[:-1, :-1, :-1] > 0
         self.occupied = occ
         self.bbox = np.stack([lo.min(axis=0), hi.max(axis=0)]) if len(lo) else None
-        # Density ranges per block: every region voxel within one voxel of the block's cells
-        # (what trilinear interpolation at a sample in the block can read), from a temporary
-        # grid of the table's densities grown by one voxel (min and max filters), then
-        # reduced block by block.
+        # Density ranges per block: every region voxel within `reach` voxels of the block's
+        # cells, from a temporary grid of the table's densities grown by `reach` voxels (min
+        # and max filters), then reduced block by block.
         mask = vevm.evm.to_mask(vevm.shape)
         dens = np.asarray(vevm.table(0), dtype=np.float32)
         padded = tuple(int(b) * size for b in self.nb)
@@ -449,7 +463,7 @@ class _Blocks:
         for op, fill in ((np.minimum, np.inf), (np.maximum, -np.inf)):
             grid = np.full(padded, fill, np.float32)
             grid[tuple(slice(0, int(n)) for n in shape)][mask] = dens
-            for ax in range(3):
+            for ax in [0, 1, 2] * reach:
                 src = grid.copy()
                 lo = [slice(None)] * 3
                 hi = [slice(None)] * 3
@@ -474,11 +488,11 @@ class _Blocks:
         return np.pad(vis, 1).ravel()
 
 
-def _blocks(vevm, size):
+def _blocks(vevm, size, reach):
     entry = _CACHE.setdefault(vevm, {})
-    key = ("blocks", size)
+    key = ("blocks", size, reach)
     if key not in entry:
-        entry[key] = _Blocks(vevm, size)
+        entry[key] = _Blocks(vevm, size, reach)
     return entry[key]
 
 
@@ -493,6 +507,69 @@ def _lut(tf, step_mm):
     tab[:, 3] = 1.0 - np.power(1.0 - tab[:, 3], step_mm / tf.unit_length_mm)
     step = (hi - lo) / (_LUT_SIZE - 1)
     return tab.astype(np.float32), lo, 1.0 / step, step
+
+
+def _preintegration(vevm, tf, step_mm):
+    """The pre-integrated table for segments of ``step_mm`` over the range of the data and the
+    transfer function (a segment's ends must not be clamped); returns ``(table (n·n, 4)
+    float32, lo, scale, step, n)``."""
+    entry = _CACHE.setdefault(vevm, {})
+    if "range" not in entry:
+        dens = np.asarray(vevm.table(0), dtype=np.float64)
+        entry["range"] = (float(dens.min()), float(dens.max()))
+    lo = min(entry["range"][0], tf.value_range[0])
+    hi = max(entry["range"][1], tf.value_range[1])
+    if hi <= lo:
+        hi = lo + 1.0
+    n = _PREINT_SIZE
+    tab = tf.preintegrated_table(lo, hi, n, step_mm=step_mm)
+    step = (hi - lo) / (n - 1)
+    return tab.reshape(-1, 4), lo, 1.0 / step, step, n
+
+
+def _classify_preintegrated(pre, front, back, ratio):
+    """Straight RGB (m, 3) and opacity (m,) of segments whose density runs linearly from
+    ``front`` to ``back``, of ``ratio`` (m,) steps: bilinear in the pre-integrated table, the
+    opacity corrected for segments shorter than a step as if their density were constant
+    (their colour keeps its ratio to the opacity)."""
+    tab, lo, scale, _, n = pre
+    idx, frac = [], []
+    for s in (front, back):
+        x = (s - np.float32(lo)) * np.float32(scale)
+        np.clip(x, 0, n - 1, out=x)
+        i = np.minimum(x.astype(np.int64), n - 2)
+        idx.append(i)
+        frac.append((x - i)[:, None])
+    (i, j), (fi, fj) = idx, frac
+    flat = i * n + j
+    top = tab[flat] + fj * (tab[flat + 1] - tab[flat])
+    bottom = tab[flat + n] + fj * (tab[flat + n + 1] - tab[flat + n])
+    rgba = top + fi * (bottom - top)
+    alpha = rgba[:, 3]
+    has = alpha > 0
+    rgb = rgba[:, :3] / np.where(has, alpha, np.float32(1))[:, None]
+    short = np.flatnonzero(ratio != 1)
+    if len(short):
+        alpha[short] = 1 - np.power(1 - alpha[short], ratio[short])
+    return rgb, alpha
+
+
+def _jitter(count):
+    """Fraction of a step in ``[0, 1)`` per pixel: a hash (Wellons' lowbias32) of the flat pixel
+    index, so the same pixel gets the same offset on every run and chunking does not matter;
+    white noise, so banding turns into noise without a pattern of its own."""
+    x = np.arange(count, dtype=np.uint64)
+    for shift, mult in ((16, 0x7FEB352D), (15, 0x846CA68B)):
+        x ^= x >> np.uint64(shift)
+        x = (x * np.uint64(mult)) & np.uint64(0xFFFFFFFF)
+    x ^= x >> np.uint64(16)
+    return x / 2.0 ** 32
+
+
+def _flag(name, value):
+    if value is not True and value is not False:
+        raise VolumeEVMError(f"{name}: True or False, got {value!r}")
+    return value
 
 
 def _classify(lut, value, ratio):
@@ -514,10 +591,13 @@ def _classify(lut, value, ratio):
 
 
 def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_mm, skip_empty,
-            termination, shading, xray_scale, xray_offset, block, chunk_rays):
+            termination, shading, xray_scale, xray_offset, block, chunk_rays, jitter,
+            preintegrate):
     g, depth_in, termination, xray_scale, xray_offset = check_common(
         vevm, camera, tf, grid_to_world, mode, depth_in, termination, xray_scale, xray_offset)
     shading = check_shading(shading)
+    jitter = _flag("jitter", jitter)
+    preintegrate = _flag("preintegrate", preintegrate) and mode in ("over", "under")
     if mode not in ("over", "under"):
         shading = None
     spacing = np.asarray(vevm.spacing, dtype=np.float64)
@@ -542,20 +622,30 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     rays = np.flatnonzero(nseg > 0)
     if len(rays) == 0:
         return rgba.reshape(h, w, 4), depth.reshape(h, w)
-    nseg = nseg[rays]
+    dt = dt[rays]
+    # Jitter moves the lattice back by a fraction of a step: the first segment, from the entry
+    # point, is then shorter (`head` steps).
+    shift = _jitter(h * w)[rays] if jitter else np.zeros(len(rays))
+    t0 = r["t0"][rays] - shift * dt
+    nseg = nseg[rays] + shift
     K = np.maximum(np.ceil(nseg * (1 - 1e-12)), 1).astype(np.int64)
     last = (nseg - (K - 1)).astype(np.float32)  # length of the last segment, in steps
-    t0, dt = r["t0"][rays], dt[rays]
+    head = (1 - shift).astype(np.float32)  # length of the first segment, in steps
     o, d = r["o"][rays], r["d"][rays]
     p0 = o + (t0 + 0.5 * dt)[:, None] * d  # sample k is at p0 + k sv
     sv = dt[:, None] * d
     first = np.zeros(len(rays), np.int64)
     stop = K.copy()
     visible = None
+    lut = None if mode == "xray" else _lut(tf, step_mm)
+    pre = _preintegration(vevm, tf, step_mm) if preintegrate else None
     if skip_empty:
-        blocks = _blocks(vevm, block)
-        visible = blocks.visible(mode, tf, _lut(tf, step_mm)[3] if mode in ("over", "under")
-                                 else 0.0, xray_scale, xray_offset)
+        # Pre-integration reads densities at segment ends, up to half a step from a sample.
+        reach = 1 if pre is None else int(np.floor(
+            1.5 + 0.5 * step_mm / float(spacing.min())))
+        blocks = _blocks(vevm, block, reach)
+        margin = 0.0 if lut is None else lut[3] if pre is None else max(lut[3], pre[3])
+        visible = blocks.visible(mode, tf, margin, xray_scale, xray_offset)
         # Start and stop at the region's bounding box (cells lo .. hi - 1) grown by one voxel,
         # with one sample to spare at each end (the last sample sits before its lattice
         # position).
@@ -573,7 +663,6 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
         if key not in entry:
             entry[key] = _DenseSampler(vevm, shading is not None)
         sampler = entry[key]
-    lut = None if mode == "xray" else _lut(tf, step_mm)
     inv_t = np.linalg.inv(g)[:3, :3].T if shading is not None else None
 
     out_acc = np.zeros((len(rays), 4), np.float32)
@@ -581,10 +670,10 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     for c0 in range(0, len(rays), chunk_rays):
         sl = slice(c0, min(len(rays), c0 + chunk_rays))
         acc, kev = _march(
-            sampler, visible, blocks.nb if skip_empty else None, block, mode, lut, shading,
-            inv_t, termination, step_mm, xray_scale, xray_offset, tf,
+            sampler, visible, blocks.nb if skip_empty else None, block, mode, lut, pre,
+            shading, inv_t, termination, step_mm, xray_scale, xray_offset, tf,
             p0[sl].astype(np.float32), sv[sl].astype(np.float32), first[sl], stop[sl], K[sl],
-            last[sl], r["dirs"][rays[sl]])
+            head[sl], last[sl], r["dirs"][rays[sl]])
         out_acc[sl] = acc
         out_k[sl] = kev
     found = np.isfinite(out_k)
@@ -603,14 +692,18 @@ _EPS = 2e-3
 """Index-space tolerance of a leap: samples this close to a block's exit are never skipped."""
 
 
-def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, step_mm,
-           xray_scale, xray_offset, tf, p0, sv, first, stop, K, last, dirs):
+def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, termination, step_mm,
+           xray_scale, xray_offset, tf, p0, sv, first, stop, K, head, last, dirs):
     """March one chunk of rays; returns (accumulated (m, 4) float32, depth event (m,) float64:
     lattice position ``k'`` of the event, the ray point ``p0 + k'·sv``; NaN for none).
 
-    The state of the rays still marching is kept compact (finished rays are frozen, then
-    dropped once they are a tenth of the set). Each step first leaps every ray whose current
-    sample lies in an invisible block (repeatedly, only those rays), then samples all rays.
+    Sample ``k`` stands for the lattice segment ``[k - 0.5, k + 0.5]``; the first starts at
+    ``0.5 - head``, the last ends at ``K - 1.5 + last``. The state of the rays still marching is
+    kept compact (finished rays are frozen, then dropped once they are a tenth of the set).
+    Each step first leaps every ray whose current sample lies in an invisible block
+    (repeatedly, only those rays), then samples all rays. With pre-integration (``pre``) the
+    density at the segment boundary shared with the previous step's segment is kept, so a
+    marching ray samples one segment end per step.
     """
     m = len(p0)
     backward = mode == "under"
@@ -622,25 +715,52 @@ def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, s
     keep = (k >= first) & (k < stop)
     st = {"idx": np.flatnonzero(keep), "k": k[keep]}
     st.update({name: arr[keep] for name, arr in (("p0", p0), ("sv", sv), ("first", first),
-                                                    ("stop", stop), ("K", K), ("last", last))})
+                                                    ("stop", stop), ("K", K), ("head", head),
+                                                    ("last", last))})
     if shading is not None:
         st["dirs"] = dirs[keep]
     n = len(st["idx"])
     st["acc"] = np.zeros((n, 4), np.float32)
     st["kev"] = np.full(n, np.nan)
     st["vmax"] = np.full(n, -np.inf, np.float32)
+    if pre is not None:
+        st["edge_b"] = np.full(n, -1, np.int64)  # lattice boundary b is at b - 0.5
+        st["edge_v"] = np.zeros(n, np.float32)
     live = np.ones(n, bool)
     if visible is not None:
         pstrides = np.array([(nb[1] + 2) * (nb[2] + 2), nb[2] + 2, 1], dtype=np.int64)
         st["eps"] = _EPS / np.abs(st["sv"].astype(np.float64)).max(axis=1)
 
     def position(rows, kk):
-        """Lattice position (float32) and index-space point of samples ``kk`` of ``rows``."""
+        """Lattice ends (float32) of the segments of samples ``kk`` of ``rows`` and the
+        index-space points of their middles."""
         kf = kk.astype(np.float32)
-        is_last = kk == st["K"][rows] - 1
-        if is_last.any():
-            kf[is_last] += np.float32(0.5) * st["last"][rows][is_last] - np.float32(0.5)
-        return kf, is_last, st["p0"][rows] + kf[:, None] * st["sv"][rows]
+        lo, hi = kf - np.float32(0.5), kf + np.float32(0.5)
+        cut = kk == 0
+        if cut.any():
+            lo[cut] = np.float32(0.5) - st["head"][rows][cut]
+        cut = kk == st["K"][rows] - 1
+        if cut.any():
+            hi[cut] = kf[cut] - np.float32(0.5) + st["last"][rows][cut]
+        mid = np.float32(0.5) * (lo + hi)
+        return lo, hi, st["p0"][rows] + mid[:, None] * st["sv"][rows]
+
+    def ends(rows, lo, hi):
+        """Densities at the front and back ends of the segments of ``rows`` (lattice ends
+        ``lo``, ``hi``), reusing the boundary the ray's previous segment shared."""
+        kk = st["k"][rows]
+        near, far = (kk + 1, kk) if backward else (kk, kk + 1)
+        p_near, p_far = (hi, lo) if backward else (lo, hi)
+        fresh = np.flatnonzero(st["edge_b"][rows] != near)
+        which = np.concatenate([fresh, np.arange(len(rows))])
+        lattice = np.concatenate([p_near[fresh], p_far])
+        value = sampler(st["p0"][rows][which] + lattice[:, None] * st["sv"][rows][which])[3]
+        v_near = st["edge_v"][rows]
+        v_near[fresh] = value[:len(fresh)]
+        v_far = value[len(fresh):]
+        st["edge_b"][rows] = far
+        st["edge_v"][rows] = v_far
+        return (v_far, v_near) if backward else (v_near, v_far)
 
     def finish(rows):
         """Copy the results of ``rows`` to the outputs."""
@@ -676,15 +796,15 @@ def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, s
             if len(rows):
                 hold = np.zeros(len(live), bool)
                 hold[rows] = True
-        kf, is_last, pos = position(slice(None), st["k"])
+        lo, hi, pos = position(slice(None), st["k"])
         base, f, readable, value, grad = sampler(pos)
         active = live if hold is None else live & ~hold
-        # The sample's segment (half a step each side; the last one is shorter).
-        half = np.float32(0.5) if not is_last.any() else np.where(
-            is_last, np.float32(0.5) * st["last"], np.float32(0.5))
+        # The sample's segment: half a step each side (the first and last may be shorter).
+        kf = np.float32(0.5) * (lo + hi)
+        half = np.float32(0.5) * (hi - lo)
         acc = st["acc"]
         kev = st["kev"]
-        hsv = st["sv"] * (half if np.ndim(half) == 0 else half[:, None])
+        hsv = st["sv"] * half[:, None]
         if mode == "mip":
             # The segment's two ends (nudged into it) and its middle, in ray order: linear
             # stretches of the field peak at their ends, as the reference's MIP knows.
@@ -712,6 +832,14 @@ def _march(sampler, visible, nb, size, mode, lut, shading, inv_t, termination, s
                 kev[hit] = front[hit]
             else:
                 rgb, alpha = _classify(lut, value, length)
+                if pre is not None:
+                    # Segments wholly in the region are pre-integrated from their ends' densities;
+                    # those the region's surface cuts keep the point-sampled middle.
+                    whole = np.flatnonzero(frac == 1)
+                    if len(whole):
+                        front_s, back_s = ends(whole, lo[whole], hi[whole])
+                        rgb[whole], alpha[whole] = _classify_preintegrated(
+                            pre, front_s, back_s, length[whole])
                 if grad is not None:
                     rgb = _shade(rgb, grad, inv_t, st["dirs"], shading).astype(np.float32)
                 c = rgb * alpha[:, None]
@@ -770,7 +898,8 @@ def _leap(p0, sv, blo, bhi, eps, backward):
 
 def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None, step_mm=None,
                    skip_empty=True, termination=0.99, shading=None, xray_scale=1.0,
-                   xray_offset=0.0, block=8, chunk_rays=262144):
+                   xray_offset=0.0, block=8, chunk_rays=262144, jitter=False,
+                   preintegrate=False):
     """Ray cast a VolumeEVM with the EVM as space-leaping structure.
 
     Parameters
@@ -804,6 +933,14 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
         Rays marched together (bounds memory: the default, a 512² image at once, peaks near
         170 MB for the CT head beside the cached tables; fewer Python steps than smaller
         chunks).
+    jitter : bool
+        Offset each ray's sample lattice by its pixel's fraction of a step (a fixed hash: the
+        same image every run): banding at coarse steps becomes noise. Entry and exit stay exact.
+    preintegrate : bool
+        ``"over"``/``"under"``: classify each segment by its two ends' densities through the
+        pre-integrated table (:meth:`TransferFunction.preintegrated_table`) instead of its
+        middle's, for transfer functions narrower than the density change per step. Ignored by
+        ``"mip"`` and ``"xray"`` (they classify no segments).
 
     Returns
     -------
@@ -815,12 +952,13 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
     return _render(vevm, camera, tf, grid_to_world, navigate=False, mode=mode, depth_in=depth_in,
                    step_mm=step_mm, skip_empty=skip_empty, termination=termination,
                    shading=shading, xray_scale=xray_scale, xray_offset=xray_offset, block=block,
-                   chunk_rays=chunk_rays)
+                   chunk_rays=chunk_rays, jitter=jitter, preintegrate=preintegrate)
 
 
 def render_raycast_navigate(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
                             step_mm=None, skip_empty=True, termination=0.99, shading=None,
-                            xray_scale=1.0, xray_offset=0.0, block=8, chunk_rays=16384):
+                            xray_scale=1.0, xray_offset=0.0, block=8, chunk_rays=16384,
+                            jitter=False, preintegrate=False):
     """Ray cast a VolumeEVM locating every density through the EVM (the report's baseline).
 
     The same caster as :func:`render_raycast` (same parameters, same image within float
@@ -831,4 +969,4 @@ def render_raycast_navigate(vevm, camera, tf, grid_to_world, *, mode="over", dep
     return _render(vevm, camera, tf, grid_to_world, navigate=True, mode=mode, depth_in=depth_in,
                    step_mm=step_mm, skip_empty=skip_empty, termination=termination,
                    shading=shading, xray_scale=xray_scale, xray_offset=xray_offset, block=block,
-                   chunk_rays=chunk_rays)
+                   chunk_rays=chunk_rays, jitter=jitter, preintegrate=preintegrate)
