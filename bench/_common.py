@@ -1,5 +1,6 @@
 """What every benchmark shares: best-of-N timing, the run's facts, JSON results written atomically."""
 
+import inspect
 import json
 import os
 import platform
@@ -52,3 +53,13 @@ def write_json(path, data):
     text = json.dumps(data, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     write_atomically(path, lambda temporary: temporary.write_text(text), overwrite=True)
     print(f"wrote {path}")
+
+
+def accepts(method, options):
+    """Whether this version of the renderer ``method`` takes every option in ``options`` (so a
+    bench runs on renderers that do not have a quality setting yet, and says so by leaving it
+    out)."""
+    from volumeevm_addon._render import _renderers
+
+    names = set(inspect.signature(_renderers()[method]).parameters) | {"level"}
+    return set(options) <= names

@@ -52,7 +52,6 @@ import argparse
 import csv
 import dataclasses
 import hashlib
-import inspect
 import io
 import json
 import os
@@ -69,12 +68,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench" / "peers"))
 
-from bench._common import run_facts, write_json  # noqa: E402
+from bench._common import accepts, run_facts, write_json  # noqa: E402
 from volumeevm_addon import VolumeEVM, _phantoms  # noqa: E402
 from volumeevm_addon._camera import Camera  # noqa: E402
 from volumeevm_addon._files import write_atomically  # noqa: E402
 from volumeevm_addon._metrics import image_errors  # noqa: E402
-from volumeevm_addon._render import METHODS, _renderers, render  # noqa: E402
+from volumeevm_addon._render import METHODS, render  # noqa: E402
 from volumeevm_addon._transfer import TransferFunction  # noqa: E402
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, grid_to_world  # noqa: E402
 
@@ -170,18 +169,12 @@ PEER_SWEEPS = {
 }
 
 
-def accepted(method):
-    """Names of the options ``method`` takes."""
-    return set(inspect.signature(_renderers()[method]).parameters)
-
-
 def settings(method, voxel_mm, quick):
     """The method's quality settings this version of it accepts (defaults first), as option
     dicts with ``step_mm`` in mm."""
-    names = accepted(method)
     out, seen = [{}], {"{}"}
     for s in SWEEPS[method]:
-        if not set(s) <= names:
+        if not accepts(method, s):
             continue
         s = {k: (v * voxel_mm if k == "step_mm" else v) for k, v in s.items()}
         key = json.dumps(s, sort_keys=True)
