@@ -114,7 +114,8 @@ def output_depth(dvr_depth, scene_depth):
                     np.asarray(scene_depth, np.float32)).astype(np.float32)
 
 
-def method_options(method, quality, spacing, *, shading=False, termination=0.99, level="auto"):
+def method_options(method, quality, spacing, *, shading=False, termination=0.99, level="auto",
+                   slices_per_voxel=1, classification="pre", jitter=False, preintegrate=False):
     """The core's options for one quality setting (1 = each method's default sampling).
 
     ``quality`` scales the sampling density: shear-warp's intermediate pixels per voxel
@@ -123,6 +124,8 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
     Splatting has no sampling setting (its kernel is fixed). ``level`` is the Render setting
     Resolution: ``"auto"`` (default) renders a volume much finer than the pixels from a coarser
     level, ``"full"`` every voxel (the core's ``render(level=...)``; the reference ignores it).
+    The method's own settings go only to the method that has them: ``slices_per_voxel`` and
+    ``classification`` to shear-warp, ``jitter`` and ``preintegrate`` to the ray casters.
     """
     quality = float(quality)
     if not np.isfinite(quality) or quality <= 0:
@@ -134,9 +137,11 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
     if shading:
         options["shading"] = True
     if method == "shear_warp":
-        options["intermediate_scale"] = quality
+        options.update(intermediate_scale=quality, slices_per_voxel=int(slices_per_voxel),
+                       classification=classification)
     elif method in ("raycast", "raycast_navigate"):
-        options["step_mm"] = 0.5 * smallest / quality
+        options.update(step_mm=0.5 * smallest / quality, jitter=bool(jitter),
+                       preintegrate=bool(preintegrate))
     elif method == "reference":
         options = {k: v for k, v in options.items() if k != "termination"}
         options["step_mm"] = smallest / 16.0 / quality

@@ -303,7 +303,10 @@ def _job_arguments(context, settings, volume_name=""):
     tf = transfer_function(settings)
     options = dvr.method_options(settings.method, settings.quality, tuple(vol.volumeevm.spacing),
                                  shading=settings.shading, termination=settings.termination,
-                                 level=settings.resolution)
+                                 level=settings.resolution,
+                                 slices_per_voxel=settings.slices_per_voxel,
+                                 classification=settings.classification,
+                                 jitter=settings.jitter, preintegrate=settings.preintegrate)
     if settings.mode == "xray":
         options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
     return vol, tf, dict(

@@ -522,3 +522,29 @@ def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dv
     assert 1e-4 < error < 0.14, error
     with pytest.raises(ext.volumeevm_addon.VolumeEVMError, match="level"):
         dvr.method_options("raycast", 1.0, spacing, level="half")
+
+
+def test_method_settings_reach_the_core(ext, dvr, skull, tmp_path):
+    """Shear-warp's slices and classification and the ray casters' jitter and pre-integration
+    go from the Render settings to the method that has them, and change the operator's image."""
+    scene = bpy.context.scene
+    add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (24, 20))
+    s = settings_for(scene, skull, tmp_path, method="shear_warp", slices_per_voxel=2,
+                     classification="post", jitter=True, preintegrate=True)
+    options = ext.operators.render._job_arguments(bpy.context, s)[2]["options"]
+    assert options["slices_per_voxel"] == 2 and options["classification"] == "post"
+    assert "jitter" not in options and "preintegrate" not in options
+    s.method = "raycast"
+    options = ext.operators.render._job_arguments(bpy.context, s)[2]["options"]
+    assert options["jitter"] is True and options["preintegrate"] is True
+    assert "slices_per_voxel" not in options
+    images = []
+    for on in (True, False):
+        s.jitter = s.preintegrate = on
+        assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+        pixels = np.empty(24 * 20 * 4, np.float32)
+        bpy.data.images[dvr.DEFAULT_IMAGE].pixels.foreach_get(pixels)
+        images.append(pixels.reshape(20, 24, 4))
+    assert images[0][..., 3].max() > 0.5
+    assert np.abs(images[0] - images[1]).max() > 1e-3  # the settings change the image

@@ -6,7 +6,8 @@ positions map onto a value range in the data's units (histogram beside it); outp
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, PointerProperty, StringProperty
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
 
 from ..operators import _jobs, dvr, render
 
@@ -28,6 +29,12 @@ RESOLUTION_ITEMS = (
     ("auto", "Auto", "Render a volume much finer than the image's pixels from a coarser level "
                      "whose voxels are still no wider than a pixel (faster, less aliasing)"),
     ("full", "Full", "Render every voxel of the VolumeEVM"),
+)
+CLASSIFICATION_ITEMS = (
+    ("pre", "Pre-Classified", "Classify and shade voxels, then interpolate colours (VolPack's "
+                              "order; fastest)"),
+    ("post", "Post-Classified", "Interpolate densities, then classify and shade each sample "
+                                "(the reference's order; sharper transfer functions)"),
 )
 PRESET_ITEMS = (
     ("ct_bone", "CT Bone", "Bone, in Hounsfield units"),
@@ -62,6 +69,22 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
         name="Resolution", items=RESOLUTION_ITEMS, default="auto",
         description="Resolution level of the volume render (the reference always renders every "
                     "voxel)")
+    slices_per_voxel: IntProperty(
+        name="Slices per Voxel", default=1, min=1, max=4,
+        description="Shear-warp: samples per voxel slice along each ray (interpolated between "
+                    "slices); 2 removes the jump in brightness when a turning camera passes "
+                    "45 degrees to the volume's axes, at about twice the time")
+    classification: EnumProperty(name="Classification", items=CLASSIFICATION_ITEMS,
+                                 default="pre", description="Shear-warp: when the transfer "
+                                 "function is applied")
+    jitter: BoolProperty(
+        name="Jitter", default=False,
+        description="Ray casting: offset each ray's samples by a fixed fraction of a step, "
+                    "trading wood-grain banding at coarse steps for fine noise")
+    preintegrate: BoolProperty(
+        name="Pre-Integrated", default=False,
+        description="Ray casting: classify whole segments between samples from a table, so "
+                    "narrow transfer-function peaks are not missed at coarse steps")
     shading: BoolProperty(name="Shading", default=False,
                           description="Gradient shading (Blinn-Phong, light from the camera)")
     termination: FloatProperty(
@@ -149,6 +172,12 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         col.prop(settings, "quality")
         col.prop(settings, "resolution")
         col.prop(settings, "termination")
+        if settings.method == "shear_warp":
+            col.prop(settings, "slices_per_voxel")
+            col.prop(settings, "classification")
+        elif settings.method in ("raycast", "raycast_navigate"):
+            col.prop(settings, "jitter")
+            col.prop(settings, "preintegrate")
         col.prop(settings, "shading")
         if settings.mode == "xray":
             col.prop(settings, "xray_scale")
