@@ -117,6 +117,17 @@ def _slabs(vevm, axis):
     return entry[axis]
 
 
+def _kept_voxels(vevm, axis, key):
+    """The dict ``a -> indices of slice a's voxels that can change the image`` for the
+    culling rule ``key`` (mode, transfer function's opacity, reach), cached on the VolumeEVM
+    for the last rule per axis: per-transfer-function work, like a classified volume, that
+    frames with the same transfer function share."""
+    entry = _CACHE.setdefault(vevm, {})
+    if entry.get(("kept", axis), (None,))[0] != key:
+        entry[("kept", axis)] = (key, {})
+    return entry[("kept", axis)][1]
+
+
 def _slices_evm(vevm, axis):
     """A function ``a -> (cells (m, 2) B, C, densities (m,))`` (None for an empty slice) reading
     the sections and the densities table of ``axis``."""
@@ -201,16 +212,20 @@ def _neighbourhood(cells, dens, radius, op, fill):
     grid = np.full(tuple(size), fill)
     at = (cells[:, 0] - lo[0] + radius, cells[:, 1] - lo[1] + radius)
     grid[at] = dens
+    # Windows of 2·radius + 1 per axis by doubling: after the loop ``src[i]`` covers
+    # ``i .. i + width - 1`` (cut at the end, which is padding), and two such windows with
+    # ``width > radius`` cover ``i - radius .. i + radius``.
     for ax in (0, 1):
-        src = grid
-        grid = src.copy()
-        n = src.shape[ax]
-        for sft in range(1, radius + 1):
-            a = [slice(None)] * 2
-            b = [slice(None)] * 2
-            a[ax], b[ax] = slice(sft, n), slice(0, n - sft)
-            op(grid[tuple(a)], src[tuple(b)], out=grid[tuple(a)])
-            op(grid[tuple(b)], src[tuple(a)], out=grid[tuple(b)])
+        src = np.moveaxis(grid, ax, 0)
+        width = 1
+        while 2 * width <= 2 * radius + 1:
+            op(src[:-width], src[width:], out=src[:-width])
+            width *= 2
+        out = np.full_like(grid, fill)
+        m = src.shape[0] - 2 * radius
+        shift = 2 * radius + 1 - width
+        op(src[:m], src[shift:shift + m], out=np.moveaxis(out, ax, 0)[radius:radius + m])
+        grid = out
     return grid[at]
 
 
@@ -418,26 +433,41 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         # in-plane voxels from it (the footprint's ellipse for the most oblique view).
         reach_vox = int(np.ceil(2 * radius * np.sqrt(3.0)))
         if mode == "xray":
-            def cull(cells, dens):
+            key = ("xray", reach_vox, xray_scale, xray_offset)
+
+            def visible(cells, dens):
                 hi = _neighbourhood(cells, dens, reach_vox, np.maximum, -np.inf)
-                keep = (hi > xray_offset) & (xray_scale > 0)
-                return cells[keep], dens[keep]
+                return (hi > xray_offset) & (xray_scale > 0)
         else:
             margin = 1.0 / lut[2]  # one lookup-table step: the table is interpolated
+            key = ("tf", reach_vox, margin, tf.points[:, [0, 4]].tobytes())
 
-            def cull(cells, dens):
+            def visible(cells, dens):
                 lo_ = _neighbourhood(cells, dens, reach_vox, np.minimum, np.inf)
                 hi_ = _neighbourhood(cells, dens, reach_vox, np.maximum, -np.inf)
-                keep = ~tf.transparent_between(lo_ - margin, hi_ + margin)
-                return cells[keep], dens[keep]
+                return ~tf.transparent_between(lo_ - margin, hi_ + margin)
+        kept = _kept_voxels(vevm, axis, key) if skip_empty else {}
+
+        def cull(a, cells, dens):
+            if a not in kept:
+                kept[a] = np.flatnonzero(visible(cells, dens)).astype(np.int32)
+            return cells[kept[a]], dens[kept[a]]
     fwd_i = camera.forward @ inv[:3, :3].T
+    if camera.is_ortho:
+        # An orthographic projection is affine in index space: rows (pixel u, v, depth) of
+        # the index origin, then per unit of x, y, z.
+        corners = np.vstack([g[:3, 3], g[:3, 3] + g[:3, :3].T])
+        uv0, depth0 = camera.project(corners)
+        ortho = np.column_stack([uv0, depth0])
+        ortho[1:] -= ortho[0]
+        ortho_offsets = {}
     for a, cells, dens in sheets:
         live_rows = np.flatnonzero(~done.all(axis=1))
         if len(live_rows) == 0:
             break
         live_cols = np.flatnonzero(~done.all(axis=0))
         if cull is not None:
-            cells, dens = cull(cells, dens)
+            cells, dens = cull(a, cells, dens)
             if len(cells) == 0:
                 continue
         n = len(cells)
@@ -445,19 +475,22 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         vox[:, axis] = a
         vox[:, b_ax] = cells[:, 0]
         vox[:, c_ax] = cells[:, 1]
-        world = vox @ g[:3, :3].T + g[:3, 3]
-        uv, vdepth = camera.project(world)
-        ok = np.isfinite(uv).all(axis=1) & (vdepth > 0)
-        if not camera.is_ortho:
-            dirs = vox - cam_i
-        else:
+        if camera.is_ortho:
+            uvd = vox @ ortho[1:] + ortho[0]
+            uv, vdepth = uvd[:, :2], uvd[:, 2]
+            uvb, uvc = uv + ortho[1 + b_ax, :2], uv + ortho[1 + c_ax, :2]
             dirs = np.broadcast_to(fwd_i, vox.shape)
+        else:
+            world = vox @ g[:3, :3].T + g[:3, 3]
+            uv, vdepth = camera.project(world)
+            # Footprint window: the kernel's in-plane ellipse mapped by the local projection.
+            uvb, _ = camera.project(world + g[:3, b_ax])
+            uvc, _ = camera.project(world + g[:3, c_ax])
+            dirs = vox - cam_i
+        ok = np.isfinite(uv).all(axis=1) & (vdepth > 0)
         u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
         uA = np.abs(u[:, axis])
         ok &= uA > 1e-6
-        # Footprint window: the kernel's in-plane ellipse mapped by the local projection.
-        uvb, _ = camera.project(world + g[:3, b_ax])
-        uvc, _ = camera.project(world + g[:3, c_ax])
         with np.errstate(invalid="ignore", divide="ignore"):
             ext_b = radius * np.sqrt(1 + u[:, b_ax] ** 2 / uA ** 2)
             ext_c = radius * np.sqrt(1 + u[:, c_ax] ** 2 / uA ** 2)
@@ -498,8 +531,14 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
                 uv, uvb, uvc = uv[keep], uvb[keep], uvc[keep]
             if len(cells) == 0:
                 continue
-        offsets = _window_offsets(uv, uvb, uvc, u[:, b_ax], u[:, c_ax], hu, hv, radius,
-                                  not camera.is_ortho)
+        if camera.is_ortho:  # the same footprint for every voxel and sheet
+            if (hu, hv) not in ortho_offsets:
+                ortho_offsets[hu, hv] = _window_offsets(uv, uvb, uvc, u[:, b_ax], u[:, c_ax],
+                                                        hu, hv, radius, False)
+            offsets = ortho_offsets[hu, hv]
+        else:
+            offsets = _window_offsets(uv, uvb, uvc, u[:, b_ax], u[:, c_ax], hu, hv, radius,
+                                      True)
         # Per window pixel: the crossing point, the drift, and the part of the slab
         # a - 0.5 .. a + 0.5 the ray travels (box, clip range, depth_in) as offsets from the
         # plane along the ray.
@@ -511,12 +550,13 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         s0[~live] = 0  # finished (or never reached) pixels take nothing
         s1[~live] = 0
         pixel = np.empty((bh * bw + 1, 6), np.float32)
-        pixel[:-1, 0] = (img["B0"][win] + a * img["B1"][win]).ravel()
-        pixel[:-1, 1] = (img["C0"][win] + a * img["C1"][win]).ravel()
-        pixel[:-1, 2] = img["dB"][win].ravel()
-        pixel[:-1, 3] = img["dC"][win].ravel()
-        pixel[:-1, 4] = s0.ravel()
-        pixel[:-1, 5] = s1.ravel()
+        grid = pixel[:-1].reshape(bh, bw, 6)
+        grid[..., 0] = img["B0"][win] + a * img["B1"][win]
+        grid[..., 1] = img["C0"][win] + a * img["C1"][win]
+        grid[..., 2] = img["dB"][win]
+        grid[..., 3] = img["dC"][win]
+        grid[..., 4] = s0
+        grid[..., 5] = s1
         pixel[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
         grads = None if shading is None else _sheet_gradients(get, a, cells)
         W, WD, L, S, G = _scatter(cells, dens, grads, u[:, b_ax], u[:, c_ax], col - c0,
@@ -617,22 +657,27 @@ def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, 
         proj = db * pub + dc * puc
         r2 = np.maximum(db * db + dc * dc - proj * proj, 0)
         wt = ftab[np.minimum((r2 * np.float32(fscale)).astype(np.int64), len(ftab) - 1)]
-        # The ray's path in the slab, (db, dc) + s (dB/dA, dC/dA) for s in [s0, s1], clipped to
-        # the voxel's cell |.| <= 0.5 in both in-plane axes.
-        lo, hi = px[:, 4], px[:, 5]
-        for delta, drift in ((db, px[:, 2]), (dc, px[:, 3])):
+        W += np.bincount(flat, wt, minlength=npix + 1)
+        WD += np.bincount(flat, wt * np.broadcast_to(dens[sl], cc.shape).ravel(),
+                          minlength=npix + 1)
+        # The ray's path in the slab, (db, dc) + s (dB/dA, dC/dA) for s in [s0, s1] within
+        # [-0.5, 0.5], clipped to the voxel's cell |.| <= 0.5 in both in-plane axes; only the
+        # pairs whose cell the path can reach.
+        near = np.flatnonzero((np.abs(db) - 0.5 * np.abs(px[:, 2]) < 0.5)
+                              & (np.abs(dc) - 0.5 * np.abs(px[:, 3]) < 0.5))
+        pn = px[near]
+        lo, hi = pn[:, 4], pn[:, 5]
+        for delta, drift in ((db[near], pn[:, 2]), (dc[near], pn[:, 3])):
             drift = np.where(np.abs(drift) < _TINY, _TINY, drift)
             e0 = (-0.5 - delta) / drift
             e1 = (0.5 - delta) / drift
             lo = np.maximum(lo, np.minimum(e0, e1))
             hi = np.minimum(hi, np.maximum(e0, e1))
         length = np.maximum(hi - lo, 0)
-        W += np.bincount(flat, wt, minlength=npix + 1)
-        WD += np.bincount(flat, wt * np.broadcast_to(dens[sl], cc.shape).ravel(),
-                          minlength=npix + 1)
-        L += np.bincount(flat, length, minlength=npix + 1)
+        fn = flat[near]
+        L += np.bincount(fn, length, minlength=npix + 1)
         hit = length > 0
-        np.minimum.at(S, flat[hit], lo[hit])
+        np.minimum.at(S, fn[hit], lo[hit])
         if G is not None:
             for j in range(3):
                 G[:, j] += np.bincount(flat, wt * np.broadcast_to(
