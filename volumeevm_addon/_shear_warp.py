@@ -587,7 +587,9 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         along one direction (perspective: eye to the region's centre).
     slices_per_voxel : {1, 2, 3, 4, 8}
         Samples along each ray per voxel slice (module docstring, 4): 1 is VolPack's one sample
-        per slice; more interpolate between slices (trilinear), at that many times the cost.
+        per slice; more interpolate between slices (trilinear): each voxel slice is classified
+        once and every sample blends two of them, then resamples once (CT head 512²: 2 slices
+        cost 1.6 times one).
     classification : {"pre", "post"}
         ``"pre"``: classify (and light) voxels, then interpolate colours (VolPack); ``"post"``:
         interpolate densities (and gradients), then classify and light each sample, as the
@@ -746,6 +748,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
     delta = view.delta / per_voxel
     post = mode in ("xray", "mip") or classification == "post"
     n_slices = len(layout.boxes)
+    table = voxels = classes = lut = None
     if post:
         table = _post_table(layout, vevm, shading is not None)
         boxes = layout.boxes
@@ -770,6 +773,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         image = np.zeros((hi, wi), np.float32)
         if mode == "mip":
             image.fill(_UNSEEN)
+    gathered = _Gathered(layout, classes, table, voxels, lut, boxes)
     active = [0, hi, 0, wi]
     for n, s in enumerate(owner):
         t = offset[n]
@@ -791,23 +795,18 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         p0, p1, ia, fa = rows
         q0, q1, ib, fb = cols
         window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
-        parts = [(s, 1.0 - abs(t))] + ([] if s2 is None else [(s2, abs(t))])
-        for k, (sl, weight) in enumerate(parts):
-            codes = _window(layout.codes[sl], layout.boxes[sl], *window)
-            if post:
-                src = np.take(table, codes, axis=1)
-            elif shading is not None:
-                src = np.take(voxels, codes, axis=1)
-            else:
-                src = np.take(lut, np.take(classes.rows, codes), axis=1)
-            part, near_in = _bilinear(src, ia - ia[0], fa, ib - ib[0], fb, view.constant)
-            if k == 0:
-                out, inside = part, near_in
-                if s2 is not None:
-                    out *= np.float32(weight)
-            else:
-                part *= np.float32(weight)
-                out += part
+        if s2 is None:
+            src = _classified(layout, classes, table, voxels, lut, s, window)
+            region = src[-1] > 0
+        else:
+            # Bilinear resampling is linear: blend the two slices voxel by voxel, then resample
+            # once (trilinear). Each voxel slice feeds up to 2k samples: gathered once.
+            mine, other = gathered.get(s, window), gathered.get(s2, window)
+            region = mine[-1] > 0
+            src = mine * np.float32(1.0 - abs(t))
+            src += other * np.float32(abs(t))
+        # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
+        out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
         sample = _normalise(out, inside)
         area = (slice(p0, p1), slice(q0, q1))
         # Depth test, only where the slice's depth range crosses a limit.
@@ -923,11 +922,52 @@ def _span(t0, t1, alpha, beta, lo, hi):
     return p0, p1, i, f
 
 
-def _bilinear(src, ia, fa, ib, fb, constant):
-    """Bilinear samples of a slice window ``src`` (channels first; the last channel is 1
-    inside the region) at ``x = ia + fa`` (rows) and ``y = ib + fb`` (columns), window
+def _classified(layout, classes, table, voxels, lut, s, window):
+    """What a sample interpolates from slice ``s`` over ``window`` (slice coordinates), channels
+    first, the last the region weight: post-classification's per-code ``table``, shaded
+    pre-classification's per-code ``voxels``, or the rows of the classification table
+    ``lut``."""
+    codes = _window(layout.codes[s], layout.boxes[s], *window)
+    if table is not None:
+        return np.take(table, codes, axis=1)
+    if voxels is not None:
+        return np.take(voxels, codes, axis=1)
+    return np.take(lut, np.take(classes.rows, codes), axis=1)
+
+
+class _Gathered:
+    """:func:`_classified` slices kept while consecutive samples blend them (``slices_per_voxel``
+    > 1): each slice is gathered once, over every window a sample may ask of it.
+
+    A sample between slices ``s`` and ``s ± 1`` reads ``[t0 - 1, t1 + 1)`` of the union of
+    their boxes (:func:`_span`), so slice ``s``'s cover is the union of the boxes of ``s - 1``,
+    ``s`` and ``s + 1``, widened by one voxel. The three slices last asked for are kept.
+    """
+
+    def __init__(self, layout, classes, table, voxels, lut, boxes):
+        self.args = (layout, classes, table, voxels, lut)
+        self.boxes = boxes
+        self.kept = {}
+
+    def get(self, s, window):
+        """Slice ``s`` over ``window`` (slice coordinates), channels first: a read-only view."""
+        if s not in self.kept:
+            near = self.boxes[max(s - 1, 0):s + 2]
+            near = near[(near[:, 1] > near[:, 0]) & (near[:, 3] > near[:, 2])]
+            cover = (near[:, 0].min() - 1, near[:, 1].max() + 1, near[:, 2].min() - 1,
+                     near[:, 3].max() + 1)
+            if len(self.kept) == 3:
+                del self.kept[next(iter(self.kept))]
+            self.kept[s] = cover, _classified(*self.args, s, cover)
+        (a0, _, b0, _), values = self.kept[s]
+        return values[:, window[0] - a0:window[1] - a0, window[2] - b0:window[3] - b0]
+
+
+def _bilinear(src, region, ia, fa, ib, fb, constant):
+    """Bilinear samples of a slice window ``src`` (channels first; the last channel is the
+    region weight) at ``x = ia + fa`` (rows) and ``y = ib + fb`` (columns), window
     coordinates, not yet renormalised; and ``inside``: whether each sample's nearest voxel is
-    in the region.
+    in the region (``region``: the window's voxels that are).
 
     ``constant``: the fractions are the same for all rows and all columns (a translated slice,
     ``ia``/``ib`` consecutive): four shifted views instead of gathers.
@@ -940,17 +980,17 @@ def _bilinear(src, ia, fa, ib, fb, constant):
         out += src[:, 1:n + 1, :m] * (f * (1 - g))
         out += src[:, 1:n + 1, 1:m + 1] * (f * g)
         ra, rb = int(f >= 0.5), int(g >= 0.5)
-        inside = src[-1, ra:ra + n, rb:rb + m] > 0
+        inside = region[ra:ra + n, rb:rb + m]
     else:
         cols = np.take(src, ib, axis=2)
         cols *= 1 - fb
         cols += np.take(src, ib + 1, axis=2) * fb
-        near_b = np.take(src[-1], ib + (fb >= 0.5), axis=1)
+        near_b = np.take(region, ib + (fb >= 0.5), axis=1)
         fa2 = fa[:, None]
         out = np.take(cols, ia, axis=1)
         out *= 1 - fa2
         out += np.take(cols, ia + 1, axis=1) * fa2
-        inside = np.take(near_b, ia + (fa >= 0.5), axis=0) > 0
+        inside = np.take(near_b, ia + (fa >= 0.5), axis=0)
     return out, inside
 
 
