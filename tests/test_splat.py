@@ -107,6 +107,22 @@ def test_culling_invisible_voxels_changes_nothing(ct, mode, monkeypatch):
     np.testing.assert_array_equal(d1, d0)
 
 
+def test_culling_cache_follows_the_transfer_function(ct):
+    """The voxels kept by culling are cached per axis for the last transfer function (and
+    X-ray setting): switching back and forth gives the images of the uncached dense scan."""
+    v, g, _ = region(ct, -300, "ct_bone")
+    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(30, 24))
+    runs = [("ct_bone", {}), ("ct_skin", {}), ("ct_bone", {}),
+            (None, {"mode": "xray", "xray_scale": 2e-4, "xray_offset": 100.0}),
+            (None, {"mode": "xray", "xray_scale": 2e-4, "xray_offset": -1024.0})]
+    for preset, kw in runs:
+        tf = None if preset is None else TransferFunction.preset(preset)
+        cached, _ = render_splat(v, cam, tf, g, **kw)
+        dense, _ = render_splat(v, cam, tf, g, skip_empty=False, **kw)
+        assert cached[..., 3].max() > 0.3
+        np.testing.assert_allclose(cached, dense, rtol=0, atol=1e-6)
+
+
 # ---------------------------------------------------------------------------- closed forms
 @pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
 def test_box_region_closed_form(kind):

@@ -475,27 +475,31 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         vox[:, axis] = a
         vox[:, b_ax] = cells[:, 0]
         vox[:, c_ax] = cells[:, 1]
+        # Pixel position, the image motion per unit of B and C (jb, jc), and the view
+        # direction: one row for all voxels in orthographic views.
         if camera.is_ortho:
             uvd = vox @ ortho[1:] + ortho[0]
             uv, vdepth = uvd[:, :2], uvd[:, 2]
-            uvb, uvc = uv + ortho[1 + b_ax, :2], uv + ortho[1 + c_ax, :2]
-            dirs = np.broadcast_to(fwd_i, vox.shape)
+            jb, jc = ortho[1 + b_ax, None, :2], ortho[1 + c_ax, None, :2]
+            uvb, uvc = uv + jb, uv + jc
+            dirs = fwd_i[None, :]
         else:
             world = vox @ g[:3, :3].T + g[:3, 3]
             uv, vdepth = camera.project(world)
-            # Footprint window: the kernel's in-plane ellipse mapped by the local projection.
             uvb, _ = camera.project(world + g[:3, b_ax])
             uvc, _ = camera.project(world + g[:3, c_ax])
+            jb, jc = uvb - uv, uvc - uv
             dirs = vox - cam_i
-        ok = np.isfinite(uv).all(axis=1) & (vdepth > 0)
         u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
         uA = np.abs(u[:, axis])
-        ok &= uA > 1e-6
+        # Footprint window: the kernel's in-plane ellipse mapped by the local projection.
         with np.errstate(invalid="ignore", divide="ignore"):
             ext_b = radius * np.sqrt(1 + u[:, b_ax] ** 2 / uA ** 2)
             ext_c = radius * np.sqrt(1 + u[:, c_ax] ** 2 / uA ** 2)
-            hwid = np.abs(uvb - uv) * ext_b[:, None] + np.abs(uvc - uv) * ext_c[:, None]
-        ok &= np.isfinite(hwid).all(axis=1)
+            hwid = np.abs(jb) * ext_b[:, None] + np.abs(jc) * ext_c[:, None]
+        ok = (np.isfinite(uv).all(axis=1) & (vdepth > 0) & (uA > 1e-6)
+              & np.isfinite(hwid).all(axis=1))
+        u, hwid = np.broadcast_to(u, (n, 3)), np.broadcast_to(hwid, (n, 2))
         if not ok.all():
             cells, dens, uv, u, hwid = cells[ok], dens[ok], uv[ok], u[ok], hwid[ok]
             uvb, uvc = uvb[ok], uvc[ok]
@@ -559,8 +563,11 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         grid[..., 5] = s1
         pixel[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
         grads = None if shading is None else _sheet_gradients(get, a, cells)
+        # Over and X-ray keep the first hit's depth: only pixels without one need S.
+        need = None if mode in ("under", "mip") else np.append(
+            depth[win] == BACKGROUND_DEPTH, False)
         W, WD, L, S, G = _scatter(cells, dens, grads, u[:, b_ax], u[:, c_ax], col - c0,
-                                  row - r0, offsets, bw, bh, pixel, ftab, fscale)
+                                  row - r0, offsets, bw, bh, pixel, ftab, fscale, need)
         sees = np.flatnonzero((L > 0) & (W > 0))
         if len(sees) == 0:
             continue
@@ -618,7 +625,8 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
     return acc, depth
 
 
-def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale):
+def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale,
+             need=None):
     """Splat one sheet into its ``bh × bw`` window.
 
     Each voxel goes to the pixels ``(col, row) + offsets`` (window coordinates). ``rows``
@@ -626,8 +634,9 @@ def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, 
     crossing point (B, C) of its ray with the sheet's plane, the ray's drift (dB/dA, dC/dA)
     and the range ``[s0, s1]`` of A-offsets from the plane it travels in the slab. Returns per
     pixel ``Σ w``, ``Σ w·density``, the length (in units of A) of the ray's path in the slab
-    that lies in the sheet's cells, the A-offset where that path starts, and (``grads``
-    (m, 3) or None) ``Σ w·gradient``.
+    that lies in the sheet's cells, the A-offset where that path starts (only where ``need``,
+    bool per pixel and the last row, is True, if given; elsewhere inf), and (``grads`` (m, 3)
+    or None) ``Σ w·gradient``.
     """
     npix = bw * bh
     W = np.zeros(npix + 1)
@@ -677,6 +686,8 @@ def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, 
         fn = flat[near]
         L += np.bincount(fn, length, minlength=npix + 1)
         hit = length > 0
+        if need is not None:
+            hit &= need[fn]
         np.minimum.at(S, fn[hit], lo[hit])
         if G is not None:
             for j in range(3):
