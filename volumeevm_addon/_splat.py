@@ -461,6 +461,7 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         ortho = np.column_stack([uv0, depth0])
         ortho[1:] -= ortho[0]
         ortho_offsets = {}
+        drift = (fwd_i[[b_ax, c_ax]] / abs(fwd_i[axis])).astype(np.float32)  # dB/dA, dC/dA
     for a, cells, dens in sheets:
         live_rows = np.flatnonzero(~done.all(axis=1))
         if len(live_rows) == 0:
@@ -553,21 +554,31 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
             s1 = np.clip((img["t1"][win] - ta) / span, -0.5, 0.5)
         s0[~live] = 0  # finished (or never reached) pixels take nothing
         s1[~live] = 0
-        pixel = np.empty((bh * bw + 1, 6), np.float32)
-        grid = pixel[:-1].reshape(bh, bw, 6)
-        grid[..., 0] = img["B0"][win] + a * img["B1"][win]
-        grid[..., 1] = img["C0"][win] + a * img["C1"][win]
-        grid[..., 2] = img["dB"][win]
-        grid[..., 3] = img["dC"][win]
-        grid[..., 4] = s0
-        grid[..., 5] = s1
-        pixel[-1] = (_FAR, _FAR, 0, 0, 0, 0)  # where pairs outside the window go
+        # Orthographic: the crossing point relative to a voxel is J⁻¹ (pixel centre - the
+        # voxel's projection), per voxel plus per offset, and the drift is constant; the
+        # table holds only [s0, s1]. Perspective: per pixel crossing point and drift too.
+        pixel = np.empty((bh * bw + 1, 2 if camera.is_ortho else 6), np.float32)
+        grid = pixel[:-1].reshape(bh, bw, -1)
+        grid[..., 0] = s0
+        grid[..., 1] = s1
+        if camera.is_ortho:
+            pixel[-1] = 0  # where pairs outside the window go (their sums are dropped)
+            kinv = np.linalg.inv(np.column_stack([jb[0], jc[0]]))
+            centre = np.column_stack([col + 0.5 - uv[:, 0], row + 0.5 - uv[:, 1]])
+            affine = (centre @ kinv.T, offsets @ kinv.T, drift)
+        else:
+            grid[..., 2] = img["B0"][win] + a * img["B1"][win]
+            grid[..., 3] = img["C0"][win] + a * img["C1"][win]
+            grid[..., 4] = img["dB"][win]
+            grid[..., 5] = img["dC"][win]
+            pixel[-1] = (0, 0, _FAR, _FAR, 0, 0)  # where pairs outside the window go
+            affine = None
         grads = None if shading is None else _sheet_gradients(get, a, cells)
         # Over and X-ray keep the first hit's depth: only pixels without one need S.
         need = None if mode in ("under", "mip") else np.append(
             depth[win] == BACKGROUND_DEPTH, False)
         W, WD, L, S, G = _scatter(cells, dens, grads, u[:, b_ax], u[:, c_ax], col - c0,
-                                  row - r0, offsets, bw, bh, pixel, ftab, fscale, need)
+                                  row - r0, offsets, bw, bh, pixel, ftab, fscale, need, affine)
         sees = np.flatnonzero((L > 0) & (W > 0))
         if len(sees) == 0:
             continue
@@ -626,17 +637,19 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
 
 
 def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale,
-             need=None):
+             need=None, affine=None):
     """Splat one sheet into its ``bh × bw`` window.
 
     Each voxel goes to the pixels ``(col, row) + offsets`` (window coordinates). ``rows``
-    holds per window pixel (and one last row for pairs outside the window): the
-    crossing point (B, C) of its ray with the sheet's plane, the ray's drift (dB/dA, dC/dA)
-    and the range ``[s0, s1]`` of A-offsets from the plane it travels in the slab. Returns per
-    pixel ``Σ w``, ``Σ w·density``, the length (in units of A) of the ray's path in the slab
-    that lies in the sheet's cells, the A-offset where that path starts (only where ``need``,
-    bool per pixel and the last row, is True, if given; elsewhere inf), and (``grads`` (m, 3)
-    or None) ``Σ w·gradient``.
+    holds per window pixel (and one last row for pairs outside the window) the range
+    ``[s0, s1]`` of A-offsets from the plane its ray travels in the slab, then (perspective,
+    ``affine`` None) the crossing point (B, C) of the ray with the sheet's plane and its drift
+    (dB/dA, dC/dA). Orthographic (``affine = (per voxel (m, 2), per offset (k, 2), drift
+    (2,))``): the crossing point relative to the voxel is the sum of a per-voxel and a
+    per-offset term and the drift is constant. Returns per pixel ``Σ w``, ``Σ w·density``,
+    the length (in units of A) of the ray's path in the slab that lies in the sheet's cells,
+    the A-offset where that path starts (only where ``need``, bool per pixel and the last
+    row, is True, if given; elsewhere inf), and (``grads`` (m, 3) or None) ``Σ w·gradient``.
     """
     npix = bw * bh
     W = np.zeros(npix + 1)
@@ -657,9 +670,15 @@ def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, 
         rr = row[sl][None, :] + ov[:, None]
         valid = (cc >= 0) & (cc < bw) & (rr >= 0) & (rr < bh)
         flat = np.where(valid, rr * bw + cc, npix).ravel()
-        px = rows[flat]
-        db = px[:, 0] - np.broadcast_to(fb[sl], cc.shape).ravel()
-        dc = px[:, 1] - np.broadcast_to(fc[sl], cc.shape).ravel()
+        if affine is None:
+            px = rows[flat]
+            db = px[:, 2] - np.broadcast_to(fb[sl], cc.shape).ravel()
+            dc = px[:, 3] - np.broadcast_to(fc[sl], cc.shape).ravel()
+            drift_b, drift_c = px[:, 4], px[:, 5]
+        else:
+            per_vox, per_off, (drift_b, drift_c) = affine
+            db = (per_off[:, 0, None] + per_vox[None, sl, 0]).astype(np.float32).ravel()
+            dc = (per_off[:, 1, None] + per_vox[None, sl, 1]).astype(np.float32).ravel()
         pub = np.broadcast_to(ub[sl], cc.shape).ravel()
         puc = np.broadcast_to(uc[sl], cc.shape).ravel()
         # Footprint: the kernel integrated along the ray, at the crossing point.
@@ -672,18 +691,19 @@ def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, 
         # The ray's path in the slab, (db, dc) + s (dB/dA, dC/dA) for s in [s0, s1] within
         # [-0.5, 0.5], clipped to the voxel's cell |.| <= 0.5 in both in-plane axes; only the
         # pairs whose cell the path can reach.
-        near = np.flatnonzero((np.abs(db) - 0.5 * np.abs(px[:, 2]) < 0.5)
-                              & (np.abs(dc) - 0.5 * np.abs(px[:, 3]) < 0.5))
-        pn = px[near]
-        lo, hi = pn[:, 4], pn[:, 5]
-        for delta, drift in ((db[near], pn[:, 2]), (dc[near], pn[:, 3])):
+        near = np.flatnonzero((np.abs(db) - 0.5 * np.abs(drift_b) < 0.5)
+                              & (np.abs(dc) - 0.5 * np.abs(drift_c) < 0.5))
+        fn = flat[near]
+        lo, hi = rows[fn, 0], rows[fn, 1]
+        if affine is None:
+            drift_b, drift_c = drift_b[near], drift_c[near]
+        for delta, drift in ((db[near], drift_b), (dc[near], drift_c)):
             drift = np.where(np.abs(drift) < _TINY, _TINY, drift)
             e0 = (-0.5 - delta) / drift
             e1 = (0.5 - delta) / drift
             lo = np.maximum(lo, np.minimum(e0, e1))
             hi = np.minimum(hi, np.maximum(e0, e1))
         length = np.maximum(hi - lo, 0)
-        fn = flat[near]
         L += np.bincount(fn, length, minlength=npix + 1)
         hit = length > 0
         if need is not None:
