@@ -20,7 +20,10 @@ projected ray otherwise, scaled by the projection (perspective: per voxel). Weig
 precomputed footprint table indexed by ``|q_⊥|²``. Each voxel is scattered to the pixels its
 projected footprint can reach (a window of offsets around its projected centre, found per sheet
 from the kernel's ellipse and the local projection; half-width at most ``max_footprint_px``),
-all voxels of a sheet at once with ``np.bincount``.
+all voxels of a sheet at once with ``np.bincount``. Orthographic cameras project affinely, so
+every voxel has the same footprint: its window is found once, and a pixel's offset ``q`` from
+a voxel is a per-voxel term (its sub-pixel position) plus a per-offset term, with no per-pixel
+lookup (a sheet is the 2-D convolution of the slice with the footprint, on the image grid).
 
 Sheet buffer and classification
 -------------------------------
@@ -36,9 +39,10 @@ cuts exactly. Sheets are composited into the image in view order; voxels whose w
 already opaque (``termination``) are not splatted and the loop stops once every pixel is.
 Voxels whose in-sheet neighbourhood (every density a pixel they reach can mix) is transparent
 for the transfer function (X-ray: does not attenuate) are not splatted either: the image is the
-same. Shading (optional) splats per-voxel gradients (central differences over region voxels,
-from the neighbouring sheets) with the densities and lights the sheet's samples like the
-reference does.
+same. Which voxels those are is per-transfer-function work, cached on the VolumeEVM per axis
+for the last transfer function (frames of an animation share it). Shading (optional) splats
+per-voxel gradients (central differences over region voxels, from the neighbouring sheets)
+with the densities and lights the sheet's samples like the reference does.
 
 Modes follow the reference: over, under, xray (``exp(-Σ μ·length)``), mip (maximum sheet
 density). Depth out: axial depth where the ray enters the region's cells in the first sheet
