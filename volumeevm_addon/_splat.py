@@ -694,9 +694,9 @@ def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, 
                           minlength=npix + 1)
         # The ray's path in the slab, (db, dc) + s (dB/dA, dC/dA) for s in [s0, s1] within
         # [-0.5, 0.5], clipped to the voxel's cell |.| <= 0.5 in both in-plane axes; only the
-        # pairs whose cell the path can reach.
-        near = np.flatnonzero((np.abs(db) - 0.5 * np.abs(drift_b) < 0.5)
-                              & (np.abs(dc) - 0.5 * np.abs(drift_c) < 0.5))
+        # pairs whose cell the path can reach, its boundary included (rays along a face).
+        near = np.flatnonzero((np.abs(db) - 0.5 * np.abs(drift_b) <= 0.5)
+                              & (np.abs(dc) - 0.5 * np.abs(drift_c) <= 0.5))
         fn = flat[near]
         lo, hi = rows[fn, 0], rows[fn, 1]
         if affine is None:
