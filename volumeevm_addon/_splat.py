@@ -280,7 +280,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         within this fraction of the largest one renders its own sheets, and the images are
         blended with smooth weights (:func:`_family_weights`), so the image changes smoothly
         where the principal axis switches (about one axis: from 38.7° to 51.3° for the
-        default 0.2; costs up to 2×, 3× near a diagonal, there). 0 = hard switch (pops).
+        default 0.2; costs up to 2×, 3× near a diagonal, there). Depth comes from the family
+        with the largest weight. 0 = hard switch (pops).
     xray_scale, xray_offset : float
         X-ray attenuation per mm per data unit and the density of zero attenuation.
 
@@ -330,7 +331,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
             view = camera.forward @ inv[:3, :3].T
     weights = _family_weights(view * spacing, blend)
     out = None
-    for axis in np.argsort(-weights):
+    for axis in np.argsort(-weights, kind="stable"):  # ties: the lower axis first
         if weights[axis] == 0:
             break
         acc, dep = _render_axis(vevm, camera, tf, g, inv, r, int(axis), view, cam_i, mode,
