@@ -19,7 +19,8 @@ noise whose region of interest cuts through material (the region-boundary policy
 Quality settings (``SWEEPS``; a setting a method does not accept is left out, so the bench runs
 on any version of the renderers): ray casting: step, jitter, pre-integration, early-termination
 threshold; shear-warp: intermediate image scale, interpolated slices per voxel slice, pre- or
-post-classification; splatting: kernel radius and width; VolPack: its defaults and the speed
+post-classification; splatting: kernel radius and width, the cross-fade of sheet families
+near the principal-axis switch; VolPack: its defaults and the speed
 settings its manual suggests; VTK ``vtkFixedPointVolumeRayCastMapper``: sample distance. How the
 peers are matched to our scene is written in ``bench/peers/``.
 
@@ -160,7 +161,8 @@ SWEEPS = {
     "raycast_navigate": _grid(step_mm=(1.0, 0.5)),
     "shear_warp": _grid(intermediate_scale=(1.0, 2.0), slices_per_voxel=(1, 2, 4),
                         classification=("pre", "post")),
-    "splat": _grid(kernel_radius=(1.0, 1.5, 2.0), kernel_sigma=(0.4, 0.6)),
+    "splat": (_grid(kernel_radius=(1.0, 1.5, 2.0), kernel_sigma=(0.4, 0.6))
+              + _grid(blend=(0.0,))),
 }
 PEER_SWEEPS = {
     "volpack": ({"min_voxel_opacity": 0.0, "max_ray_opacity": 1.0},
