@@ -75,6 +75,7 @@ bench-setup: bench-debs .venv/py313/.bench-stamp $(VOLPACK_DRIVER)
 bench: bench-setup
 	.venv/py313/bin/python bench/bench_evm.py --out bench/results
 	.venv/py313/bin/python bench/bench_dvr.py --out bench/results
+	.venv/py313/bin/python bench/bench_stability.py --out bench/results
 
 clean:
 	rm -rf .venv out dist wheels
