@@ -380,16 +380,13 @@ class _View:
     def __init__(self, vevm, camera, g, layout, scale, axis, step, rays):
         self.scale = scale  # intermediate pixels per voxel along each in-slice axis
         self.inv = np.linalg.inv(g)
-        origins, dirs = camera.rays()
-        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-        # Index space; orthographic rays share one direction, perspective rays one origin.
         rot = self.inv[:3, :3].T
-        if camera.is_ortho:
-            o = _transform(origins, rot, self.inv[:3, 3])
-            d = np.broadcast_to(_transform(dirs[:1], rot), o.shape)
-        else:
-            d = _transform(dirs, rot)
-            o = np.broadcast_to(_transform(origins[:1], rot, self.inv[:3, 3]), d.shape)
+        if not camera.is_ortho:
+            # Index space; perspective rays share one origin.
+            origins, dirs = camera.rays()
+            d = _transform(dirs.reshape(-1, 3), rot)
+            o = np.broadcast_to(_transform(origins.reshape(-1, 3)[:1], rot, self.inv[:3, 3]),
+                                d.shape)
         self.axis = axis
         self.light = self.view_direction(vevm, camera, g)
         a, b = ("xyz".index(ch) for ch in TABLE_ORDERS[axis][1:])
@@ -398,10 +395,12 @@ class _View:
         self.constant = self.ortho and scale == 1.0  # slices are only translated
         nc = vevm.shape[axis]
         if self.ortho:
-            self.step = 1 if d[0, axis] > 0 else -1
+            forward = -camera.matrix_world[:3, 2] @ rot  # the rays' index-space direction
+            self.step = 1 if forward[axis] > 0 else -1
             self.c_ref = 0.0
-            self.slope = d[0] / d[0, axis]  # index-space ray per unit step along c
-            ok = np.ones(len(d), bool)
+            self.slope = forward / forward[axis]  # index-space ray per unit step along c
+            self.pq, seen = self.ortho_plane(camera, rot)
+            ok = np.ones(len(self.pq), bool)
         else:
             self.eye = self.inv[:3, :3] @ camera.position + self.inv[:3, 3]
             self.step = step
@@ -409,12 +408,15 @@ class _View:
             ok = d[:, axis] * self.step > 1e-12
             if rays is not None:
                 ok &= rays
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (self.c_ref - o[:, axis]) / d[:, axis]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (self.c_ref - o[:, axis]) / d[:, axis]
+            pq = np.stack([o[:, a] + t * d[:, a], o[:, b] + t * d[:, b]], axis=1) * scale
+            pq[~ok] = 0.0
+            self.pq = pq  # (H*W, 2) intermediate coordinates before the origin shift
+            if ok.any():
+                seen = pq[ok]
+                seen = (seen[:, 0].min(), seen[:, 0].max(), seen[:, 1].min(), seen[:, 1].max())
         self.rays_ok = ok
-        pq = np.stack([o[:, a] + t * d[:, a], o[:, b] + t * d[:, b]], axis=1) * scale
-        pq[~ok] = 0.0
-        self.pq = pq  # (H*W, 2) intermediate coordinates before the origin shift
         lo_box = layout.boxes
         used = np.flatnonzero((lo_box[:, 1] > lo_box[:, 0]) & (lo_box[:, 3] > lo_box[:, 2]))
         if not self.ortho:
@@ -430,9 +432,7 @@ class _View:
         bx = lo_box[self.slices]
         foot = [((bx[:, 0] - 1 - beta_a) / alpha).min(), ((bx[:, 1] - beta_a) / alpha).max(),
                 ((bx[:, 2] - 1 - beta_b) / alpha).min(), ((bx[:, 3] - beta_b) / alpha).max()]
-        seen = pq[ok]
-        img = [seen[:, 0].min() - 1, seen[:, 0].max() + 2, seen[:, 1].min() - 1,
-               seen[:, 1].max() + 2]
+        img = [seen[0] - 1, seen[1] + 2, seen[2] - 1, seen[3] + 2]
         p_lo = np.floor(max(foot[0], img[0]))
         p_hi = np.ceil(min(foot[1], img[1]))
         q_lo = np.floor(max(foot[2], img[2]))
@@ -464,10 +464,39 @@ class _View:
             delta = np.sqrt(va[:, None] + vb[None, :] + sp[axis] ** 2)
             centre = np.array(camera.shape) // 2
             k = centre[0] * camera.shape[1] + centre[1]
-            pc = np.clip(np.rint(pq[k] - self.origin).astype(np.int64), 0,
+            pc = np.clip(np.rint(self.pq[k] - self.origin).astype(np.int64), 0,
                          np.array(self.size) - 1) if ok[k] else np.array(self.size) // 2
             self.delta = float(delta[pc[0], pc[1]])
             self.ratio = (delta / self.delta).astype(np.float32)
+
+    def ortho_plane(self, camera, rot):
+        """Orthographic: the intermediate coordinates of every pixel's ray, ``(H*W, 2)``, and
+        their ``(p min, p max, q min, q max)``.
+
+        The rays of :meth:`Camera.rays` start at ``m + x_j r + y_i u`` (pixel column ``j``,
+        row ``i``) and share one direction, so each coordinate is a sum of a per-row and a
+        per-column term: two outer sums instead of transforming every ray (same values up to
+        rounding).
+        """
+        a, b, c = self.abc
+        h, w = camera.shape
+        xmin, xmax, ymin, ymax = camera.viewplane
+        x = xmin + (np.arange(w) + 0.5) * ((xmax - xmin) / w)
+        y = ymax - (np.arange(h) + 0.5) * ((ymax - ymin) / h)
+        m = camera.matrix_world
+        origin = m[:3, 3] @ rot + self.inv[:3, 3]
+        right, up = m[:3, 0] @ rot, m[:3, 1] @ rot
+        pq = np.empty((h, w, 2))
+        extent = []
+        for k, e in enumerate((a, b)):
+            # Along the ray to c = c_ref: coordinate e moves by slope[e] per unit of c.
+            along = np.eye(3)[e] - self.slope[e] * np.eye(3)[c]
+            base = (origin @ along + self.slope[e] * self.c_ref) * self.scale
+            rows = base + y * ((up @ along) * self.scale)
+            cols = x * ((right @ along) * self.scale)
+            np.add(rows[:, None], cols[None, :], out=pq[..., k])
+            extent += [rows.min() + cols.min(), rows.max() + cols.max()]
+        return pq.reshape(-1, 2), extent
 
     @staticmethod
     def principal_axis(vevm, camera, g):
@@ -1035,26 +1064,35 @@ def _active_box(image, threshold, box):
 
 def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     """Final image: bilinear interpolation of the intermediate colour at each pixel's ray, and
-    the depth of the nearest intermediate pixel's depth sample."""
-    h, w = camera.shape
+    the depth of the nearest intermediate pixel's depth sample.
+
+    Only the pixels whose taps touch the intermediate image are computed (the others stay
+    transparent). Its RGBA is gathered channels last, one 16-byte pixel per index (viewed as
+    complex128), which is what the final image's layout wants.
+    """
     hi, wi = view.size
     pq = view.pq - view.origin
-    ok = view.rays_ok
     # The image with a border of zeros: taps outside it read zeros, with no masking.
-    padded = np.zeros((4, hi + 2, wi + 2), np.float32)
-    padded[:, 1:-1, 1:-1] = image
-    flat = padded.reshape(4, -1)
+    padded = np.zeros((hi + 2, wi + 2, 4), np.float32)
+    padded[1:-1, 1:-1] = np.moveaxis(image, 0, -1)
+    pixels = padded.reshape(-1).view(np.complex128)
     i0 = np.floor(pq).astype(np.int64) + 1
-    f = (pq - i0 + 1).astype(np.float32)
-    valid = ok & (i0[:, 0] >= 0) & (i0[:, 0] <= hi) & (i0[:, 1] >= 0) & (i0[:, 1] <= wi)
-    base = np.where(valid, i0[:, 0] * (wi + 2) + i0[:, 1], 0)
-    fa, fb = f[:, 0], f[:, 1]
-    acc = np.take(flat, base, axis=1) * ((1 - fa) * (1 - fb) * valid)
-    acc += np.take(flat, base + 1, axis=1) * ((1 - fa) * fb * valid)
-    acc += np.take(flat, base + wi + 2, axis=1) * (fa * (1 - fb) * valid)
-    acc += np.take(flat, base + wi + 3, axis=1) * (fa * fb * valid)
-    rgba_out.reshape(-1, 4)[ok] = acc.T[ok]
+    ia, ib = i0[:, 0], i0[:, 1]
+    valid = view.rays_ok & (ia >= 0) & (ia <= hi) & (ib >= 0) & (ib <= wi)
+    idx = np.flatnonzero(valid)
+    ia, ib = ia[idx], ib[idx]
+    fa = (pq[idx, 0] - ia + 1).astype(np.float32)
+    fb = (pq[idx, 1] - ib + 1).astype(np.float32)
+    base = ia * (wi + 2) + ib
+    ga, gb = 1 - fa, 1 - fb
+    acc = _texels(pixels, base) * (ga * gb)[:, None]
+    acc += _texels(pixels, base + 1) * (ga * fb)[:, None]
+    base += wi + 2
+    acc += _texels(pixels, base) * (fa * gb)[:, None]
+    acc += _texels(pixels, base + 1) * (fa * fb)[:, None]
+    rgba_out.reshape(-1, 4)[idx] = acc
     near = np.rint(pq).astype(np.int64)
+    ok = view.rays_ok
     use = ok & (near[:, 0] >= 0) & (near[:, 0] < hi) & (near[:, 1] >= 0) & (near[:, 1] < wi)
     idx = np.flatnonzero(use)
     r = rank_map[near[idx, 0], near[idx, 1]]
@@ -1063,3 +1101,8 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     k0, kp, kq = view.depth_coefficients(front[r])
     pp, qq = near[idx, 0], near[idx, 1]
     depth_out.reshape(-1)[idx] = k0 + kp * pp + kq * qq
+
+
+def _texels(pixels, index):
+    """RGBA ``(n, 4)`` float32 of the channels-last image ``pixels`` (viewed as complex128)."""
+    return np.take(pixels, index).view(np.float32).reshape(-1, 4)
