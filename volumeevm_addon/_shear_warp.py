@@ -109,6 +109,7 @@ environment", IEEE Visualization 2001, https://doi.org/10.1109/VISUAL.2001.96451
 VolPack 1.0b3 (``vp_view.c``, ``vp_renderA.c``, ``vp_warp.c``), Stanford University.
 """
 
+import functools
 import weakref
 
 import numpy as np
@@ -322,6 +323,7 @@ class _Classes:
     slice the box of voxels the function does not make transparent."""
 
     def __init__(self, layout, tf, lut_size):
+        self.codes = layout.codes  # (not the layout: it holds this object)
         q = tf.quantize(layout.values[1:], n=lut_size)
         self.rows = np.zeros(len(layout.values), np.int32)
         self.rows[1:] = q + 1
@@ -343,6 +345,13 @@ class _Classes:
             else:
                 self.tight[s] = (a0 + rows[0], a0 + rows[-1] + 1, b0 + cols[0], b0 + cols[-1] + 1)
 
+    @functools.cached_property
+    def slice_rows(self):
+        """Per slice, over its box (as :attr:`_Layout.codes`), the table row of each voxel
+        (int16: ``lut_size < 32767``): unshaded pre-classification gathers colours with one
+        lookup per voxel instead of two."""
+        return [self.rows[codes].astype(np.int16) for codes in self.codes]
+
 
 def _classes(layout, tf, lut_size):
     per_tf = layout.classes.setdefault(tf, {})
@@ -353,7 +362,7 @@ def _classes(layout, tf, lut_size):
 
 def _window(codes, box, a0, a1, b0, b1):
     """Codes over ``[a0, a1) x [b0, b1)`` (slice coordinates), 0 outside the slice's box."""
-    out = np.zeros((a1 - a0, b1 - b0), np.int32)
+    out = np.zeros((a1 - a0, b1 - b0), codes.dtype)
     ia0, ia1 = max(a0, box[0]), min(a1, box[1])
     ib0, ib1 = max(b0, box[2]), min(b1, box[3])
     if ia0 < ia1 and ib0 < ib1:
@@ -803,6 +812,13 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         if mode == "mip":
             image.fill(_UNSEEN)
     gathered = _Gathered(layout, classes, table, voxels, lut, boxes)
+    # The default (orthographic, one sample per translated slice, unshaded pre-classification):
+    # colours gathered as 16-byte RGBA pixels of the table, by each voxel's row.
+    translated = view.constant and per_voxel == 1 and lut is not None and not post and (
+        voxels is None)
+    if translated:
+        slice_rows = classes.slice_rows
+        pixels = np.ascontiguousarray(lut[:4].T).view(np.complex128).ravel()
     active = [0, hi, 0, wi]
     for n, s in enumerate(owner):
         t = offset[n]
@@ -824,7 +840,10 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         p0, p1, ia, fa = rows
         q0, q1, ib, fb = cols
         window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
-        if s2 is None:
+        if translated:
+            out, inside = _translated(pixels, slice_rows[s], layout.boxes[s], window, fa[0],
+                                      fb[0])
+        elif s2 is None:
             src = _classified(layout, classes, table, voxels, lut, s, window)
             region = src[-1] > 0
         else:
@@ -834,8 +853,9 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             region = mine[-1] > 0
             src = mine * np.float32(1.0 - abs(t))
             src += other * np.float32(abs(t))
-        # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
-        out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
+        if not translated:
+            # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
+            out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
         sample = _normalise(out, inside)
         area = (slice(p0, p1), slice(q0, q1))
         # Depth test, only where the slice's depth range crosses a limit.
@@ -1023,6 +1043,31 @@ def _bilinear(src, region, ia, fa, ib, fb, constant):
     return out, inside
 
 
+def _translated(pixels, rows, box, window, f, g):
+    """:func:`_bilinear` of pre-classified colours on a translated slice (one fraction ``f``
+    for all rows, ``g`` for all columns): ``window`` (slice coordinates) of the slice whose
+    table ``rows`` cover ``box``, its RGBA gathered from ``pixels`` (the table's rows as
+    complex128) and the region weight from ``rows > 0``; resampled separably, columns then
+    rows, as ``a + f·(b - a)``. Returns the 5 channels (RGBA, weight) and ``inside``."""
+    idx = _window(rows, box, *window)
+    n, m = idx.shape[0] - 1, idx.shape[1] - 1
+    rgba = np.take(pixels, idx).view(np.float32).reshape(n + 1, m + 1, 4)
+    region = idx > 0
+    cols = np.empty((5, n + 1, m), np.float32)
+    src = np.moveaxis(rgba, -1, 0)  # channels first: this pass also transposes
+    np.subtract(src[:, :, 1:], src[:, :, :m], out=cols[:4])
+    weight = region.astype(np.float32)
+    np.subtract(weight[:, 1:], weight[:, :m], out=cols[4])
+    cols *= np.float32(g)
+    cols[:4] += src[:, :, :m]
+    cols[4] += weight[:, :m]
+    out = np.subtract(cols[:, 1:], cols[:, :n])
+    out *= np.float32(f)
+    out += cols[:, :n]
+    ra, rb = int(f >= 0.5), int(g >= 0.5)
+    return out, region[ra:ra + n, rb:rb + m]
+
+
 def _normalise(out, inside):
     """The clamp policy on interpolated channels ``out`` (last: the summed weight of region
     voxels): the others divided by that weight, zero where the nearest voxel is outside."""
@@ -1068,41 +1113,44 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
 
     Only the pixels whose taps touch the intermediate image are computed (the others stay
     transparent). Its RGBA is gathered channels last, one 16-byte pixel per index (viewed as
-    complex128), which is what the final image's layout wants.
+    complex128), which is what the final image's layout wants; the interpolation runs on the
+    flat channels with each pixel's fractions repeated 4 times (NumPy's broadcasting of an
+    ``(n, 1)`` factor over ``(n, 4)`` is several times slower).
     """
     hi, wi = view.size
-    pq = view.pq - view.origin
+    p = view.pq[:, 0] - view.origin[0]
+    q = view.pq[:, 1] - view.origin[1]
+    ok = view.rays_ok
     # The image with a border of zeros: taps outside it read zeros, with no masking.
     padded = np.zeros((hi + 2, wi + 2, 4), np.float32)
     padded[1:-1, 1:-1] = np.moveaxis(image, 0, -1)
     pixels = padded.reshape(-1).view(np.complex128)
-    i0 = np.floor(pq).astype(np.int64) + 1
-    ia, ib = i0[:, 0], i0[:, 1]
-    valid = view.rays_ok & (ia >= 0) & (ia <= hi) & (ib >= 0) & (ib <= wi)
-    idx = np.flatnonzero(valid)
-    ia, ib = ia[idx], ib[idx]
-    fa = (pq[idx, 0] - ia + 1).astype(np.float32)
-    fb = (pq[idx, 1] - ib + 1).astype(np.float32)
-    base = ia * (wi + 2) + ib
-    ga, gb = 1 - fa, 1 - fb
-    acc = _texels(pixels, base) * (ga * gb)[:, None]
-    acc += _texels(pixels, base + 1) * (ga * fb)[:, None]
+    fp, fq = np.floor(p), np.floor(q)
+    ia, ib = fp.astype(np.int64), fq.astype(np.int64)
+    idx = np.flatnonzero(ok & (ia >= -1) & (ia < hi) & (ib >= -1) & (ib < wi))
+    fa = np.repeat((p[idx] - fp[idx]).astype(np.float32), 4)
+    fb = np.repeat((q[idx] - fq[idx]).astype(np.float32), 4)
+    base = (ia[idx] + 1) * (wi + 2) + ib[idx] + 1
+    top = _texels(pixels, base)
+    top += fb * (_texels(pixels, base + 1) - top)
     base += wi + 2
-    acc += _texels(pixels, base) * (fa * gb)[:, None]
-    acc += _texels(pixels, base + 1) * (fa * fb)[:, None]
-    rgba_out.reshape(-1, 4)[idx] = acc
-    near = np.rint(pq).astype(np.int64)
-    ok = view.rays_ok
-    use = ok & (near[:, 0] >= 0) & (near[:, 0] < hi) & (near[:, 1] >= 0) & (near[:, 1] < wi)
-    idx = np.flatnonzero(use)
-    r = rank_map[near[idx, 0], near[idx, 1]]
+    bottom = _texels(pixels, base)
+    bottom += fb * (_texels(pixels, base + 1) - bottom)
+    bottom -= top
+    bottom *= fa
+    top += bottom
+    rgba_out.reshape(-1).view(np.complex128)[idx] = top.view(np.complex128)
+    near_p, near_q = np.rint(p).astype(np.int64), np.rint(q).astype(np.int64)
+    idx = np.flatnonzero(ok & (near_p >= 0) & (near_p < hi) & (near_q >= 0) & (near_q < wi))
+    pp, qq = near_p[idx], near_q[idx]
+    r = rank_map[pp, qq]
     hit = r != _NEVER
-    idx, r = idx[hit], r[hit]
+    idx, r, pp, qq = idx[hit], r[hit], pp[hit], qq[hit]
     k0, kp, kq = view.depth_coefficients(front[r])
-    pp, qq = near[idx, 0], near[idx, 1]
     depth_out.reshape(-1)[idx] = k0 + kp * pp + kq * qq
 
 
 def _texels(pixels, index):
-    """RGBA ``(n, 4)`` float32 of the channels-last image ``pixels`` (viewed as complex128)."""
-    return np.take(pixels, index).view(np.float32).reshape(-1, 4)
+    """The RGBA of a channels-last image ``pixels`` (viewed as complex128) at ``index``, flat
+    float32 ``(4 n,)``."""
+    return np.take(pixels, index).view(np.float32)
