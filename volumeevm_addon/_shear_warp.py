@@ -1054,7 +1054,7 @@ def _translated(pixels, rows, box, window, f, g):
     rgba = np.take(pixels, idx).view(np.float32).reshape(n + 1, m + 1, 4)
     region = idx > 0
     cols = np.empty((5, n + 1, m), np.float32)
-    src = np.moveaxis(rgba, -1, 0)  # channels first: this pass also transposes
+    src = np.ascontiguousarray(np.moveaxis(rgba, -1, 0))  # (strided ufunc passes are slower)
     np.subtract(src[:, :, 1:], src[:, :, :m], out=cols[:4])
     weight = region.astype(np.float32)
     np.subtract(weight[:, 1:], weight[:, :m], out=cols[4])
