@@ -110,6 +110,7 @@ VolPack 1.0b3 (``vp_view.c``, ``vp_renderA.c``, ``vp_warp.c``), Stanford Univers
 """
 
 import functools
+import math
 import weakref
 
 import numpy as np
@@ -778,8 +779,9 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
     ranks = np.arange(len(owner))
     if mode == "under":
         owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
-    alpha_s, beta_a, beta_b = view.shifted_maps(owner + offset)
-    k0, kp, kq = view.depth_coefficients(owner + offset)
+    # Per-sample scalars as Python floats: the loop reads them one at a time.
+    alpha_s, beta_a, beta_b = (v.tolist() for v in view.shifted_maps(owner + offset))
+    k0, kp, kq = (v.tolist() for v in view.depth_coefficients(owner + offset))
     limit = None if depth_in is None else view.depth_limit(camera, g, depth_in)
     far_min = camera.clip_end if limit is None else float(limit.min())
     near = camera.clip_start
@@ -833,6 +835,39 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         if box[1] <= box[0] or box[3] <= box[2]:
             continue
         al, ba, bb = alpha_s[n], beta_a[n], beta_b[n]
+        if translated:
+            rows = _shift(box[0], box[1], ba, active[0], active[1])
+            cols = _shift(box[2], box[3], bb, active[2], active[3])
+            if rows is None or cols is None:
+                continue
+            (p0, p1, i0, f), (q0, q1, j0, g) = rows, cols
+            out, inside = _translated(pixels, slice_rows[s], layout.boxes[s],
+                                      (i0, i0 + p1 - p0 + 1, j0, j0 + q1 - q0 + 1), f, g)
+            area = (slice(p0, p1), slice(q0, q1))
+            _clip(inside, k0[n], kp[n], kq[n], area, near, far_min, camera.clip_end, limit)
+            # One per-pixel factor: the clamp policy's renormalisation, the depth limits and,
+            # front to back, the transparency left in front (zero where terminated).
+            factor = _renormaliser(out, inside)
+            c, target = out[:4], image[(slice(None),) + area]
+            if mode == "over":
+                trans = 1.0 - target[3]
+                if termination < 1.0:
+                    np.putmask(trans, target[3] >= termination, 0.0)
+                factor *= trans
+                c *= factor
+                target += c
+                # (A ray without a depth sample yet has nothing in front: its trans is 1.)
+                np.copyto(rank_map[area], ranks[n], where=(c[3] > 0) & (rank_map[area] == _NEVER))
+                if (n + 1) % _ERT_EVERY == 0:
+                    active = _active_box(image, termination, active)
+                    if active is None:
+                        break
+            else:
+                c *= factor
+                target *= 1.0 - c[3]
+                target += c
+                np.copyto(rank_map[area], ranks[n], where=c[3] > 0)
+            continue
         rows = _span(box[0], box[1], al, ba, active[0], active[1])
         cols = _span(box[2], box[3], al, bb, active[2], active[3])
         if rows is None or cols is None:
@@ -840,10 +875,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         p0, p1, ia, fa = rows
         q0, q1, ib, fb = cols
         window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
-        if translated:
-            out, inside = _translated(pixels, slice_rows[s], layout.boxes[s], window, fa[0],
-                                      fb[0])
-        elif s2 is None:
+        if s2 is None:
             src = _classified(layout, classes, table, voxels, lut, s, window)
             region = src[-1] > 0
         else:
@@ -853,19 +885,11 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             region = mine[-1] > 0
             src = mine * np.float32(1.0 - abs(t))
             src += other * np.float32(abs(t))
-        if not translated:
-            # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
-            out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
+        # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
+        out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
         sample = _normalise(out, inside)
         area = (slice(p0, p1), slice(q0, q1))
-        # Depth test, only where the slice's depth range crosses a limit.
-        corners = [k0[n] + kp[n] * pp + kq[n] * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
-        clipped = min(corners) < near or max(corners) >= far_min
-        if clipped:
-            dep = (k0[n] + kp[n] * np.arange(p0, p1, dtype=np.float64)[:, None]
-                   + kq[n] * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
-            inside &= dep >= near
-            inside &= dep < (camera.clip_end if limit is None else limit[area])
+        clipped = _clip(inside, k0[n], kp[n], kq[n], area, near, far_min, camera.clip_end, limit)
         if mode in ("xray", "mip"):
             value = sample[0]
             if mode == "xray":
@@ -953,22 +977,44 @@ def _span(t0, t1, alpha, beta, lo, hi):
     """Intermediate indices ``[p0, p1)`` whose samples touch voxels ``[t0, t1)`` of a slice,
     within ``[lo, hi)``, with each sample's first tap ``i`` and fraction ``f`` (``x = i + f``)."""
     if alpha == 1.0:
-        base = np.floor(beta)
-        p0, p1 = int(t0 - 1 - base), int(t1 - base)
-    else:
-        p0 = int(np.ceil((t0 - 1 - beta) / alpha))
-        p1 = int(np.ceil((t1 - beta) / alpha))
-    p0, p1 = max(p0, lo), min(p1, hi)
+        span = _shift(t0, t1, beta, lo, hi)
+        if span is None:
+            return None
+        p0, p1, i0, f = span
+        return p0, p1, np.arange(i0, i0 + p1 - p0, dtype=np.int64), np.full(p1 - p0, f)
+    p0 = max(int(np.ceil((t0 - 1 - beta) / alpha)), lo)
+    p1 = min(int(np.ceil((t1 - beta) / alpha)), hi)
     if p1 <= p0:
         return None
-    if alpha == 1.0:
-        i = np.arange(p0, p1, dtype=np.int64) + int(base)
-        f = np.full(p1 - p0, beta - base, np.float32)
-    else:
-        x = alpha * np.arange(p0, p1, dtype=np.float64) + beta
-        i = np.floor(x).astype(np.int64)
-        f = (x - i).astype(np.float32)
-    return p0, p1, i, f
+    x = alpha * np.arange(p0, p1, dtype=np.float64) + beta
+    i = np.floor(x).astype(np.int64)
+    return p0, p1, i, (x - i).astype(np.float32)
+
+
+def _shift(t0, t1, beta, lo, hi):
+    """:func:`_span` of a translated slice (``α = 1``): ``(p0, p1, i0, f)``, sample ``p`` at
+    ``x = (p - p0 + i0) + f``, the one fraction as float32; None if empty."""
+    base = math.floor(beta)
+    p0, p1 = max(t0 - 1 - base, lo), min(t1 - base, hi)
+    if p1 <= p0:
+        return None
+    return p0, p1, p0 + base, np.float32(beta - base)
+
+
+def _clip(inside, k0, kp, kq, area, near, far_min, far, limit):
+    """The depth test on samples ``inside`` over ``area`` of the intermediate image, whose
+    axial depth is ``k0 + kp p + kq q``: clears those not in ``[near, min(far, limit))``.
+    Only evaluated per pixel where the area's depth range crosses a limit (``far_min``: the
+    smallest); returns whether it did."""
+    (p0, p1), (q0, q1) = (area[0].start, area[0].stop), (area[1].start, area[1].stop)
+    corners = [k0 + kp * pp + kq * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
+    if min(corners) >= near and max(corners) < far_min:
+        return False
+    dep = (k0 + kp * np.arange(p0, p1, dtype=np.float64)[:, None]
+           + kq * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
+    inside &= dep >= near
+    inside &= dep < (far if limit is None else limit[area])
+    return True
 
 
 def _classified(layout, classes, table, voxels, lut, s, window):
@@ -1071,12 +1117,17 @@ def _translated(pixels, rows, box, window, f, g):
 def _normalise(out, inside):
     """The clamp policy on interpolated channels ``out`` (last: the summed weight of region
     voxels): the others divided by that weight, zero where the nearest voxel is outside."""
+    result = out[:-1]
+    result *= _renormaliser(out, inside)
+    return result
+
+
+def _renormaliser(out, inside):
+    """The factor of the clamp policy on interpolated channels ``out`` (last: the summed weight
+    of region voxels): ``inside / weight``, float32."""
     weight = out[-1]
     np.maximum(weight, np.float32(1e-30), out=weight)
-    scale = inside / weight
-    result = out[:-1]
-    result *= scale
-    return result
+    return inside / weight
 
 
 def _correct(c, ratio):
