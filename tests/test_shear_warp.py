@@ -13,6 +13,7 @@ from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._reference import render_reference
 from volumeevm_addon._render import render
+from volumeevm_addon import _shear_warp
 from volumeevm_addon._shear_warp import _LAYOUTS, _View, render_shear_warp
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, grid_to_world
@@ -408,6 +409,42 @@ def test_axis_cache_is_reused(brain_half):
     render_shear_warp(vevm, moved, CT_BONE, g)
     assert list(_LAYOUTS[vevm]) == [1] and _LAYOUTS[vevm][1] is layout
     assert len(layout.classes) == 2
+
+
+@pytest.mark.parametrize("f, g", [(0.0, 0.0), (0.3, 0.7), (0.5, 0.49), (0.999, 0.5)])
+def test_translated_slice_is_the_bilinear_resampling(f, g):
+    """The default path's resampling of a translated slice (rows gathered as RGBA pixels,
+    separable, window beyond the slice's box) equals the four-weight bilinear of the table's
+    channels, clamp policy included."""
+    rng = np.random.default_rng(7)
+    lut = np.zeros((5, 65), np.float32)
+    lut[:4, 1:] = rng.random((4, 64), dtype=np.float32)
+    lut[4, 1:] = 1.0
+    rows = rng.integers(0, 65, (9, 11)).astype(np.int16)  # 0: outside voxels inside the box
+    box, window = (2, 11, 3, 14), (1, 13, 2, 12)
+    pixels = np.ascontiguousarray(lut[:4].T).view(np.complex128).ravel()
+    f32, g32 = np.float32(f), np.float32(g)
+    out, inside = _shear_warp._translated(pixels, rows, box, window, f32, g32)
+    src = np.take(lut, _shear_warp._window(rows, box, *window), axis=1)
+    n, m = window[1] - window[0] - 1, window[3] - window[2] - 1
+    expect, expect_inside = _shear_warp._bilinear(
+        src, src[-1] > 0, np.arange(n), np.full(n, f32), np.arange(m), np.full(m, g32), True)
+    np.testing.assert_array_equal(inside, expect_inside)
+    np.testing.assert_allclose(_shear_warp._normalise(out, inside),
+                               _shear_warp._normalise(expect, expect_inside), atol=1e-6)
+
+
+def test_warp_chunks_do_not_change_the_image(brain_half, monkeypatch):
+    """The warp's pixels computed a few at a time (chunks not a multiple of an image row)
+    give the image and depth computed all at once."""
+    g = grid_to_world(brain_half.spacing, (0.0, 0.0, 0.0))
+    cam = orbit_camera(g, brain_half.shape, brain_half.spacing, (0.4, -1.0, 0.3), "ORTHO",
+                       res=(37, 29))
+    rgba, depth = render_shear_warp(brain_half, cam, MRI, g)
+    monkeypatch.setattr(_shear_warp, "_WARP_CHUNK", 100)
+    rgba_chunked, depth_chunked = render_shear_warp(brain_half, cam, MRI, g)
+    np.testing.assert_array_equal(rgba_chunked, rgba)
+    np.testing.assert_array_equal(depth_chunked, depth)
 
 
 # ---------------------------------------------------------------------------- modes

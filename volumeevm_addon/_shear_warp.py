@@ -23,7 +23,8 @@ Pipeline
    ``α_s = 1`` and ``β_s = (s - c_ref) d_a / d_c`` (the shear): the slice is *translated*, so
    the four bilinear weights ``(1-f)(1-g), (1-f)g, f(1-g), fg`` with ``f = frac(β_s)`` are the
    same for the whole slice (VolPack ``vp_renderA.c``) and resampling is four shifted views of
-   the slice's box. Perspective: ``α_s = (s - E_c)/(c_ref - E_c)`` with the eye ``E``, a
+   the slice's box (the default, unshaded pre-classification with one sample per slice: two
+   1-D interpolations of shifted views, columns then rows, ``a + f·(b - a)``). Perspective: ``α_s = (s - E_c)/(c_ref - E_c)`` with the eye ``E``, a
    per-slice uniform scale about the eye (Lacroute & Levoy 1994, §4; Schulze et al. 2001);
    the reference plane is the region's far end, so ``α_s <= 1`` (slices are magnified, never
    minified) and the bilinear weights are separable: one 2-tap weight vector per row and one
@@ -36,7 +37,9 @@ Pipeline
    work is a few vectorised operations on the box, cut to the part of the intermediate image
    that is still needed (early ray termination) and, for ``"over"``/``"under"``, to the part
    holding voxels that the transfer function does not make transparent (cached per transfer
-   function). Slices whose density range is transparent are skipped.
+   function). Slices whose density range is transparent are skipped. Unshaded
+   pre-classification also keeps, per transfer function, each voxel's table row per slice, so
+   that a view gathers colours with one lookup per voxel.
 4. **Samples along the rays** (``slices_per_voxel = k``, Shear-Warp Deluxe's intermediate
    slices): each voxel slice ``s`` owns the slab of its cells, ``c`` in ``[s - 1/2, s + 1/2)``,
    and takes ``k`` samples at the centres of ``k`` equal parts of it; a sample between the
@@ -132,6 +135,10 @@ _ERT_EVERY = 8
 """Slices between two updates of the early-ray-termination bounding box."""
 _MAX_INTERMEDIATE = 1 << 26
 """Largest intermediate image (pixels); only extreme perspective close-ups come near it."""
+_WARP_CHUNK = 1 << 14
+"""Final pixels the warp computes per NumPy call: its temporaries stay small enough for the
+allocator to reuse them (whole-image ones went back to the system and were page-faulted in
+again on every frame, which cost the 512² warp more than its arithmetic)."""
 _NEVER = np.iinfo(np.int32).max
 _TIE = 1e-6
 """Relative margin a MIP sample must exceed the maximum by to replace it (float32 ties)."""
@@ -1163,42 +1170,47 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     the depth of the nearest intermediate pixel's depth sample.
 
     Only the pixels whose taps touch the intermediate image are computed (the others stay
-    transparent). Its RGBA is gathered channels last, one 16-byte pixel per index (viewed as
-    complex128), which is what the final image's layout wants; the interpolation runs on the
-    flat channels with each pixel's fractions repeated 4 times (NumPy's broadcasting of an
-    ``(n, 1)`` factor over ``(n, 4)`` is several times slower).
+    transparent), :data:`_WARP_CHUNK` at a time. The intermediate RGBA is gathered channels
+    last, one 16-byte pixel per index (viewed as complex128), which is what the final image's
+    layout wants.
     """
     hi, wi = view.size
-    p = view.pq[:, 0] - view.origin[0]
-    q = view.pq[:, 1] - view.origin[1]
-    ok = view.rays_ok
     # The image with a border of zeros: taps outside it read zeros, with no masking.
     padded = np.zeros((hi + 2, wi + 2, 4), np.float32)
     padded[1:-1, 1:-1] = np.moveaxis(image, 0, -1)
     pixels = padded.reshape(-1).view(np.complex128)
-    fp, fq = np.floor(p), np.floor(q)
-    ia, ib = fp.astype(np.int64), fq.astype(np.int64)
-    idx = np.flatnonzero(ok & (ia >= -1) & (ia < hi) & (ib >= -1) & (ib < wi))
-    fa = np.repeat((p[idx] - fp[idx]).astype(np.float32), 4)
-    fb = np.repeat((q[idx] - fq[idx]).astype(np.float32), 4)
-    base = (ia[idx] + 1) * (wi + 2) + ib[idx] + 1
-    top = _texels(pixels, base)
-    top += fb * (_texels(pixels, base + 1) - top)
-    base += wi + 2
-    bottom = _texels(pixels, base)
-    bottom += fb * (_texels(pixels, base + 1) - bottom)
-    bottom -= top
-    bottom *= fa
-    top += bottom
-    rgba_out.reshape(-1).view(np.complex128)[idx] = top.view(np.complex128)
-    near_p, near_q = np.rint(p).astype(np.int64), np.rint(q).astype(np.int64)
-    idx = np.flatnonzero(ok & (near_p >= 0) & (near_p < hi) & (near_q >= 0) & (near_q < wi))
-    pp, qq = near_p[idx], near_q[idx]
-    r = rank_map[pp, qq]
-    hit = r != _NEVER
-    idx, r, pp, qq = idx[hit], r[hit], pp[hit], qq[hit]
-    k0, kp, kq = view.depth_coefficients(front[r])
-    depth_out.reshape(-1)[idx] = k0 + kp * pp + kq * qq
+    rgba_flat = rgba_out.reshape(-1).view(np.complex128)
+    depth_flat = depth_out.reshape(-1)
+    for start in range(0, len(view.pq), _WARP_CHUNK):
+        part = slice(start, start + _WARP_CHUNK)
+        p = view.pq[part, 0] - view.origin[0]
+        q = view.pq[part, 1] - view.origin[1]
+        ok = view.rays_ok[part]
+        fp, fq = np.floor(p), np.floor(q)
+        ia, ib = fp.astype(np.int64), fq.astype(np.int64)
+        idx = np.flatnonzero(ok & (ia >= -1) & (ia < hi) & (ib >= -1) & (ib < wi))
+        # Each pixel's fractions repeated for its 4 channels: NumPy's broadcasting of an
+        # (n, 1) factor over (n, 4) is several times slower than flat arrays.
+        fa = np.repeat((p[idx] - fp[idx]).astype(np.float32), 4)
+        fb = np.repeat((q[idx] - fq[idx]).astype(np.float32), 4)
+        base = (ia[idx] + 1) * (wi + 2) + ib[idx] + 1
+        top = _texels(pixels, base)
+        top += fb * (_texels(pixels, base + 1) - top)
+        base += wi + 2
+        bottom = _texels(pixels, base)
+        bottom += fb * (_texels(pixels, base + 1) - bottom)
+        bottom -= top
+        bottom *= fa
+        top += bottom
+        rgba_flat[start + idx] = top.view(np.complex128)
+        near_p, near_q = np.rint(p).astype(np.int64), np.rint(q).astype(np.int64)
+        idx = np.flatnonzero(ok & (near_p >= 0) & (near_p < hi) & (near_q >= 0) & (near_q < wi))
+        pp, qq = near_p[idx], near_q[idx]
+        r = rank_map[pp, qq]
+        hit = r != _NEVER
+        idx, r, pp, qq = idx[hit], r[hit], pp[hit], qq[hit]
+        k0, kp, kq = view.depth_coefficients(front[r])
+        depth_flat[start + idx] = k0 + kp * pp + kq * qq
 
 
 def _texels(pixels, index):
