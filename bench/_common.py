@@ -55,6 +55,15 @@ def write_json(path, data):
     print(f"wrote {path}")
 
 
+def non_default(method, options):
+    """``options`` without the entries equal to the renderer's own defaults (so a swept setting
+    that is the default is recognised as it)."""
+    from volumeevm_addon._render import _renderers
+
+    params = inspect.signature(_renderers()[method]).parameters
+    return {k: v for k, v in options.items() if k not in params or params[k].default != v}
+
+
 def accepts(method, options):
     """Whether this version of the renderer ``method`` takes every option in ``options`` (so a
     bench runs on renderers that do not have a quality setting yet, and says so by leaving it

@@ -69,7 +69,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench" / "peers"))
 
-from bench._common import accepts, run_facts, write_json  # noqa: E402
+from bench._common import accepts, non_default, run_facts, write_json  # noqa: E402
 from volumeevm_addon import VolumeEVM, _phantoms  # noqa: E402
 from volumeevm_addon._camera import Camera  # noqa: E402
 from volumeevm_addon._files import write_atomically  # noqa: E402
@@ -178,7 +178,8 @@ def settings(method, voxel_mm, quick):
     for s in SWEEPS[method]:
         if not accepts(method, s):
             continue
-        s = {k: (v * voxel_mm if k == "step_mm" else v) for k, v in s.items()}
+        s = non_default(method, {k: (v * voxel_mm if k == "step_mm" else v)
+                                 for k, v in s.items()})
         key = json.dumps(s, sort_keys=True)
         if key not in seen:
             seen.add(key)
