@@ -1107,7 +1107,7 @@ def _translated(pixels, rows, box, window, f, g):
     rgba = np.take(pixels, idx).view(np.float32).reshape(n + 1, m + 1, 4)
     region = idx > 0
     cols = np.empty((5, n + 1, m), np.float32)
-    src = np.ascontiguousarray(np.moveaxis(rgba, -1, 0))  # (strided ufunc passes are slower)
+    src = np.ascontiguousarray(rgba.transpose(2, 0, 1))  # (strided ufunc passes are slower)
     np.subtract(src[:, :, 1:], src[:, :, :m], out=cols[:4])
     weight = region.astype(np.float32)
     np.subtract(weight[:, 1:], weight[:, :m], out=cols[4])
@@ -1177,7 +1177,7 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     hi, wi = view.size
     # The image with a border of zeros: taps outside it read zeros, with no masking.
     padded = np.zeros((hi + 2, wi + 2, 4), np.float32)
-    padded[1:-1, 1:-1] = np.moveaxis(image, 0, -1)
+    padded[1:-1, 1:-1] = image.transpose(1, 2, 0)
     pixels = padded.reshape(-1).view(np.complex128)
     rgba_flat = rgba_out.reshape(-1).view(np.complex128)
     depth_flat = depth_out.reshape(-1)
