@@ -20,7 +20,7 @@ Quality settings (``SWEEPS``; a setting a method does not accept is left out, so
 on any version of the renderers): ray casting: step, jitter, pre-integration, early-termination
 threshold; shear-warp: intermediate image scale, interpolated slices per voxel slice, pre- or
 post-classification; splatting: kernel radius and width, the cross-fade of sheet families
-near the principal-axis switch; VolPack: its defaults and the speed
+near the principal-axis switch, sub-slabs per sheet; VolPack: its defaults and the speed
 settings its manual suggests; VTK ``vtkFixedPointVolumeRayCastMapper``: sample distance. How the
 peers are matched to our scene is written in ``bench/peers/``.
 
@@ -162,7 +162,7 @@ SWEEPS = {
     "shear_warp": _grid(intermediate_scale=(1.0, 2.0), slices_per_voxel=(1, 2, 4),
                         classification=("pre", "post")),
     "splat": (_grid(kernel_radius=(1.0, 1.5, 2.0), kernel_sigma=(0.4, 0.6))
-              + _grid(blend=(0.0,))),
+              + _grid(blend=(0.0,)) + _grid(substeps=(2, 3))),
 }
 PEER_SWEEPS = {
     "volpack": ({"min_voxel_opacity": 0.0, "max_ray_opacity": 1.0},

@@ -121,7 +121,7 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
     ``quality`` scales the sampling density: shear-warp's intermediate pixels per voxel
     (``intermediate_scale``), the ray casters' samples per voxel (``step_mm`` = half the
     smallest voxel size / quality), the reference's (smallest voxel size / 16 / quality).
-    Splatting has no sampling setting (its kernel is fixed). ``level`` is the Render setting
+    Splatting: ``quality`` rounded is its number of sub-slabs per sheet (``substeps``). ``level`` is the Render setting
     Resolution: ``"auto"`` (default) renders a volume much finer than the pixels from a coarser
     level, ``"full"`` every voxel (the core's ``render(level=...)``; the reference ignores it).
     The method's own settings go only to the method that has them: ``slices_per_voxel`` and
@@ -139,6 +139,8 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
     if method == "shear_warp":
         options.update(intermediate_scale=quality, slices_per_voxel=int(slices_per_voxel),
                        classification=classification)
+    elif method == "splat":
+        options["substeps"] = max(1, int(round(quality)))
     elif method in ("raycast", "raycast_navigate"):
         options.update(step_mm=0.5 * smallest / quality, jitter=bool(jitter),
                        preintegrate=bool(preintegrate))

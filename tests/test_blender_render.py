@@ -539,6 +539,9 @@ def test_method_settings_reach_the_core(ext, dvr, skull, tmp_path):
     options = ext.operators.render._job_arguments(bpy.context, s)[2]["options"]
     assert options["jitter"] is True and options["preintegrate"] is True
     assert "slices_per_voxel" not in options
+    spacing = skull.volumeevm.spacing
+    assert dvr.method_options("splat", 3.0, spacing)["substeps"] == 3  # quality = sub-slabs
+    assert dvr.method_options("splat", 0.5, spacing)["substeps"] == 1
     images = []
     for on in (True, False):
         s.jitter = s.preintegrate = on

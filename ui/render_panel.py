@@ -64,7 +64,7 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
         name="Quality", default=1.0, min=0.05, soft_max=4.0, max=16.0,
         description="Sampling density relative to the method's default: samples per voxel "
                     "along rays (ray casting, reference), intermediate pixels per voxel "
-                    "(shear-warp); splatting has none")
+                    "(shear-warp), sub-slabs per sheet (splatting, rounded)")
     resolution: EnumProperty(
         name="Resolution", items=RESOLUTION_ITEMS, default="auto",
         description="Resolution level of the volume render (the reference always renders every "
