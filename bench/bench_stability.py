@@ -58,6 +58,7 @@ VARIANTS = {
     "shear_warp 2 slices": {"slices_per_voxel": 2},
     "shear_warp post 2 slices": {"slices_per_voxel": 2, "classification": "post"},
     "splat": {},
+    "splat 3 sub-slabs": {"substeps": 3},
     "raycast": {},
     "raycast jitter": {"jitter": True},
     "raycast preintegrated": {"preintegrate": True},
@@ -175,7 +176,7 @@ def s3(args):
             for z in zooms]
     rows = {}
     for name, (method, options) in variants().items():
-        if name not in ("shear_warp", "splat", "raycast"):
+        if name not in ("shear_warp", "splat", "raycast"):  # the defaults
             continue
         for level in ("full", "auto"):
             curve = []
