@@ -420,18 +420,19 @@ def groups(rows):
 def target_checks(rows):
     """The issue's two targets per dataset and view, stated plainly.
 
-    VTK: our fastest point at an error no higher than VTK's at its default sample distance
-    (1 voxel), against that VTK frame time. VolPack: our fastest shear-warp point at an error no
-    higher than VolPack's (defaults), against VolPack's frame time."""
+    VTK: the error of VTK at its default sample distance (1 voxel); our fastest point at that
+    error against VTK's fastest point at that error (any sample distance). VolPack: our fastest
+    shear-warp point at an error no higher than VolPack's (defaults), against VolPack's frame
+    time."""
     out = []
     for (dataset, view), by in sorted(groups(rows).items()):
         entry = {"dataset": dataset, "view": view}
         vtk = [r for r in by.get("vtk", []) if r["options"].get("sample_distance") == 1.0]
         ours = [r for m, rs in by.items() if m in OURS for r in rs]
         if vtk and ours:
-            v = vtk[0]
+            v = time_to_reach(by["vtk"], vtk[0]["rmse"])
             best = time_to_reach(ours, v["rmse"])
-            entry.update(vtk_s=v["frame_s"], vtk_rmse=v["rmse"])
+            entry.update(vtk_s=v["frame_s"], vtk_rmse=v["rmse"], vtk_setting=v["setting"])
             if best:
                 entry.update(best_at_vtk_error=f"{best['method']} {best['setting']}",
                              speedup_vs_vtk=v["frame_s"] / best["frame_s"],
@@ -593,7 +594,8 @@ def summary(rows, info, checks, facts):
         parts = []
         if "vtk_target_met" in c:
             if c.get("best_at_vtk_error"):
-                parts.append(f"at VTK's error ({c['vtk_rmse']:.4f}, {_ms(c['vtk_s'])}) our "
+                parts.append(f"at VTK's error ({c['vtk_rmse']:.4f}, {_ms(c['vtk_s'])} with "
+                             f"{c['vtk_setting']}) our "
                              f"fastest is {c['best_at_vtk_error']}: "
                              f"{c['speedup_vs_vtk']:.2f}× VTK's speed "
                              f"({'met' if c['vtk_target_met'] else 'NOT met'})")
