@@ -3,7 +3,6 @@
 import numpy as np
 
 from volumeevm_addon._camera import Camera
-from volumeevm_addon._phantoms import box_chords_mm as phantom_box_chords_mm
 from volumeevm_addon._reference import render_reference
 from volumeevm_addon._transfer import TransferFunction
 
@@ -48,13 +47,6 @@ def reference(vevm, cam, tf, g, **kw):
     """The dense reference render of a VolumeEVM (the region as the mask)."""
     return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), g, vevm.spacing, cam,
                             tf, **kw)
-
-
-def box_chords_mm(g, lo, hi, cam):
-    """Chord (mm) of every pixel ray with the index-space box [lo, hi] given by its face planes
-    (voxel-centre index space): :func:`volumeevm_addon._phantoms.box_chords_mm` of the voxels
-    ``lo + 0.5 <= index < hi + 0.5``, in the argument order these tests use."""
-    return phantom_box_chords_mm(cam, g, np.add(lo, 0.5), np.add(hi, 0.5))
 
 
 def const_tf(alpha, rgb=(0.9, 0.6, 0.3)):

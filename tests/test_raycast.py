@@ -9,12 +9,13 @@ import pytest
 from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._evm import EVM
+from volumeevm_addon._phantoms import box_chords_mm
 from volumeevm_addon._raycast import _Blocks, render_raycast, render_raycast_navigate
 from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon._volume import grid_to_world
 from volumeevm_addon._volumeevm import VolumeEVM
-from render_helpers import MODES, XRAY, box_chords_mm, camera, centre, const_tf, look_at, reference
+from render_helpers import MODES, XRAY, camera, centre, const_tf, look_at, reference
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +138,7 @@ def test_homogeneous_box_closed_form(kind, opts):
     tf = const_tf(0.15)
     for step in (0.3, None):
         rgba, depth = render_raycast(v, cam, tf, g, step_mm=step, termination=1.0, **opts)
-        chord = box_chords_mm(g, (-0.5,) * 3, np.array(shape) - 0.5, cam)
+        chord = box_chords_mm(cam, g, (0, 0, 0), shape)
         assert (chord > 0).sum() > 200 and (chord == 0).sum() > 50
         expected = 1 - 0.85 ** chord
         np.testing.assert_allclose(rgba[..., 3], expected, rtol=0, atol=2e-5)
@@ -163,7 +164,7 @@ def test_box_region_closed_form(kind, opts):
     g = grid_to_world(sp, (0, 0, 0))
     cam = camera(kind, g, v, (0.013, -0.011, 0.01), 0.014)
     tf = const_tf(0.2)
-    chord = box_chords_mm(g, (2.5, 1.5, 1.5), (8.5, 7.5, 6.5), cam)
+    chord = box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
     expected = 1 - 0.8 ** chord
     assert (chord > 0).sum() > 200 and (chord == 0).sum() > 50
     _, dr = reference(v, cam, tf, g)
@@ -304,7 +305,7 @@ def test_opaque_plane_hides_what_is_behind(kind):
     left = np.s_[:, : cam.shape[1] // 2]
     np.testing.assert_array_equal(rgba[left], free[left])
     # Behind the plane nothing counts: the chord is that of the box cut at z = 7.5 - 3 voxels.
-    chord = box_chords_mm(g, (-0.5, -0.5, 4.5), (7.5, 7.5, 7.5), cam)
+    chord = box_chords_mm(cam, g, (0, 0, 5), (8, 8, 8))
     assert (chord[right] > 2.9).sum() > 100
     np.testing.assert_allclose(rgba[right][..., 3], 1 - 0.9 ** chord[right], atol=1e-5)
     np.testing.assert_array_equal(depth, dfree)

@@ -17,7 +17,7 @@ from volumeevm_addon._transfer import TransferFunction
 from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon._volume import grid_to_world
 from volumeevm_addon._volumeevm import VolumeEVM
-from render_helpers import MODES, XRAY, box_chords_mm, camera, centre, const_tf, look_at, reference
+from render_helpers import MODES, XRAY, camera, centre, const_tf, look_at, reference
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +143,7 @@ def test_box_region_closed_form(kind, substeps):
     cam = camera(kind, g, v, (0.013, -0.011, 0.01), 0.014)
     tf = const_tf(0.2)
     rgba, depth = render_splat(v, cam, tf, g, termination=1.0, substeps=substeps)
-    chord = box_chords_mm(g, (2.5, 1.5, 1.5), (8.5, 7.5, 6.5), cam)
+    chord = _phantoms.box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
     expected = 1 - 0.8 ** chord
     assert (chord > 0).sum() > 200 and (chord == 0).sum() > 50
     np.testing.assert_allclose(rgba[..., 3], expected, rtol=0, atol=1e-5)
@@ -180,18 +180,24 @@ def test_single_voxel_closed_form():
     for kind in ("ORTHO", "PERSP"):
         cam = camera(kind, g, v, (0.006, -0.009, 0.007), 0.01, res=(25, 21))
         rgba, _ = render_splat(v, cam, const_tf(0.5), g)
-        chord = box_chords_mm(g, (1.5, 0.5, 0.5), (2.5, 1.5, 1.5), cam)
+        chord = _phantoms.box_chords_mm(cam, g, (2, 1, 1), (3, 2, 2))
         assert (chord > 0).sum() > 10
         np.testing.assert_allclose(rgba[..., 3], 1 - 0.5 ** chord, atol=1e-5)
 
 
-def test_gaussian_blob_against_reference():
+def _anisotropic_blob():
+    """A round Gaussian (σ 4 mm, peak 1000) on 20³ voxels of 1×1×1.5 mm, the whole grid as
+    region, and its grid-to-world matrix."""
     n = 20
     x = np.arange(n) - (n - 1) / 2
     blob = 1000 * np.exp(-(x[:, None, None] ** 2 + x[None, :, None] ** 2
                            + (1.5 * x[None, None, :]) ** 2) / (2 * 4.0 ** 2))
     v = VolumeEVM.from_array(blob, 0, spacing=(1.0, 1.0, 1.5))
-    g = grid_to_world(v.spacing, v.origin)
+    return v, grid_to_world(v.spacing, v.origin)
+
+
+def test_gaussian_blob_against_reference():
+    v, g = _anisotropic_blob()
     cam = camera("PERSP", g, v, (0.03, -0.04, 0.025), 0.0)
     tf = TransferFunction([(0, 0.2, 0.4, 1.0, 0.0), (1000, 1.0, 0.8, 0.2, 0.3)])
     rgba, _ = render_splat(v, cam, tf, g, termination=1.0)
@@ -302,7 +308,7 @@ def test_opaque_plane_hides_what_is_behind(kind):
     rgba, depth = render_splat(v, cam, tf, g, depth_in=plane, termination=1.0)
     left, right = np.s_[:, : cam.shape[1] // 2], np.s_[:, cam.shape[1] // 2:]
     np.testing.assert_array_equal(rgba[left], free[left])
-    chord = box_chords_mm(g, (-0.5, -0.5, 4.5), (7.5, 7.5, 7.5), cam)
+    chord = _phantoms.box_chords_mm(cam, g, (0, 0, 5), (8, 8, 8))
     assert (chord[right] > 2.9).sum() > 100
     np.testing.assert_allclose(rgba[right][..., 3], 1 - 0.9 ** chord[right], atol=1e-5)
     np.testing.assert_allclose(depth, dfree, rtol=1e-6)
@@ -315,12 +321,7 @@ def test_shading_against_reference(ct):
     """A blob with a surface-like transfer function: the shaded error (measured 0.0011 mean,
     unshaded 0.00049; 3 sub-slabs: 0.00053, 0.00032) is far below what shading
     changes (0.028); on the CT the sheets agree with the dense scan and over equals under."""
-    n = 20
-    x = np.arange(n) - (n - 1) / 2
-    blob = 1000 * np.exp(-(x[:, None, None] ** 2 + x[None, :, None] ** 2
-                           + (1.5 * x[None, None, :]) ** 2) / (2 * 4.0 ** 2))
-    v = VolumeEVM.from_array(blob, 0, spacing=(1.0, 1.0, 1.5))
-    g = grid_to_world(v.spacing, v.origin)
+    v, g = _anisotropic_blob()
     tf = TransferFunction([(0, 0.2, 0.4, 1.0, 0.0), (300, 1.0, 0.8, 0.2, 0.0),
                            (400, 1.0, 0.8, 0.2, 0.9), (1000, 1.0, 0.8, 0.2, 0.9)])
     cam = camera("ORTHO", g, v, (0.03, -0.04, 0.025), 0.03)
@@ -431,7 +432,7 @@ def test_blend_keeps_the_closed_form_and_exactness(ct):
     cam = camera("ORTHO", g, v, (0.012, -0.012, 0.004), 0.014)
     assert np.count_nonzero(_family_weights(cam.forward, 0.2)) == 2
     rgba, _ = render_splat(v, cam, const_tf(0.2), g, termination=1.0)
-    chord = box_chords_mm(g, (2.5, 1.5, 1.5), (8.5, 7.5, 6.5), cam)
+    chord = _phantoms.box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
     assert (chord > 0).sum() > 200
     np.testing.assert_allclose(rgba[..., 3], 1 - 0.8 ** chord, rtol=0, atol=1e-5)
     v, g, tf = region(ct, 150, "ct_bone")
