@@ -172,6 +172,27 @@ def _positive(name, value):
 
 
 # ---------------------------------------------------------------------------- rays
+def finish_mode(acc, vmax, mode, tf):
+    """Turn the per-ray accumulators of ``"xray"`` and ``"mip"`` into premultiplied RGBA, in
+    place (the ray casters and splatting share this).
+
+    ``acc`` (m, 4): X-ray holds the optical depth in column 0; ``vmax`` (m,): MIP's maximum
+    density per ray (``-inf`` for none), classified by ``tf`` without length correction.
+    Returns, for MIP, the rays whose maximum is visible (the others keep no depth); else None.
+    """
+    if mode == "xray":
+        acc[:] = 1 - np.exp(-acc[:, :1])
+    elif mode == "mip":
+        seen = np.isfinite(vmax)
+        acc[:] = 0
+        if seen.any():
+            straight = tf.evaluate(vmax[seen])
+            acc[seen, 3] = straight[:, 3]
+            acc[seen, :3] = straight[:, :3] * straight[:, 3:4]
+        return seen & (acc[:, 3] > 0)
+    return None
+
+
 def camera_rays(camera, g, shape, depth_in):
     """Pixel rays in index space, clipped like the reference's.
 
@@ -870,16 +891,9 @@ def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, terminati
             live = live[live]
     finish(slice(None))
     acc, kev = out_acc, out_kev
-    if mode == "xray":
-        acc[:] = 1 - np.exp(-acc[:, :1])
-    elif mode == "mip":
-        seen = np.isfinite(out_vmax)
-        acc[:] = 0
-        if seen.any():
-            straight = tf.evaluate(out_vmax[seen])
-            acc[seen, 3] = straight[:, 3]
-            acc[seen, :3] = straight[:, :3] * straight[:, 3:4]
-        kev = np.where(seen & (acc[:, 3] > 0), kev, np.nan)
+    visible = finish_mode(acc, out_vmax, mode, tf)
+    if visible is not None:
+        kev = np.where(visible, kev, np.nan)
     return acc, kev
 
 

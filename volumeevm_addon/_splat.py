@@ -103,7 +103,7 @@ import numpy as np
 from ._camera import BACKGROUND_DEPTH
 from ._densities import TABLE_ORDERS
 from ._errors import VolumeEVMError
-from ._raycast import camera_rays, check_common, check_shading
+from ._raycast import camera_rays, check_common, check_shading, finish_mode
 from ._reference import _shade
 
 __all__ = ["render_splat"]
@@ -487,8 +487,7 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
     mm_f, a0_f, kz_f = img["mm"].ravel(), img["a0"].ravel(), img["kz"].ravel()
     dirs_f = r["dirs"]
     inv_t = inv[:3, :3].T  # index-space gradients to world normals
-    if mode == "mip":
-        vmax_f = np.full(npix, -np.inf, np.float32)
+    vmax_f = np.full(npix if mode == "mip" else 0, -np.inf, np.float32)  # MIP's maxima
     unit = tf.unit_length_mm if lut is not None else 1.0
     cull = None
     if _CULL_INVISIBLE and mode != "mip":
@@ -720,16 +719,9 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
                 acc_f[q, :3] = c + keep[:, None] * acc_f[q, :3]
                 acc_f[q, 3] = alpha + keep * acc_f[q, 3]
                 depth_f[q[hit]] = first_depth[hit]
-    if mode == "xray":
-        acc_f[:] = 1 - np.exp(-acc_f[:, :1])
-    elif mode == "mip":
-        seen = np.isfinite(vmax_f)
-        acc_f[:] = 0
-        if seen.any():
-            st = tf.evaluate(vmax_f[seen])
-            acc_f[seen, 3] = st[:, 3]
-            acc_f[seen, :3] = st[:, :3] * st[:, 3:4]
-        depth_f[~(seen & (acc_f[:, 3] > 0))] = BACKGROUND_DEPTH
+    visible = finish_mode(acc_f, vmax_f, mode, tf)
+    if visible is not None:
+        depth_f[~visible] = BACKGROUND_DEPTH
     return acc, depth
 
 
