@@ -93,47 +93,47 @@ def look_at(eye, target, up):
     return m
 
 
-def orbit(vevm, direction, up, size, zoom=None, shift=0.0):
+def orbit(vevm, direction, up, size, zoom=None):
     """Orthographic ``size``² camera looking at the grid's centre from ``direction``, framing
-    the grid (or at ``zoom`` pixels per voxel), moved by ``shift`` pixels sideways."""
+    the grid (or at ``zoom`` pixels per voxel)."""
     g = grid_to_world(vevm.spacing, vevm.origin)
     c = g[:3, 3] + g[:3, :3] @ ((np.array(vevm.shape) - 1) / 2.0)
     extent = float(np.linalg.norm(np.array(vevm.shape) * vevm.spacing)) * BU
     scale = 1.02 * extent if zoom is None else size * min(vevm.spacing) * BU / zoom
     d = np.asarray(direction, float) / np.linalg.norm(direction)
     m = look_at(c + d * extent, c, np.asarray(up, float))
-    m[:3, 3] += m[:3, 0] * shift * scale / size
     return Camera.orthographic(m, scale, resolution_x=size, resolution_y=size, clip_start=1e-4)
 
 
-def frames(vevm, tf, cams, names, **reference_options):
+def frames(vevm, tf, cams):
     """Reference and every variant's images for each camera: {name: (N, H, W, 4)}."""
     table = variants()
-    out = {"reference": [], **{n: [] for n in names}}
+    out = {"reference": [], **{n: [] for n in table}}
     for cam in cams:
-        out["reference"].append(render(vevm, cam, tf, method="reference",
-                                       **reference_options)[0])
-        for n in names:
-            method, options = table[n]
+        out["reference"].append(render(vevm, cam, tf, method="reference")[0])
+        for n, (method, options) in table.items():
             out[n].append(render(vevm, cam, tf, method=method, **options)[0])
     return {k: np.array(v) for k, v in out.items()}
 
 
 def sweep_measures(images, angles, at):
-    """Per-variant measures of an orbit against the reference's frames."""
+    """Per-variant measures of an orbit against the reference's frames (popping index and
+    bias jump within 5° of the switch at ``at``)."""
     ref = images["reference"]
+    angles = np.asarray(angles)
+    near = np.abs(angles - at) <= 5.0
     rows = {}
     for name, ims in images.items():
         if name == "reference":
             continue
-        near = np.abs(np.asarray(angles) - at) <= 5.0
+        curve = [rmse(a, b) for a, b in zip(ims, ref)]
         rows[name] = {
-            "rmse_mean": float(np.mean([rmse(a, b) for a, b in zip(ims, ref)])),
-            "rmse_max": float(max(rmse(a, b) for a, b in zip(ims, ref))),
+            "rmse_mean": float(np.mean(curve)),
+            "rmse_max": float(max(curve)),
             "popping_index": popping_index(ims[near], ref[near]),
-            "bias_jump": bias_jump(np.asarray(angles)[near], ims[near], ref[near], at=at),
+            "bias_jump": bias_jump(angles[near], ims[near], ref[near], at=at),
             "temporal_error_max": float(temporal_errors(ims, ref).max()),
-            "curve": [rmse(a, b) for a, b in zip(ims, ref)],
+            "curve": curve,
         }
     return rows
 
@@ -149,7 +149,7 @@ def s1(args):
                                        np.arange(52, 90.01, 2.0)]))
     cams = [orbit(vevm, (0.0, -np.cos(np.radians(a)), np.sin(np.radians(a))), (1, 0, 0),
                   args.size) for a in angles]
-    images = frames(vevm, pulse(0.1), cams, variants())
+    images = frames(vevm, pulse(0.1), cams)
     return {"angles": angles.tolist(), "rows": sweep_measures(images, angles, 45.0)}
 
 
@@ -161,7 +161,7 @@ def s2(args):
     dirs = [np.cos(np.radians(a)) * start + np.sin(np.radians(a)) * np.cross(axis, start)
             for a in angles]
     cams = [orbit(vevm, d, axis, args.size) for d in dirs]
-    images = frames(vevm, pulse(0.1), cams, variants())
+    images = frames(vevm, pulse(0.1), cams)
     # The principal axis of a direction in this plane changes every 60°, starting at 30°.
     return {"angles": angles.tolist(), "rows": sweep_measures(images, angles, 90.0)}
 
@@ -233,7 +233,7 @@ def s6(args):
     angles = np.arange(0, 90.01, 5.0)
     cams = [orbit(vevm, (0.0, -np.sin(np.radians(a)), np.cos(np.radians(a))), (1, 0, 0),
                   args.size) for a in angles]
-    images = frames(vevm, tf, cams, variants())
+    images = frames(vevm, tf, cams)
     ref = images["reference"]
     ref_alpha = ref[..., 3].sum(axis=(1, 2))
     rows = {}
