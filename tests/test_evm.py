@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy import ndimage
 
-from volumeevm_addon import EVM
+from volumeevm_addon import EVM, VolumeEVMError
 
 VOLUMES = ["ct_head_invesalius", "ct_skull_cgal", "seg_liver_cgal", "mr_t1_itk_kmeans",
            "mr_brainsmall_volpack", "micro_nuclei3d_stardist"]
@@ -239,3 +239,137 @@ def test_bad_arguments():
         EVM() | np.zeros((2, 2, 2), bool)
     with pytest.raises(ValueError, match="order must be one of"):
         EVM().sorted("abc")
+
+
+# ---------------------------------------------------------------------- property tests: patterns
+LIMIT = 2**20  # lattice coordinates an EVM holds: [-LIMIT, LIMIT)
+shapes = st.tuples(st.integers(1, 6), st.integers(1, 6), st.integers(1, 6))
+
+
+def _checkerboard(shape, period, phase):
+    index = np.indices(shape)
+    return (sum(index[a] // period[a] for a in range(3)) + phase) % 2 == 1
+
+
+def _touching(shape, seeds, steps):
+    """Voxels at ``seeds`` and their diagonal neighbours ``seed + step``: pairs that share only
+    an edge (two non-zero step components) or a corner (three)."""
+    mask = np.zeros(shape, bool)
+    for seed, step in zip(seeds, steps):
+        for point in (np.array(seed), np.array(seed) + step):
+            if (point >= 0).all() and (point < shape).all():
+                mask[tuple(point)] = True
+    return mask
+
+
+def _border(shape, keep):
+    """Voxels on the faces of the grid (all of them, or a random subset)."""
+    mask = np.ones(shape, bool)
+    mask[1:-1, 1:-1, 1:-1] = False
+    return mask & keep
+
+
+diagonal_steps = st.tuples(*[st.sampled_from([-1, 0, 1])] * 3).filter(lambda s: sum(map(abs, s)) >= 2)
+patterns = st.one_of(
+    shapes.flatmap(lambda shape: arrays(bool, shape)),
+    st.builds(_checkerboard, shapes, st.tuples(*[st.integers(1, 2)] * 3), st.integers(0, 1)),
+    shapes.flatmap(lambda shape: st.builds(
+        _touching, st.just(shape),
+        st.lists(st.tuples(*[st.integers(0, n - 1) for n in shape]), min_size=1, max_size=4),
+        st.lists(diagonal_steps, min_size=4, max_size=4))),
+    shapes.flatmap(lambda shape: st.builds(_border, st.just(shape), arrays(bool, shape))),
+)
+
+
+def offsets(shape):
+    """Placements of a grid of ``shape``: near the origin, or against either end of the range."""
+    def axis(n):
+        return st.one_of(st.integers(-3, 3), st.integers(-LIMIT, -LIMIT + 3),
+                         st.integers(LIMIT - 1 - n - 3, LIMIT - 1 - n))
+    return st.tuples(*[axis(n) for n in shape])
+
+
+placed_pairs = patterns.flatmap(lambda a: st.tuples(
+    st.just(a), patterns.map(lambda b: _fit(b, a.shape)), offsets(a.shape)))
+
+
+def _fit(mask, shape):
+    """``mask`` cropped or zero-padded to ``shape``, for Booleans of two patterns."""
+    out = np.zeros(shape, bool)
+    common = tuple(slice(0, min(s, t)) for s, t in zip(mask.shape, shape))
+    out[common] = mask[common]
+    return out
+
+
+@settings(max_examples=120, deadline=None)
+@given(placed_pairs)
+def test_patterns_round_trip_and_booleans_anywhere_in_the_range(case):
+    a, b, offset = case
+    ea, eb = EVM.from_mask(a, offset), EVM.from_mask(b, offset)
+    assert np.array_equal(ea.to_mask(a.shape, offset), a)
+    assert np.array_equal(ea.vertices.astype(np.int64), brute_vertices(a) + offset)
+    assert ea.volume() == np.count_nonzero(a) and ea.area() == unit_faces(a)
+    for name, (evm_op, voxel_op) in OPERATIONS.items():
+        result = evm_op(ea, eb)
+        assert np.array_equal(result.to_mask(a.shape, offset), voxel_op(a, b)), name
+        assert result == EVM.from_mask(voxel_op(a, b), offset), name
+
+
+@settings(max_examples=80, deadline=None)
+@given(patterns.flatmap(lambda a: st.tuples(st.just(a), offsets(a.shape), offsets(a.shape))))
+def test_translate_round_trips_to_any_placement_in_the_range(case):
+    mask, start, end = case
+    evm = EVM.from_mask(mask, start)
+    step = np.subtract(end, start)
+    moved = evm.translate(step)
+    assert moved == EVM.from_mask(mask, end)
+    assert moved.translate(-step) == evm
+    assert np.array_equal(moved.to_mask(mask.shape, end), mask)
+
+
+@settings(max_examples=80, deadline=None)
+@given(patterns.flatmap(lambda a: st.tuples(st.just(a), offsets(a.shape), st.integers(0, 2),
+                                            st.integers(-2, 8), st.sampled_from([0, 2**40, -2**40]))))
+def test_split_and_clip_at_any_plane_even_beyond_the_range(case):
+    """Planes past the range's ends are exact too: everything or nothing lies beyond them."""
+    mask, offset, axis, c, far = case
+    evm = EVM.from_mask(mask, offset)
+    coordinate = np.indices(mask.shape)[axis] + offset[axis]
+    plane = offset[axis] + c + far
+    below, above = evm.split(axis, plane)
+    assert np.array_equal(below.to_mask(mask.shape, offset), mask & (coordinate < plane))
+    assert np.array_equal(above.to_mask(mask.shape, offset), mask & (coordinate >= plane))
+    lo, hi = [-2**62] * 3, [2**62] * 3
+    hi[axis] = plane
+    expected = mask & (coordinate < plane)
+    assert np.array_equal(evm.clip(lo, hi).to_mask(mask.shape, offset), expected)
+    assert evm.clip(lo, hi) == below
+
+
+def test_coordinates_beyond_the_range_are_refused_naming_the_parameter():
+    voxel = np.ones((1, 1, 1), bool)
+    edge = EVM.from_mask(voxel, (LIMIT - 2, -LIMIT, 0))  # vertices reach LIMIT - 1 and -LIMIT
+    assert np.array_equal(edge.to_mask((1, 1, 1), (LIMIT - 2, -LIMIT, 0)), voxel)
+    with pytest.raises(VolumeEVMError, match=r"^mask placed at offset: .*from -1048576 to 1048575 only"):
+        EVM.from_mask(voxel, (LIMIT - 1, 0, 0))
+    with pytest.raises(VolumeEVMError, match=r"^mask placed at offset: "):
+        EVM.from_mask(voxel, (0, -LIMIT - 1, 0))
+    with pytest.raises(VolumeEVMError, match=r"^mask placed at offset: "):
+        EVM.from_mask(np.zeros((LIMIT, 1, 1), bool))
+    with pytest.raises(VolumeEVMError, match=r"^offset: the region would span lattice coordinates "
+                                             r"\(1048575, -1048576, 0\) to \(1048576, -1048575, 1\)"):
+        edge.translate(np.array([1, 0, 0]))
+    with pytest.raises(VolumeEVMError, match=r"^offset: "):
+        edge.translate(np.array([0, 2**62, 0]))  # no wrap-around in int64
+    with pytest.raises(VolumeEVMError, match="offset must be 3 integers"):
+        EVM.from_mask(voxel, (0.5, 0, 0))
+    with pytest.raises(VolumeEVMError, match=r"^vertices: .*from -1048576 to 1048575 only"):
+        EVM(np.array([[0, 0, 0], [LIMIT, 0, 0]]))
+    with pytest.raises(VolumeEVMError, match="vertices must be integer lattice points"):
+        EVM(np.array([[0.5, 0, 0]]))
+    with pytest.raises(VolumeEVMError, match="split plane c must be an integer"):
+        edge.split(0, 1.5)
+    with pytest.raises(VolumeEVMError, match="axis must be 0, 1 or 2"):
+        edge.split(3, 0)
+    with pytest.raises(VolumeEVMError, match="clip lo must be 3 integers"):
+        edge.clip((0.5, 0, 0), (1, 1, 1))

@@ -29,6 +29,20 @@ def test_region_and_table_match_the_dense_volume(head, bone):
     assert bone.table(0).dtype == head.dtype
 
 
+def test_from_array_equals_the_dense_selection_for_any_memory_layout(head):
+    """The build works slice by slice from the densities: strided, reversed and Fortran-ordered
+    arrays, integer and float, give the region and table of the dense selection exactly."""
+    arrays = (np.asfortranarray(head[:100, :90, :50]), head[::2, 1::3, ::-1],
+              head[40:104, 60:124, :40].astype(np.float32) * 0.5 + 0.25)
+    for array in arrays:
+        for threshold, upper in ((300, None), (-500, 100), (np.float32(20.5), np.float64(1e6))):
+            vevm = VolumeEVM.from_array(array, threshold, upper)
+            mask = (array >= threshold) & (array <= (np.inf if upper is None else upper))
+            assert vevm.evm == EVM.from_mask(mask)
+            assert np.array_equal(vevm.table(0), array[mask])
+            assert vevm.table(0).dtype == array.dtype
+
+
 def test_band_threshold(head):
     band = VolumeEVM.from_array(head, 0, upper=80)
     mask = (head >= 0) & (head <= 80)

@@ -16,11 +16,13 @@ A. Aguilera, D. Ayala, "Orthogonal polyhedra as geometric bounds in constructive
 geometry", ACM Solid Modeling 1997.
 """
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import _sweep
+from ._errors import VolumeEVMError
 
 ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six lexicographic axis orders "ABC": A slowest."""
@@ -30,6 +32,63 @@ def _axes(order):
     if order not in ORDERS:
         raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
     return ["xyz".index(a) for a in order]
+
+
+def check_lattice_range(lo, hi, name):
+    """Refuse lattice coordinates from ``lo`` to ``hi`` (per axis, inclusive) an EVM cannot hold.
+
+    Vertices are packed into int64 keys of :data:`._sweep.BITS` bits per coordinate (see
+    :mod:`._sweep`), so every coordinate must lie in ``[-LIMIT, LIMIT)`` with ``LIMIT = 2**20``:
+    a grid of up to 1048575 voxels along each axis. ``lo`` and ``hi`` may be any integers
+    (Python integers, so that an offset near the int64 limits is judged without overflow).
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming ``name`` (the parameter that put the region there) and the limit.
+    """
+    lo, hi = [int(a) for a in lo], [int(a) for a in hi]
+    if min(lo) < -_sweep.LIMIT or max(hi) >= _sweep.LIMIT:
+        raise VolumeEVMError(
+            f"{name}: the region would span lattice coordinates {tuple(lo)} to {tuple(hi)}, but an "
+            f"EVM holds coordinates from {-_sweep.LIMIT} to {_sweep.LIMIT - 1} only (a grid of at "
+            f"most {_sweep.LIMIT - 1} voxels along each axis)"
+        )
+
+
+def integer_triple(value, name):
+    """``value`` as 3 Python ints; refuses floats, booleans, text and other shapes."""
+    array = np.asarray(value)
+    if array.shape != (3,) or array.dtype.kind not in "iu":
+        raise VolumeEVMError(f"{name} must be 3 integers, got {value!r}")
+    return tuple(int(a) for a in array)
+
+
+def vertex_keys(slices, shape, offset=(0, 0, 0)):
+    """Packed keys of the extreme vertices of a region given as boolean x-slices, plane by plane.
+
+    ``slices`` yields the ``(Y, Z)`` boolean slices ``x = 0 .. X-1`` of a region in a grid of
+    ``shape``; the generator yields the sorted keys (:func:`._sweep.pack`) of the vertices of
+    planes ``x = 0 .. X``, each shifted by ``offset``. Only two slices' parities are held at a
+    time, so a caller can make the slices on the fly (:meth:`EVM.from_mask`, and
+    ``VolumeEVM.from_array`` straight from the densities).
+    """
+    _, ny, nz = shape
+    ox, oy, oz = (int(o) + _sweep.OFFSET for o in offset)
+    previous = np.zeros((ny + 1, nz + 1), np.uint8)
+    for x, mask in enumerate(itertools.chain(slices, [None])):
+        current = np.zeros((ny + 1, nz + 1), np.uint8)
+        if mask is not None:
+            # 2-D parity of slice x: XOR of the four shifted copies.
+            s = mask.view(np.uint8)
+            current[:-1, :-1] ^= s
+            current[1:, :-1] ^= s
+            current[:-1, 1:] ^= s
+            current[1:, 1:] ^= s
+        ys, zs = np.nonzero(previous ^ current)
+        yield ((np.int64(x + ox) << 2 * _sweep.BITS) | ((ys.astype(np.int64) + oy) << _sweep.BITS)
+               | (zs.astype(np.int64) + oz))
+        previous = current
 
 
 def compact_integers(values):
@@ -81,12 +140,14 @@ class EVM:
         """Wrap extreme vertices ``(n, 3)`` (any order; duplicates are an error)."""
         v = np.zeros((0, 3), np.int64) if vertices is None else np.asarray(vertices)
         if v.ndim != 2 or v.shape[1] != 3:
-            raise ValueError(f"vertices must have shape (n, 3), got {v.shape}")
-        if v.size and (v.min() < -_sweep.LIMIT or v.max() >= _sweep.LIMIT):
-            raise ValueError(f"vertex coordinates must lie in [-{_sweep.LIMIT}, {_sweep.LIMIT})")
+            raise VolumeEVMError(f"vertices must have shape (n, 3), got {v.shape}")
+        if v.dtype.kind not in "iu":
+            raise VolumeEVMError(f"vertices must be integer lattice points, got dtype {v.dtype}")
+        if v.size:
+            check_lattice_range(v.min(axis=0), v.max(axis=0), "vertices")
         keys = np.sort(_sweep.pack(v))
         if keys.size > 1 and (keys[1:] == keys[:-1]).any():
-            raise ValueError("vertices contain duplicates")
+            raise VolumeEVMError("vertices contain duplicates")
         self._set(keys)
 
     def _set(self, keys):
@@ -106,32 +167,21 @@ class EVM:
         """The EVM of a boolean voxel mask indexed ``[x, y, z]`` (parity rule).
 
         ``offset`` places voxel ``mask[0, 0, 0]`` at lattice cell ``offset``. Works slab by slab
-        in x so that the padded copy never exceeds two x-slices at a time.
+        in x (:func:`vertex_keys`) so that the padded copy never exceeds two x-slices at a time.
+
+        Raises
+        ------
+        VolumeEVMError
+            If the mask is not 3-D, or the grid placed at ``offset`` reaches past the lattice
+            coordinates an EVM holds (:func:`check_lattice_range`).
         """
         mask = np.asarray(mask)
         if mask.ndim != 3:
-            raise ValueError(f"mask must be 3-D, got shape {mask.shape}")
-        mask = mask.astype(bool, copy=False)
-        nx, ny, nz = mask.shape
-        previous = np.zeros((ny + 1, nz + 1), np.uint8)
-        chunks = []
-        for x in range(nx + 1):
-            current = np.zeros((ny + 1, nz + 1), np.uint8)
-            if x < nx:
-                # 2-D parity of slice x: XOR of the four shifted copies.
-                s = mask[x].view(np.uint8)
-                current[:-1, :-1] ^= s
-                current[1:, :-1] ^= s
-                current[:-1, 1:] ^= s
-                current[1:, 1:] ^= s
-            plane = previous ^ current
-            ys, zs = np.nonzero(plane)
-            if ys.size:
-                chunks.append(np.stack([np.full(ys.size, x), ys, zs], axis=1))
-            previous = current
-        vertices = np.concatenate(chunks) if chunks else np.zeros((0, 3), np.int64)
-        evm = cls._from_keys(_sweep.pack(vertices + np.asarray(offset, np.int64)))
-        return evm
+            raise VolumeEVMError(f"mask must be 3-D, got shape {mask.shape}")
+        offset = integer_triple(offset, "offset")
+        check_lattice_range(offset, [o + n for o, n in zip(offset, mask.shape)], "mask placed at offset")
+        keys = vertex_keys(mask.astype(bool, copy=False), mask.shape, offset)
+        return cls._from_keys(np.concatenate(list(keys)))
 
     def to_mask(self, shape, offset=(0, 0, 0)):
         """The voxels of the region inside a grid of ``shape`` (prefix XOR of the vertices).
@@ -309,17 +359,32 @@ class EVM:
 
     # ------------------------------------------------------------------ geometry
     def translate(self, offset):
-        """The region moved by an integer ``offset`` (3,)."""
-        offset = np.asarray(offset)
-        if offset.shape != (3,) or not np.issubdtype(offset.dtype, np.integer):
-            raise ValueError(f"offset must be 3 integers, got {offset!r}")
-        return EVM(self._vertices.astype(np.int64) + offset.astype(np.int64))
+        """The region moved by an integer ``offset`` (3,).
+
+        Raises :class:`VolumeEVMError` if the moved region leaves the lattice coordinates an EVM
+        holds (:func:`check_lattice_range`).
+        """
+        offset = integer_triple(offset, "offset")
+        if self.is_empty():
+            return self
+        lo, hi = self.bounds()
+        check_lattice_range([a + o for a, o in zip(lo, offset)], [a + o for a, o in zip(hi, offset)], "offset")
+        # A translation keeps the lexicographic order: the keys stay sorted.
+        return EVM._from_keys(_sweep.pack(self._vertices.astype(np.int64) + np.array(offset)))
 
     def split(self, axis, c):
         """Split by the plane ``axis = c``: ``(part below c, part at or above c)``.
 
-        The section just below ``c`` closes the lower part and opens the upper one.
+        The section just below ``c`` closes the lower part and opens the upper one. ``c`` may be
+        any integer: planes beyond the lattice range split off nothing.
         """
+        if axis not in (0, 1, 2):
+            raise VolumeEVMError(f"axis must be 0, 1 or 2, got {axis!r}")
+        if isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)):
+            raise VolumeEVMError(f"split plane c must be an integer, got {c!r}")
+        if c >= _sweep.LIMIT:  # every vertex lies below the plane
+            return self, EVM()
+        c = max(int(c), -_sweep.LIMIT)  # no vertex lies below -LIMIT: the same split
         order = ("xyz", "yzx", "zxy")[axis]
         keys = self.keys(order)
         cut = np.int64(c + _sweep.OFFSET) << (2 * _sweep.BITS)
@@ -339,15 +404,23 @@ class EVM:
 
         Per axis, the vertices between the two planes are kept, the section entering at ``lo``
         opens the part and the section leaving at ``hi`` closes it (a split at both planes).
+        ``lo`` and ``hi`` may be any integers: the box is first cut down to the bounding box.
         """
+        lo, hi = integer_triple(lo, "clip lo"), integer_triple(hi, "clip hi")
+        if self.is_empty():
+            return self
+        low, high = self.bounds()
+        lo = [max(a, b) for a, b in zip(lo, low)]
+        hi = [min(a, b) for a, b in zip(hi, high)]
+        if any(a >= b for a, b in zip(lo, hi)):
+            return EVM()
+        # Now every plane lies inside the bounding box, hence inside the range keys can hold.
         plane_bits = 2 * _sweep.BITS
         columns = _sweep.unpack(self.keys(), 3)[1]
         for axis in range(3):
             axes = ["xyz".index(a) for a in ("xyz", "yzx", "zxy")[axis]]
             keys = np.sort(_sweep.pack(columns[:, axes]))
             cuts = [np.int64(int(c) + _sweep.OFFSET) << plane_bits for c in (lo[axis], hi[axis])]
-            if cuts[0] >= cuts[1]:
-                return EVM()
             first, stop = np.searchsorted(keys, cuts)
             rest = (1 << plane_bits) - 1
             opening = _sweep.parity(keys[:first] & rest) | cuts[0]

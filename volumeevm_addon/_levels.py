@@ -27,12 +27,15 @@ the table lists voxels in C order, so each slab's densities are one contiguous s
 no dense copy of the densities is made.
 """
 
+import numbers
+
 import numpy as np
 
 from ._errors import VolumeEVMError
 from ._evm import EVM
+from ._memory import check_memory
 
-__all__ = ["coarsen", "auto_factor", "level_factor", "LEVELS"]
+__all__ = ["coarsen", "checked_factor", "auto_factor", "level_factor", "level_memory", "LEVELS"]
 
 LEVELS = ("full", "auto")
 """The named levels ``render`` accepts besides an integer factor."""
@@ -45,21 +48,28 @@ def coarsen(vevm, factor):
     ----------
     vevm : VolumeEVM
     factor : int
-        Fine voxels per coarse voxel along each axis, >= 2.
+        Fine voxels per coarse voxel along each axis: an integer from 2 to the grid's largest
+        side (a larger factor would merge the whole grid into one voxel all the same).
 
     Returns
     -------
     VolumeEVM
         Same orientation, units, threshold; ``spacing * factor``; origin at the centre of the
         first block.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a factor that is not such an integer, or when the level would need more memory
+        than is available (:func:`._memory.check_memory`).
     """
     from ._volumeevm import VolumeEVM
 
-    f = int(factor)
-    if f != factor or f < 2:
-        raise VolumeEVMError(f"level factor: must be an integer >= 2, got {factor!r}")
+    f = checked_factor(factor, vevm.shape)
     fine = np.array(vevm.shape)
     shape = -(-fine // f)
+    check_memory(level_memory(vevm.shape, f, vevm.voxel_count, len(vevm.evm)), f"making level {f}",
+                 source="level factor", advice="use a smaller factor")
     dtype = np.float64 if vevm.table().dtype == np.float64 else np.float32
     mask = vevm.evm.to_mask(vevm.shape)
     table = vevm.table()
@@ -89,6 +99,42 @@ def coarsen(vevm, factor):
                      shape=tuple(shape), spacing=tuple(spacing),
                      origin=tuple(np.array(vevm.origin) + shift), orientation=vevm.orientation,
                      units=vevm.units, threshold=vevm.threshold, upper=vevm.upper)
+
+
+def checked_factor(factor, shape):
+    """``factor`` as an int, refused unless it is an integer from 2 to the grid's largest side.
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming the level factor and the accepted range.
+    """
+    if isinstance(factor, (bool, np.bool_)) or not isinstance(factor, numbers.Integral) or factor < 2:
+        raise VolumeEVMError(f"level factor must be an integer >= 2, got {factor!r}")
+    if factor > max(shape):
+        raise VolumeEVMError(
+            f"level factor {factor} is larger than the grid's largest side ({max(shape)} voxels); "
+            f"use a factor from 2 to {max(shape)}"
+        )
+    return int(factor)
+
+
+def level_memory(shape, factor, voxel_count, vertex_count):
+    """Estimated peak bytes of :func:`coarsen`: the fine mask, one coarse slab's blocks, the table.
+
+    The region's fine mask (its prefix-XOR grid and the boolean copy: 2 bytes a voxel, and
+    int64 copies of the ``vertex_count`` vertices that place it: 100 bytes each), the
+    blocks of one coarse slab (``factor`` fine slices padded to whole blocks, a boolean and a
+    float64 each, with as much again for the block sums) and the coarse table in float64 while
+    it is gathered (one entry per coarse voxel of the region, at most the fine voxel count or
+    the coarse grid's size; 8 bytes twice).
+    """
+    x, y, z = (int(n) for n in shape)
+    coarse = [-(-n // factor) for n in (x, y, z)]
+    padded = [n * factor for n in coarse]
+    entries = min(int(voxel_count), coarse[0] * coarse[1] * coarse[2])
+    return (2 * (x + 1) * (y + 1) * (z + 1) + 100 * int(vertex_count)
+            + 2 * 9 * factor * padded[1] * padded[2] + 16 * entries)
 
 
 def auto_factor(shape, grid_to_world, camera):

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._errors import VolumeEVMError
+
 BLENDER_UNITS_PER_MM = 0.001
 """The one unit mapping: 1 mm of patient space is 0.001 Blender units (1 BU = 1 m, Blender's
 default metric scene), so a 25 cm head is 0.25 BU across and measures right in Blender."""
@@ -83,3 +85,121 @@ def grid_to_world(spacing, origin, orientation=None, matrix_world=None):
     scale = np.diag([BLENDER_UNITS_PER_MM] * 3 + [1.0])
     placement = np.eye(4) if matrix_world is None else np.asarray(matrix_world, dtype=np.float64)
     return placement @ scale @ index_to_physical(spacing, origin, orientation)
+
+
+#: Largest deviation of ``orientation.T @ orientation`` from the identity that still counts as
+#: orthonormal. Headers store directions in float32 or as decimal strings of six digits or so
+#: (DICOM), which leaves errors near 1e-6; a sheared or scaled frame is off by far more.
+ORTHONORMAL_TOLERANCE = 1e-5
+
+
+def checked_geometry(spacing, origin, orientation, *, source=""):
+    """Check grid geometry and return it in the core's types; the one place that decides it.
+
+    Parameters
+    ----------
+    spacing : sequence of 3 real numbers
+        Voxel size in mm along x, y, z: finite and positive.
+    origin : sequence of 3 real numbers
+        Physical position (mm, LPS) of the centre of voxel ``(0, 0, 0)``: finite.
+    orientation : (3, 3) array_like or None
+        Column ``i`` is the direction of index axis ``i``: an orthonormal matrix (rotation or
+        reflection) within :data:`ORTHONORMAL_TOLERANCE`. ``None`` means the identity.
+    source : str, optional
+        The file or data the geometry belongs to, named first in messages.
+
+    Returns
+    -------
+    spacing, origin : tuple of 3 float
+    orientation : (3, 3) ndarray of float64
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming the parameter and what is wrong with it.
+    """
+    prefix = f"{source}: " if source else ""
+    spacing = _reals(spacing, (3,), "spacing", prefix, "three finite positive numbers (mm per voxel)")
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise VolumeEVMError(f"{prefix}spacing must be three finite positive numbers (mm per voxel), "
+                             f"got {spacing.tolist()}")
+    origin = _reals(origin, (3,), "origin", prefix, "three finite numbers (mm)")
+    if not np.all(np.isfinite(origin)):
+        raise VolumeEVMError(f"{prefix}origin must be three finite numbers (mm), got {origin.tolist()}")
+    if orientation is None:
+        rotation = np.eye(3)
+    else:
+        rotation = _reals(orientation, (3, 3), "orientation", prefix, "a 3x3 matrix of real numbers")
+        deviation = np.abs(rotation.T @ rotation - np.eye(3)).max() if np.isfinite(rotation).all() else np.inf
+        if not deviation <= ORTHONORMAL_TOLERANCE:
+            raise VolumeEVMError(
+                f"{prefix}orientation must be orthonormal (unit, mutually perpendicular axis "
+                f"directions as columns), got {rotation.tolist()}: off by {deviation:.3g}"
+            )
+    return tuple(float(s) for s in spacing), tuple(float(o) for o in origin), rotation
+
+
+def _reals(value, shape, name, prefix, expected):
+    """``value`` as a float64 array of ``shape``; refuses bools, complex numbers and text."""
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as error:
+        raise VolumeEVMError(f"{prefix}{name} must be {expected}, got {value!r}") from error
+    if raw.shape != shape or raw.dtype.kind not in "iuf":
+        raise VolumeEVMError(f"{prefix}{name} must be {expected}, got {value!r}")
+    return raw.astype(np.float64)
+
+
+def checked_densities(array, source):
+    """The densities as an ndarray, refused unless they are a usable density grid.
+
+    Accepted: a 3-D, non-empty array (or array-like) of integers or real floating-point
+    numbers, all finite. Refused: booleans (a mask is not densities: use ``EVM.from_mask``),
+    complex numbers, objects, and masked arrays, whose masked voxels have no defined density
+    (fill them explicitly with ``array.filled(value)``). The finiteness test runs one x-slice at
+    a time so that it allocates no copy of the grid.
+
+    Parameters
+    ----------
+    array : array_like
+    source : str
+        The file or data the array came from, named first in messages.
+
+    Returns
+    -------
+    (X, Y, Z) ndarray
+        ``array`` itself when it is an ndarray (no copy).
+
+    Raises
+    ------
+    VolumeEVMError
+    """
+    if isinstance(array, np.ma.MaskedArray):
+        raise VolumeEVMError(
+            f"{source}: a masked array has no density at its masked voxels; fill them "
+            f"explicitly (array.filled(value)) or pass array.data"
+        )
+    try:
+        array = np.asarray(array)
+    except (TypeError, ValueError) as error:
+        raise VolumeEVMError(f"{source}: not an array of densities ({error})") from error
+    if array.ndim != 3:
+        raise VolumeEVMError(f"{source}: expected a 3-D array indexed [x, y, z], got shape {array.shape}")
+    if array.size == 0:
+        raise VolumeEVMError(f"{source}: the volume is empty (shape {array.shape})")
+    if array.dtype.kind not in "uif":
+        hint = "; for a mask use EVM.from_mask" if array.dtype.kind == "b" else ""
+        raise VolumeEVMError(
+            f"{source}: densities must be integers or real floating-point numbers, got dtype "
+            f"{array.dtype}{hint}"
+        )
+    if array.dtype.kind == "f":
+        bad = [int(np.count_nonzero(~np.isfinite(plane))) for plane in array]
+        if any(bad):
+            x = next(i for i, count in enumerate(bad) if count)
+            y, z = (int(i) for i in np.argwhere(~np.isfinite(array[x]))[0])
+            raise VolumeEVMError(
+                f"{source}: {sum(bad)} densities are NaN or infinite (first at voxel {(x, y, z)}, "
+                f"value {array[x, y, z]}); densities must be finite"
+            )
+    return array
