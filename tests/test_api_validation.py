@@ -263,3 +263,17 @@ def test_the_estimate_counts_the_region_vertices_and_boxes_exactly(array):
     assert vevm.evm == evm
     assert seen[-1] == _volumeevm.build_memory(array.shape, array.dtype, evm.volume(), len(evm),
                                                len(evm.boxes()[0]))
+
+
+def test_voxel_mask_and_dense_grid_check_memory(monkeypatch):
+    vevm = VolumeEVM.from_array(np.arange(64**3).reshape(64, 64, 64) % 7, 5)
+    expected = (np.arange(64**3).reshape(64, 64, 64) % 7) >= 5
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "256K")
+    with pytest.raises(VolumeEVMError, match=r"^EVM grid \(64, 64, 64\): making the voxel mask needs about "
+                                             r"[\d.]+ MiB of memory but only 256.0 KiB is available"):
+        vevm.evm.to_mask(vevm.shape)
+    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense grid needs about"):
+        vevm.to_dense()
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
+    assert np.array_equal(vevm.evm.to_mask(vevm.shape), expected)
+    assert np.array_equal(vevm.to_dense(), np.where(expected, np.arange(64**3).reshape(64, 64, 64) % 7, 0))

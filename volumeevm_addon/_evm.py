@@ -23,6 +23,7 @@ import numpy as np
 
 from . import _sweep
 from ._errors import VolumeEVMError
+from ._memory import check_memory
 
 ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six lexicographic axis orders "ABC": A slowest."""
@@ -192,6 +193,10 @@ class EVM:
         shape = tuple(int(s) for s in shape)
         if len(shape) != 3:
             raise ValueError(f"shape must have 3 entries, got {shape}")
+        # The prefix-XOR grid, the boolean result and two int64 copies of the vertices.
+        check_memory(2 * int(np.prod([s + 1 for s in shape], dtype=np.float64)) + 48 * len(self),
+                     "making the voxel mask", source=f"EVM grid {shape}",
+                     advice="use a smaller grid, or clip the region to the part you need")
         v = self.vertices.astype(np.int64) - np.asarray(offset, np.int64)
         grid = np.zeros(tuple(s + 1 for s in shape), np.uint8)
         clipped = np.clip(v, 0, shape)

@@ -227,6 +227,9 @@ class VolumeEVM:
     def to_dense(self, background=0):
         """The full grid: the region's densities, ``background`` everywhere else."""
         table = self._tables[0]
+        check_memory(math.prod(self.shape) * (table.dtype.itemsize + 2), "making the dense grid",
+                     source=f"VolumeEVM grid {self.shape}",
+                     advice="work on the VolumeEVM itself, or clip it to the part you need")
         dense = np.full(self.shape, background, dtype=table.dtype)
         dense[self.evm.to_mask(self.shape)] = table
         return dense
