@@ -5,7 +5,8 @@ from the image-plane attributes (DICOM PS3.3 C.7.6.2):
 
 - ``ImageOrientationPatient`` = (row direction, column direction) in LPS: the row direction is
   the way the column index (x) grows, the column direction the way the row index (y) grows;
-  the slice normal is their cross product.
+  the slice normal is their cross product. Both must be unit vectors at right angles (within
+  :data:`_DIRECTION_TOLERANCE`, as the decimal strings allow); they are then normalised.
 - ``ImagePositionPatient`` is the LPS centre of the first transmitted pixel of each slice.
   Slices are sorted by the projection of that position on the normal (file names and
   ``InstanceNumber`` are not reliable), the origin is the first sorted slice's position and the
@@ -21,23 +22,55 @@ the stored integer dtype when every slice's rescale is the identity, is ``int16`
 if the values need it) when slopes and intercepts are integers and the stored pixels are at
 most 16-bit, and ``float32`` otherwise. CT data is in Hounsfield units ("HU").
 
+Which files are read. In a folder (sub-folders are not scanned) a regular file is taken as
+DICOM when it carries the DICOM marker (``DICM`` after the 128-byte preamble) or its name ends
+in ``.dcm`` or ``.dicom``; every such file must be readable, and an unreadable or truncated one
+is an error naming it, never skipped (skipping a first or last slice would shift the volume).
+Other files (a README, a ``.npy``) are skipped unread, and so are FIFOs, devices and sockets,
+which are never opened. A DICOM file without ``SeriesInstanceUID`` is an error unless it is a
+DICOMDIR, and so is a ``SeriesInstanceUID`` that is not a valid UID (a corrupt length field
+makes it swallow the elements that follow). Every file of the chosen series must be an image
+slice. Named files (a list, or the
+one file given) must all be readable DICOM regular files.
+
 Refused with a message rather than guessed: several series in one folder (unless
-``series_uid`` picks one), slices of different sizes, orientations or pixel spacings, two slices
-at one position, unevenly spaced slices (missing files), multi-frame and colour images.
+``series_uid`` picks one), slices of different sizes, pixel formats, orientations or pixel
+spacings, two slices at one position, unevenly spaced slices (missing files), a rescale given in
+some slices only, a ``RescaleSlope`` of 0 or a non-finite one, pixel data whose length does not
+match ``Rows`` x ``Columns`` x ``BitsAllocated`` or that has bits set above ``BitsStored``,
+multi-frame and colour images, and a series whose decoded volume would not fit in the memory
+available. pydicom's warnings about the deviations it tolerates are not shown: the checks above
+decide what is usable.
 """
 
 import os
+import re
+import stat
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._memory import check_memory, format_bytes
 from ._checks import checked_volume, import_reader_package
 
 #: Largest deviation of a slice step from the mean step, relative to the mean step.
 _SPACING_RTOL = 1e-2
 #: Tolerance on direction cosines when checking that slices share one orientation.
 _ORIENTATION_ATOL = 1e-4
+#: Largest accepted deviation of an ``ImageOrientationPatient`` vector's length from 1, and of
+#: the cosine between its two vectors from 0 (decimal strings of limited precision).
+_DIRECTION_TOLERANCE = 1e-3
+#: Name endings that mark a file in a folder as DICOM even without the ``DICM`` marker.
+_DICOM_SUFFIXES = (".dcm", ".dicom")
+#: SOP class of a DICOMDIR (Media Storage Directory Storage): DICOM, but not part of a series.
+_DICOMDIR_CLASS = "1.2.840.10008.1.3.10"
+#: A DICOM UID: at most 64 characters, numbers separated by dots (PS3.5 9.1).
+_UID = re.compile(r"(?=.{1,64}$)[0-9]+(\.[0-9]+)*")
+#: Transfer syntaxes whose pixel data is stored as is (the bytes needed follow from the header).
+_NATIVE_SYNTAXES = ("1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2")
+_DEFLATED_SYNTAX = "1.2.840.10008.1.2.1.99"
 
 
 def read_dicom(source, *, series_uid=None):
@@ -46,9 +79,9 @@ def read_dicom(source, *, series_uid=None):
     Parameters
     ----------
     source : str, Path or sequence of str or Path
-        A folder (its files are scanned, sub-folders are not; non-DICOM files are skipped),
-        one file (the series it belongs to is read from its folder), or an explicit list of
-        the series' files.
+        A folder (its files are scanned, sub-folders are not; see the module notes for which
+        files are read), one file (the series it belongs to is read from its folder), or an
+        explicit list of the series' files.
     series_uid : str, optional
         ``SeriesInstanceUID`` of the series to read when the files hold several.
 
@@ -62,136 +95,342 @@ def read_dicom(source, *, series_uid=None):
     Raises
     ------
     VolumeEVMError
-        If pydicom is missing, no image series is found, several are found and
-        ``series_uid`` is not given (the message lists them), ``series_uid`` is not among
-        them, the slices do not form one regular grid (see the module notes), or a file's
-        pixel data cannot be decoded.
+        If pydicom is missing, a file that must be read cannot be (the message names it), no
+        image series is found, several are found and ``series_uid`` is not given (the message
+        lists them), ``series_uid`` is not among them, a slice's header is corrupt, the slices
+        do not form one regular grid (see the module notes), a file's pixel data cannot be
+        decoded, or the volume would not fit in memory.
     """
-    files, label, explicit = _candidate_files(source)
+    files, label, named = _candidate_files(source)
+    explicit = not isinstance(source, (str, os.PathLike))
     pydicom = import_reader_package("pydicom", "pydicom", label)
-    if series_uid is None and isinstance(source, (str, os.PathLike)) and Path(source).is_file():
-        series_uid = _read_header(pydicom, Path(source), explicit=True).get("SeriesInstanceUID")
-
-    series = {}
+    headers, must_read = {}, set(named)
     for path in files:
-        ds = _read_header(pydicom, path, explicit)
-        if ds is not None and "SeriesInstanceUID" in ds and "Rows" in ds:
-            series.setdefault(str(ds.SeriesInstanceUID), []).append((path, ds))
-    if not series:
-        raise VolumeEVMError(f"{label}: no DICOM image series found among {len(files)} file(s)")
-    if series_uid is None and len(series) > 1:
+        if path in must_read or _marked_as_dicom(path):
+            headers[path] = _read_header(pydicom, path)
+    if series_uid is None and not explicit and named:
+        series_uid = str(headers[named[0]].get("SeriesInstanceUID", "")) or None
+
+    name = (lambda path: str(path)) if explicit else (lambda path: path.name)
+    series = {}
+    for path, ds in headers.items():
+        if "SeriesInstanceUID" in ds:
+            uid = str(ds.SeriesInstanceUID)
+            if not _UID.fullmatch(uid):
+                raise VolumeEVMError(
+                    f"{path}: SeriesInstanceUID {uid[:80]!r} is not a valid UID (corrupt header?)"
+                )
+            series.setdefault(uid, []).append((path, ds))
+        elif ds.file_meta.get("MediaStorageSOPClassUID") != _DICOMDIR_CLASS:
+            raise VolumeEVMError(
+                f"{path}: this DICOM file has no SeriesInstanceUID (corrupt header?); it cannot "
+                f"be placed in a series"
+            )
+    images = {uid: items for uid, items in series.items() if any("Rows" in ds for _, ds in items)}
+    if not images:
+        others = [name(path) for items in series.values() for path, _ in items]
         raise VolumeEVMError(
-            f"{label}: holds {len(series)} DICOM series; choose one with series_uid=:\n"
-            + _describe(series)
+            f"{label}: no DICOM image series found among {len(files)} file(s)"
+            + (f"; these DICOM files hold no image (no Rows): {', '.join(others[:5])}"
+               if others else "")
         )
-    uid = series_uid if series_uid is not None else next(iter(series))
-    if uid not in series:
+    if series_uid is None and len(images) > 1:
+        raise VolumeEVMError(
+            f"{label}: holds {len(images)} DICOM series; choose one with series_uid=:\n"
+            + _describe(images, name)
+        )
+    uid = series_uid if series_uid is not None else next(iter(images))
+    if uid not in images:
         raise VolumeEVMError(
             f"{label}: no series with SeriesInstanceUID {uid!r}; the series found are:\n"
-            + _describe(series)
+            + _describe(images, name)
         )
-    slices = series[uid]
+    slices = [_slice_header(path, ds, name(path), label) for path, ds in images[uid]]
+    _check_same(slices, label, "size", "image sizes", lambda s: f"{s['columns']}x{s['rows']}",
+                " (columns x rows)")
+    _check_same(slices, label, "pixel_format", "pixel formats",
+                lambda s: "{} bits allocated, {} stored, {}".format(*s["pixel_format"]))
     order, geometry = _grid_geometry(slices, label)
     slices = [slices[i] for i in order]
-    raw = np.stack([_pixels(path, pydicom).T for path, _ in slices], axis=2)
-    array = _rescale(raw, [ds for _, ds in slices])
-    units = "HU" if slices[0][1].get("Modality") == "CT" else ""
+    slopes, intercepts = _rescale_values(slices, label)
+    identity = bool(np.all(slopes == 1) and np.all(intercepts == 0))
+    raw = _read_pixels(pydicom, slices, label, identity=identity)
+    array = _rescale(raw, slopes, intercepts)
+    units = "HU" if slices[0]["modality"] == "CT" else ""
     return checked_volume(array, label, units=units, **geometry)
 
 
 def _candidate_files(source):
-    """Files to scan, the label used in messages and whether the files were named explicitly."""
+    """Regular files to scan, the label used in messages, and the files named by the caller.
+
+    Named files must be readable DICOM; the other files of a folder are read only when
+    :func:`_marked_as_dicom`.
+    """
     if isinstance(source, (str, os.PathLike)):
         source = Path(source)
-        folder = source if source.is_dir() else source.parent
-        files = sorted(p for p in folder.iterdir() if p.is_file())
-        return files, str(source), False
+        named = [] if source.is_dir() else [source]
+        for path in named:
+            require_regular_file(path)
+        folder = source.parent if named else source
+        try:
+            entries = sorted(folder.iterdir())
+        except OSError as exc:
+            raise VolumeEVMError(f"{folder}: cannot list the folder ({exc})") from exc
+        files = [path for path in entries if _is_regular_file(path)]
+        return files, str(source), named
     files = [Path(p) for p in source]
     if not files:
         raise VolumeEVMError("read_dicom: the list of DICOM files is empty")
+    for path in files:
+        require_regular_file(path)
     label = str(files[0]) if len(files) == 1 else f"{files[0]} (and {len(files) - 1} more files)"
-    return files, label, True
+    return files, label, files
 
 
-def _read_header(pydicom, path, explicit):
-    """Header of ``path`` (no pixel data), or ``None`` for a non-DICOM file found in a folder."""
+def _is_regular_file(path):
+    """Whether a folder entry is a regular file (FIFOs, devices and sub-folders are skipped)."""
     try:
-        return pydicom.dcmread(path, stop_before_pixels=True)
-    except (pydicom.errors.InvalidDicomError, OSError, ValueError, EOFError) as exc:
-        if explicit:
-            raise VolumeEVMError(f"{path}: not a readable DICOM file ({exc})") from exc
-        return None
+        return stat.S_ISREG(path.stat().st_mode)
+    except OSError as exc:
+        raise VolumeEVMError(f"{path}: cannot read this entry of the folder ({exc})") from exc
 
 
-def _describe(series):
-    """One line per series: UID, modality, description, number of files."""
-    return "\n".join(
-        f"  {uid}: {items[0][1].get('Modality', '?')} "
-        f"'{items[0][1].get('SeriesDescription', '')}', {len(items)} file(s)"
-        for uid, items in series.items()
-    )
+def require_regular_file(path):
+    """Refuse a named path that is not a regular file: a FIFO or device would be read forever."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise VolumeEVMError(f"{path}: cannot read the file ({exc})") from exc
+    if not stat.S_ISREG(mode):
+        raise VolumeEVMError(
+            f"{path}: not a regular file (a folder, FIFO or device); a DICOM file is needed"
+        )
 
 
-def _floats(slices, keyword, label):
-    """``(n, m)`` array of a numeric multi-valued attribute over all slices."""
-    values = []
-    for path, ds in slices:
-        if keyword not in ds:
+def _marked_as_dicom(path):
+    """Whether a file found in a folder must be read as DICOM: a DICOM name or the DICM marker."""
+    if path.name.lower().endswith(_DICOM_SUFFIXES):
+        return True
+    try:
+        with open(path, "rb") as file:
+            return file.read(132)[128:] == b"DICM"
+    except OSError as exc:
+        raise VolumeEVMError(f"{path}: cannot read the file ({exc})") from exc
+
+
+def _read_header(pydicom, path):
+    """Header of ``path`` (no pixel data); any failure is an error naming the file."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(path, stop_before_pixels=True)
+            # pydicom decodes values when they are first used: decode them all here, so that a
+            # corrupt value fails now, as an error naming the file.
+            ds.file_meta.walk(lambda dataset, element: None)
+            ds.walk(lambda dataset, element: None)
+            return ds
+    except Exception as exc:  # a corrupt file can make the parser fail in any way
+        raise VolumeEVMError(
+            f"{path}: not a readable DICOM file ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _describe(series, name):
+    """One line per series: UID, modality, description, number of files and the first files."""
+    lines = []
+    for uid, items in series.items():
+        ds = items[0][1]
+        shown = ", ".join(name(path) for path, _ in items[:3]) + (", ..." if len(items) > 3 else "")
+        lines.append(
+            f"  {uid}: {ds.get('Modality', '?')} '{ds.get('SeriesDescription', '')}', "
+            f"{len(items)} file(s): {shown}"
+        )
+    return "\n".join(lines)
+
+
+def _slice_header(path, ds, name, label):
+    """The attributes the reader uses, from one slice's header, checked and as plain numbers."""
+    where = f"{label}: {name}"
+    if "Rows" not in ds:
+        raise VolumeEVMError(f"{where} is not an image (no Rows) but belongs to the series")
+    header = {"path": path, "name": name, "modality": str(ds.get("Modality", ""))}
+    for key, keyword, default in (
+        ("rows", "Rows", None), ("columns", "Columns", None), ("frames", "NumberOfFrames", 1),
+        ("samples", "SamplesPerPixel", 1), ("bits", "BitsAllocated", None),
+        ("stored", "BitsStored", None), ("signed", "PixelRepresentation", 0),
+    ):
+        header[key] = _integer(ds, keyword, default, where)
+    if header["frames"] != 1:
+        raise VolumeEVMError(
+            f"{where} has NumberOfFrames {header['frames']}; single-frame slices are needed "
+            f"(multi-frame images are not supported)"
+        )
+    if header["samples"] != 1:
+        raise VolumeEVMError(f"{where} is a colour image; a grey series is needed")
+    if header["rows"] < 1 or header["columns"] < 1:
+        raise VolumeEVMError(f"{where} has {header['columns']}x{header['rows']} pixels")
+    if header["bits"] not in (1, 8, 16, 32, 64) or not 1 <= header["stored"] <= header["bits"]:
+        raise VolumeEVMError(
+            f"{where} has BitsAllocated {header['bits']} and BitsStored {header['stored']}; "
+            f"the pixel format is corrupt or unsupported"
+        )
+    header["size"] = (header["columns"], header["rows"])
+    header["pixel_format"] = (header["bits"], header["stored"],
+                              "signed" if header["signed"] else "unsigned")
+    header["syntax"] = str(ds.file_meta.get("TransferSyntaxUID", ""))
+    header["pixel_bytes"] = (header["rows"] * header["columns"] * header["bits"] + 7) // 8
+    if header["syntax"] in _NATIVE_SYNTAXES:
+        try:
+            file_bytes = path.stat().st_size
+        except OSError as exc:
+            raise VolumeEVMError(f"{path}: cannot read the file ({exc})") from exc
+        if header["pixel_bytes"] > file_bytes:
             raise VolumeEVMError(
-                f"{label}: {path.name} has no {keyword}; cannot place the slice in a volume"
+                f"{path}: cannot decode the pixel data (The number of bytes of pixel data that "
+                f"{header['columns']}x{header['rows']} pixels of {header['bits']} bits need, "
+                f"{header['pixel_bytes']}, is more than the whole file holds, {file_bytes}); "
+                f"the file is truncated or its header is corrupt"
             )
-        values.append([float(v) for v in np.atleast_1d(ds[keyword].value)])
-    if len({len(v) for v in values}) > 1:
-        raise VolumeEVMError(f"{label}: corrupt header: {keyword} has different lengths in files")
-    return np.asarray(values, dtype=np.float64)
+    header["orientation"] = _numbers(ds, "ImageOrientationPatient", 6, where)
+    header["pixel_spacing"] = _numbers(ds, "PixelSpacing", 2, where)
+    header["position"] = _numbers(ds, "ImagePositionPatient", 3, where)
+    header["slope"] = _numbers(ds, "RescaleSlope", 1, where, required=False)
+    header["intercept"] = _numbers(ds, "RescaleIntercept", 1, where, required=False)
+    header["thickness"] = _thickness(ds)
+    if np.any(header["pixel_spacing"] <= 0):
+        raise VolumeEVMError(f"{where} has PixelSpacing {header['pixel_spacing'].tolist()}; "
+                             f"spacings must be positive")
+    if header["slope"] is not None and header["slope"][0] == 0:
+        raise VolumeEVMError(f"{where} has RescaleSlope 0, which would make every pixel equal")
+    return header
+
+
+def _integer(ds, keyword, default, where):
+    """A non-negative integer attribute; ``default`` when absent (``None``: it is required)."""
+    if keyword not in ds:
+        if default is None:
+            raise VolumeEVMError(f"{where} has no {keyword}; the pixel data cannot be read")
+        return default
+    value = ds[keyword].value
+    try:
+        number = int(value)
+    except (TypeError, ValueError) as exc:
+        raise VolumeEVMError(f"{where} has {keyword} {value!r}, not an integer") from exc
+    if number < 0:
+        raise VolumeEVMError(f"{where} has {keyword} {number}, a negative count")
+    return number
+
+
+def _numbers(ds, keyword, count, where, *, required=True):
+    """The ``count`` finite numbers of a numeric attribute as a float array.
+
+    ``None`` when the attribute is absent and not ``required``; an attribute present but empty,
+    unparsable, non-finite or with another number of values is an error.
+    """
+    if keyword not in ds:
+        if required:
+            raise VolumeEVMError(f"{where} has no {keyword}; cannot place the slice in a volume")
+        return None
+    value = ds[keyword].value
+    items = [value] if isinstance(value, (str, bytes, int, float)) else list(value or [])
+    try:
+        numbers = np.array([float(item) for item in items], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise VolumeEVMError(f"{where} has {keyword} {value!r}, which is not numbers") from exc
+    if numbers.shape != (count,) or not np.all(np.isfinite(numbers)):
+        raise VolumeEVMError(
+            f"{where} has {keyword} {value!r}; {count} finite number(s) are needed"
+        )
+    return numbers
+
+
+def _thickness(ds):
+    """``SpacingBetweenSlices``, else ``SliceThickness`` (mm) for a lone slice; ``None`` if neither
+    has a value (both may legally be empty), NaN if the value is not a number."""
+    for keyword in ("SpacingBetweenSlices", "SliceThickness"):
+        value = ds.get(keyword)
+        if value not in (None, ""):
+            try:
+                return float(value)
+            except (TypeError, ValueError):
+                return float("nan")
+    return None
+
+
+def _check_same(slices, label, key, what, show, hint=""):
+    """Refuse a series whose slices differ in ``slices[i][key]``, naming an odd file."""
+    values = [s[key] for s in slices]
+    if any(value != values[0] for value in values):
+        odd = min(slices, key=lambda s: values.count(s[key]))
+        usual = next(s for s in slices if s[key] != odd[key])
+        raise VolumeEVMError(
+            f"{label}: the series mixes {what} {', '.join(sorted({show(s) for s in slices}))}; "
+            f"{odd['name']} has {show(odd)} but {usual['name']} has {show(usual)}{hint}"
+        )
 
 
 def _grid_geometry(slices, label):
     """Slice order and the spacing, origin and orientation of a series; refuses irregular grids."""
-    for path, ds in slices:
-        if int(ds.get("NumberOfFrames", 1) or 1) > 1:
-            raise VolumeEVMError(f"{label}: {path.name} is a multi-frame image (not supported)")
-        if int(ds.get("SamplesPerPixel", 1)) != 1:
-            raise VolumeEVMError(f"{label}: {path.name} is a colour image; a grey series is needed")
-    sizes = sorted({f"{ds.Columns}x{ds.Rows}" for _, ds in slices})
-    if len(sizes) > 1:
+    first = slices[0]
+    iop = np.array([s["orientation"] for s in slices])
+    differs = np.abs(iop - iop[0]).max(axis=1) > _ORIENTATION_ATOL
+    if differs.any():
+        odd = slices[int(np.argmax(differs))]["name"]
         raise VolumeEVMError(
-            f"{label}: the series mixes image sizes {', '.join(sizes)} (columns x rows)"
+            f"{label}: the series mixes slice orientations (ImageOrientationPatient of {odd} "
+            f"differs from {first['name']}); it is not one volume"
         )
-    iop = _floats(slices, "ImageOrientationPatient", label)
-    if iop.shape[1] != 6 or np.abs(iop - iop[0]).max() > _ORIENTATION_ATOL:
-        raise VolumeEVMError(
-            f"{label}: the series mixes slice orientations (ImageOrientationPatient differs); "
-            f"it is not one volume"
-        )
-    pixel_spacing = _floats(slices, "PixelSpacing", label)
-    if pixel_spacing.shape[1] != 2 or np.abs(pixel_spacing - pixel_spacing[0]).max() > 1e-6:
-        raise VolumeEVMError(f"{label}: the series mixes pixel spacings")
-    positions = _floats(slices, "ImagePositionPatient", label)
     row_dir, col_dir = iop[0, :3], iop[0, 3:]
+    lengths = np.array([np.linalg.norm(row_dir), np.linalg.norm(col_dir)])
+    if np.abs(lengths - 1).max() > _DIRECTION_TOLERANCE or abs(row_dir @ col_dir) > (
+        _DIRECTION_TOLERANCE
+    ):
+        raise VolumeEVMError(
+            f"{label}: {first['name']} has ImageOrientationPatient {iop[0].tolist()}: the row "
+            f"and column directions must be unit vectors at right angles (lengths "
+            f"{lengths.round(6).tolist()}, cosine {row_dir @ col_dir:.6g})"
+        )
+    row_dir, col_dir = row_dir / lengths[0], col_dir / lengths[1]
+    pixel_spacing = np.array([s["pixel_spacing"] for s in slices])
+    differs = np.abs(pixel_spacing - pixel_spacing[0]).max(axis=1) > 1e-6
+    if differs.any():
+        odd = slices[int(np.argmax(differs))]["name"]
+        raise VolumeEVMError(
+            f"{label}: the series mixes pixel spacings ({odd} differs from {first['name']})"
+        )
+    positions = np.array([s["position"] for s in slices])
     normal = np.cross(row_dir, col_dir)
     order = np.argsort(positions @ normal, kind="stable")
     positions = positions[order]
+    names = [slices[i]["name"] for i in order]
     if len(slices) > 1:
         steps = np.diff(positions, axis=0)
         step = (positions[-1] - positions[0]) / (len(slices) - 1)
         gaps = steps @ normal
         if gaps.min() <= 1e-6:
+            k = int(np.argmin(gaps))
             raise VolumeEVMError(
-                f"{label}: two or more slices share one position along the normal (several "
-                f"acquisitions, echoes or time points in one series?)"
+                f"{label}: two or more slices share one position along the normal ({names[k]} "
+                f"and {names[k + 1]}; several acquisitions, echoes or time points in one "
+                f"series?)"
             )
-        deviation = np.linalg.norm(steps - step, axis=1).max()
-        if deviation > _SPACING_RTOL * np.linalg.norm(step):
+        errors = np.linalg.norm(steps - step, axis=1)
+        if errors.max() > _SPACING_RTOL * np.linalg.norm(step):
+            k = int(np.argmax(errors))
             raise VolumeEVMError(
                 f"{label}: slices are not evenly spaced: gaps along the normal range from "
-                f"{gaps.min():.4g} to {gaps.max():.4g} mm (missing slices?)"
+                f"{gaps.min():.4g} to {gaps.max():.4g} mm (missing slices? the step from "
+                f"{names[k]} to {names[k + 1]} is {gaps[k]:.4g} mm)"
             )
         z_spacing = np.linalg.norm(step)
         z_dir = step / z_spacing
     else:
-        first = slices[0][1]
-        z_spacing = float(first.get("SpacingBetweenSlices") or first.get("SliceThickness") or 1.0)
+        z_spacing = 1.0 if first["thickness"] is None else first["thickness"]
+        if not z_spacing > 0:
+            raise VolumeEVMError(
+                f"{label}: {first['name']} has a slice spacing of {z_spacing} mm "
+                f"(SpacingBetweenSlices or SliceThickness); it must be positive"
+            )
         z_dir = normal
     return order, {
         "spacing": (pixel_spacing[0, 1], pixel_spacing[0, 0], z_spacing),
@@ -200,18 +439,112 @@ def _grid_geometry(slices, label):
     }
 
 
-def _pixels(path, pydicom):
-    """The ``[row, column]`` pixel array of one single-frame slice."""
+def _rescale_values(slices, label):
+    """Per-slice slopes and intercepts; refuses a rescale that only some slices give."""
+    for key, keyword, identity in (("slope", "RescaleSlope", 1.0),
+                                   ("intercept", "RescaleIntercept", 0.0)):
+        given = [s[key] is not None for s in slices]
+        if any(given) and not all(given):
+            without, having = slices[given.index(False)], slices[given.index(True)]
+            raise VolumeEVMError(
+                f"{label}: {without['name']} has no {keyword} but {having['name']} has one; "
+                f"the slices' values cannot be compared (corrupt header?)"
+            )
+        for s in slices:
+            s[key] = identity if s[key] is None else float(s[key][0])
+    return (np.array([s["slope"] for s in slices]),
+            np.array([s["intercept"] for s in slices]))
+
+
+def _read_pixels(pydicom, slices, label, *, identity):
+    """The stored pixels ``(X, Y, Z)`` of the sorted slices, memory checked before allocating.
+
+    The peak is the stored array, the rescaled copy (at most 4 bytes a voxel) unless the
+    rescale is the identity, a 1-byte mask for the finiteness check of float data, and a few
+    slices being decoded.
+    """
+    first = slices[0]
+    columns, rows, count = first["columns"], first["rows"], len(slices)
+    stored_bytes = max(first["bits"] // 8, 1)
+    per_voxel = stored_bytes + (0 if identity else 4 + 1)
+    check_memory(
+        columns * rows * count * per_voxel + 4 * first["pixel_bytes"],
+        f"reading {count} slices of {columns}x{rows} pixels",
+        source=label,
+        advice="read fewer slices (pass a list of files) or free memory",
+    )
+    raw = None
+    for k, header in enumerate(slices):
+        pixels = _pixels(pydicom, header)
+        if raw is None:
+            raw = np.empty((columns, rows, count), dtype=pixels.dtype)
+        elif pixels.dtype != raw.dtype:
+            raise VolumeEVMError(
+                f"{header['path']}: the pixels decode as {pixels.dtype} but those of "
+                f"{first['name']} as {raw.dtype}"
+            )
+        raw[:, :, k] = pixels.T
+    return raw
+
+
+def _pixels(pydicom, header):
+    """The ``[row, column]`` pixel array of one single-frame slice, its size checked."""
+    path = header["path"]
     try:
-        return pydicom.dcmread(path).pixel_array
-    except (RuntimeError, NotImplementedError, ValueError, AttributeError, OSError) as exc:
-        raise VolumeEVMError(f"{path}: cannot decode the pixel data ({exc})") from exc
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(path)
+            if "PixelData" not in ds:
+                raise VolumeEVMError(f"{path}: the file has no pixel data")
+            length = len(ds.PixelData)
+            native = header["syntax"] in _NATIVE_SYNTAXES + (_DEFLATED_SYNTAX,)
+            if native and length not in (header["pixel_bytes"], header["pixel_bytes"] + 1):
+                raise VolumeEVMError(
+                    f"{path}: cannot decode the pixel data (it holds {format_bytes(length)} but "
+                    f"{header['columns']}x{header['rows']} pixels of {header['bits']} bits "
+                    f"need {header['pixel_bytes']} bytes; corrupt header?)"
+                )
+            pixels = ds.pixel_array
+            if native and header["stored"] < header["bits"] and header["bits"] >= 8:
+                _check_unused_bits(ds.PixelData, pixels, header)
+    except VolumeEVMError:
+        raise
+    except Exception as exc:  # pydicom and its decoders fail in many ways on corrupt data
+        raise VolumeEVMError(
+            f"{path}: cannot decode the pixel data ({type(exc).__name__}: {exc})"
+        ) from exc
+    if pixels.shape != (header["rows"], header["columns"]) or pixels.dtype.kind not in "uif":
+        raise VolumeEVMError(
+            f"{path}: the pixel data decodes to shape {pixels.shape} ({pixels.dtype}), not "
+            f"{header['rows']} rows x {header['columns']} columns of grey values"
+        )
+    return pixels
 
 
-def _rescale(raw, headers):
-    """Apply each slice's modality rescale to ``raw`` (``(X, Y, Z)``, slices in sorted order)."""
-    slopes = np.array([float(ds.get("RescaleSlope", 1) or 1) for ds in headers])
-    intercepts = np.array([float(ds.get("RescaleIntercept", 0) or 0) for ds in headers])
+def _check_unused_bits(data, pixels, header):
+    """Refuse pixel data with bits set above ``BitsStored`` (pydicom drops them silently).
+
+    Such bits mean a corrupt ``BitsStored`` or overlays kept in the pixel data (retired from
+    DICOM, not supported): either way the values are not what the header says.
+    """
+    order = ">" if header["syntax"] == "1.2.840.10008.1.2.2" else "<"
+    kind = "i" if header["signed"] else "u"
+    stored = np.frombuffer(data, f"{order}{kind}{header['bits'] // 8}",
+                           count=header["rows"] * header["columns"])
+    if not np.array_equal(stored.reshape(pixels.shape), pixels):
+        raise VolumeEVMError(
+            f"{header['path']}: the pixel data has values beyond BitsStored "
+            f"({header['stored']} of {header['bits']} bits, e.g. {stored.max()}); the header is "
+            f"corrupt or the file keeps overlays in the pixel data (not supported)"
+        )
+
+
+def _rescale(raw, slopes, intercepts):
+    """Apply each slice's modality rescale to ``raw`` (``(X, Y, Z)``, slices in sorted order).
+
+    The integer result type is chosen from the exact range (per-slice extremes), then filled
+    slice by slice so that no full-size temporary is needed.
+    """
     if np.all(slopes == 1) and np.all(intercepts == 0):
         return raw
     integral = np.all(slopes == np.round(slopes)) and np.all(intercepts == np.round(intercepts))
@@ -223,14 +556,17 @@ def _rescale(raw, headers):
         and np.abs(intercepts).max() <= 2**30
     ):
         # |raw| < 2**16, so |value| < 2**30 + 2**30: exact in int32.
-        values = raw.astype(np.int32)
-        values *= slopes.astype(np.int32)
-        values += intercepts.astype(np.int32)
+        ends = np.stack([raw.min(axis=(0, 1)), raw.max(axis=(0, 1))]).astype(np.int64)
+        ends = ends * slopes.astype(np.int64) + intercepts.astype(np.int64)
         info = np.iinfo(np.int16)
-        if info.min <= values.min() and values.max() <= info.max:
-            return values.astype(np.int16)
+        fits = info.min <= ends.min() and ends.max() <= info.max
+        values = np.empty(raw.shape, np.int16 if fits else np.int32)
+        for k in range(raw.shape[2]):
+            values[:, :, k] = raw[:, :, k].astype(np.int32) * int(slopes[k]) + int(intercepts[k])
         return values
-    values = raw.astype(np.float32)
-    values *= slopes.astype(np.float32)
-    values += intercepts.astype(np.float32)
+    values = np.empty(raw.shape, np.float32)
+    for k in range(raw.shape[2]):
+        values[:, :, k] = raw[:, :, k].astype(np.float32) * np.float32(slopes[k]) + np.float32(
+            intercepts[k]
+        )
     return values
