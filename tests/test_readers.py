@@ -3,11 +3,16 @@ library, read back, compared exactly; every bad-input path raises ``VolumeEVMErr
 file and the problem."""
 
 import copy
+import errno
+import gzip
+import io
 import json
+import os
 import re
 import shutil
 import subprocess
 import sys
+import tokenize
 import warnings
 from pathlib import Path
 
@@ -812,3 +817,552 @@ def test_den_bad_files(tmp_path, data_dir):
     path.write_bytes(data[:58] + np.array([1000], "<i4").tobytes() + data[62:])
     with raises(path, r"corrupt header: map_len \(128, 128, 84\) and map_length 1000 disagree"):
         read_volume(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input of every class (issue 9): path-level cases, silent wrong data, third-party errors,
+# huge headers and the memory check; .npy, raw, NIfTI, NRRD and .den (DICOM and TIFF have
+# tests/test_readers_dicom_tiff_errors.py).
+
+
+def patch_nifti(data, **fields):
+    """A NIfTI-1 file's bytes with header ``fields`` set, nothing repaired (as on disk)."""
+    import nibabel as nib
+
+    header = nib.Nifti1Header.from_fileobj(io.BytesIO(data[:348]), check=False)
+    for name, value in fields.items():
+        header[name] = value
+    return header.binaryblock + data[348:]
+
+
+def nifti_bytes(array):
+    """``array`` as the bytes of a ``.nii`` file written by nibabel (0.5 x 0.6 x 0.7 mm)."""
+    import nibabel as nib
+
+    img = nib.Nifti1Image(array, np.diag([0.5, 0.6, 0.7, 1.0]))
+    img.header.set_xyzt_units("mm")
+    return img.to_bytes()
+
+
+def test_read_volume_bytes_path(tmp_path, ct_crop):
+    path = tmp_path / "ct.npy"
+    np.save(path, ct_crop)
+    with pytest.raises(VolumeEVMError, match=re.escape(f"{bytes(path)!r}: a path given as bytes")):
+        read_volume(bytes(path))
+
+
+@pytest.mark.parametrize("name", ["a" * 300 + ".nii", "a/" * 3000 + "v.nii"])
+def test_read_volume_path_too_long(tmp_path, name):
+    path = tmp_path / name
+    with raises(path, r"cannot access this path \(the path or one of its names is too long"):
+        read_volume(path)
+
+
+def test_read_volume_permission_denied(tmp_path, monkeypatch, ct_crop):
+    from volumeevm_addon.readers import _checks
+
+    path = tmp_path / "ct.npy"
+    np.save(path, ct_crop)
+    path.chmod(0)
+    if os.access(path, os.R_OK):  # root reads any file: make open() fail as it does for users
+        def denied(file, *args, **kwargs):
+            raise PermissionError(errno.EACCES, "Permission denied", str(file))
+
+        monkeypatch.setattr(_checks, "open", denied, raising=False)
+    with raises(path, r"cannot open the file for reading \(Permission denied\)") as caught:
+        read_volume(path)
+    assert isinstance(caught.value.__cause__, PermissionError)
+
+
+def test_read_volume_folder_with_volume_extension(tmp_path):
+    path = tmp_path / "head.nii.gz"
+    path.mkdir()
+    with raises(path, r"is a folder, not a \.nii\.gz file"):
+        read_volume(path)
+
+
+def test_read_volume_broken_symlink(tmp_path):
+    path = tmp_path / "head.nrrd"
+    path.symlink_to(tmp_path / "moved.nrrd")
+    with raises(path, f"broken symbolic link \\(its target {re.escape(str(tmp_path))}/moved"):
+        read_volume(path)
+
+
+def test_read_volume_fifo(tmp_path):
+    path = tmp_path / "stream.raw"
+    os.mkfifo(path)  # a reader opening it would wait for a writer forever
+    with raises(path, r"not a regular file or folder \(a FIFO, socket or device\)"):
+        read_volume(path, shape=(2, 2, 2), dtype="uint8")
+
+
+def test_read_volume_device(tmp_path):
+    path = tmp_path / "zero.npy"
+    path.symlink_to("/dev/zero")  # endless zeros
+    with raises(path, "not a regular file or folder"):
+        read_volume(path)
+
+
+def test_nhdr_data_file_fifo(tmp_path, ct_crop):
+    path = tmp_path / "ct.nhdr"
+    write_nrrd(path, ct_crop, {"encoding": "raw"}, detached_header=True)
+    data = tmp_path / "ct.raw"
+    data.unlink()
+    os.mkfifo(data)
+    with raises(data, r"not a regular file \(a folder, FIFO, socket or device\)"):
+        read_volume(path)
+
+
+@pytest.mark.parametrize(("name", "match"), [
+    ("v.npy", r"not a readable \.npy array \(corrupt header: EOF"),
+    ("v.raw", r"file has 0 bytes but shape \(2, 2, 2\)"),
+    ("v.nii", r"the header size field is not 348 or 540"),
+    ("v.nii.gz", r"the header size field is not 348 or 540"),
+    ("v.nrrd", r"not a NRRD file: it does not start with 'NRRD000x'"),
+    ("v.nhdr", r"not a NRRD file"),
+    ("v.den", r"truncated VolPack \.den file: 0 bytes"),
+])
+def test_empty_file(tmp_path, name, match):
+    # Nothing to parse: a clear refusal, not pynrrd's StopIteration or NumPy's EOFError.
+    path = tmp_path / name
+    path.write_bytes(b"")
+    with raises(path, match):
+        read_volume(path, **({"shape": (2, 2, 2), "dtype": "uint8"} if name == "v.raw" else {}))
+
+
+# .npy
+
+
+@pytest.mark.parametrize(("old", "new", "match", "cause"), [
+    (b"(64, 48, 12)", b"(64, 48, 11)", r"the file has 73856 bytes but its header announces 128 "
+                                       r"\+ 67584", None),
+    (b"'<i2'", b"'<i4'", r"header announces 128 \+ 147456", None),
+    (b"(64, 48, 12)", b"(64, 48, -1)", r"corrupt header: shape \(64, 48, -1\) has a negative",
+     None),
+    (b"'<i2'", b"'<i3'", r"corrupt header: descr is not a valid dtype descriptor", ValueError),
+    (b"False", b"Falsx", r"corrupt header: malformed node", ValueError),
+    (b"12), }", b'12), """', r"corrupt header: \('EOF in multi-line string'",
+     tokenize.TokenError),
+])
+def test_npy_header_mismatch(tmp_path, ct_crop, old, new, match, cause):
+    path = tmp_path / "ct.npy"
+    np.save(path, ct_crop)
+    data = path.read_bytes()
+    assert old in data[:128]
+    path.write_bytes(data.replace(old, new, 1))
+    with raises(path, r"not a readable \.npy array \(.*" + match) as caught:
+        read_volume(path)
+    assert type(caught.value.__cause__) is (type(None) if cause is None else cause)
+
+
+def test_npy_trailing_bytes(tmp_path, ct_crop):
+    path = tmp_path / "ct.npy"
+    np.save(path, ct_crop)
+    path.write_bytes(path.read_bytes() + b"\0\0")
+    with raises(path, r"the file has 73858 bytes but its header announces 128 \+ 73728"):
+        read_volume(path)
+
+
+def test_npy_huge_header(tmp_path, monkeypatch, ct_crop):
+    # A header claiming 2.4 TB: refused by the file length, before any allocation.
+    path = tmp_path / "ct.npy"
+    np.save(path, ct_crop)
+    path.write_bytes(path.read_bytes().replace(b"(64, 48, 12)", b"(64000, 48000, 400)", 1))
+    with raises(path, r"header announces 128 \+ 2457600000000 for shape"):
+        read_volume(path)
+
+
+# raw
+
+
+def test_raw_shape_product_overflows(tmp_path):
+    path = tmp_path / "v.raw"
+    path.write_bytes(b"\0" * 64)
+    shape = (2**40, 2**40, 2**40)  # 2**121 samples: int64 products would wrap around
+    with raises(path, f"file has 64 bytes but shape .* needs exactly {2 * 2**120}"):
+        read_volume(path, shape=shape, dtype="int16")
+
+
+@pytest.mark.parametrize("shape", [7, (2, 2, 2.0), (2, 2, True, 1)])
+def test_raw_bad_shape_type(tmp_path, shape):
+    path = tmp_path / "v.raw"
+    path.write_bytes(b"\0" * 8)
+    with raises(path, "shape must be 3 positive integers"):
+        read_volume(path, shape=shape, dtype="uint8")
+
+
+# NIfTI
+
+
+@pytest.fixture()
+def nii_gz(tmp_path, ct_crop):
+    """The CT crop saved by nibabel as ``.nii.gz`` (its bytes and path)."""
+    import nibabel as nib
+
+    path = tmp_path / "ct.nii.gz"
+    nib.save(nib.Nifti1Image(ct_crop, np.diag([0.5, 0.6, 0.7, 1.0])), path)
+    return path, path.read_bytes()
+
+
+@pytest.mark.parametrize(("where", "match"), [
+    (-8, r"CRC check failed"),  # the stored CRC-32
+    (-1, r"Incorrect length of data produced"),  # the stored length (ISIZE)
+])
+def test_nifti_gzip_crc_corrupt(nii_gz, where, match):
+    path, data = nii_gz
+    changed = bytearray(data)
+    changed[where] ^= 0x01
+    path.write_bytes(bytes(changed))
+    with raises(path, r"the gzip-compressed NIfTI data is corrupt or truncated \(BadGzipFile: "
+                + match) as caught:
+        read_volume(path)
+    assert isinstance(caught.value.__cause__, OSError)
+
+
+def test_nifti_gzip_corrupt_deflate_and_truncated(nii_gz):
+    path, data = nii_gz
+    path.write_bytes(data[:-8])  # the trailer cut off: CRC never checked
+    with raises(path, r"corrupt or truncated \(EOFError: Compressed file ended"):
+        read_volume(path)
+    changed = bytearray(data)
+    changed[len(data) // 2] ^= 0x10  # inside the deflate stream
+    path.write_bytes(bytes(changed))
+    with raises(path, r"the gzip-compressed NIfTI data (is corrupt or truncated|ends after|"
+                      r"holds more than)"):
+        read_volume(path)
+
+
+def test_nifti_gzip_inflates_past_the_header(nii_gz):
+    path, data = nii_gz
+    plain = gzip.decompress(data)
+    path.write_bytes(gzip.compress(plain + bytes(1 << 20)))  # 1 MiB of zeros nobody announced
+    with raises(path, r"the gzip-compressed NIfTI data holds more than the 74080 bytes"):
+        read_volume(path)
+    path.write_bytes(gzip.compress(plain[:-2]))
+    with raises(path, r"the gzip-compressed NIfTI data ends after 74078 bytes but the header "
+                      r"announces 74080"):
+        read_volume(path)
+
+
+def test_nifti_gzip_huge_header(nii_gz, monkeypatch):
+    # 19 bytes of header change claim 4 GiB: refused by the memory check before inflating.
+    path, data = nii_gz
+    plain = patch_nifti(gzip.decompress(data), dim=[3, 2048, 1024, 1024, 1, 1, 1, 1])
+    path.write_bytes(gzip.compress(plain))
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
+    with raises(path, r"reading a 2048x1024x1024 int16 volume needs about 8\.0 GiB of memory but "
+                      r"only 1\.0 GiB is available; crop"):
+        read_volume(path)
+
+
+def test_nifti_vox_offset_zero(tmp_path, ct_crop):
+    path = tmp_path / "ct.nii"
+    data = nifti_bytes(ct_crop)
+    for offset in (0, 100, 351.5):  # inside the header, or not a whole byte
+        path.write_bytes(patch_nifti(data, vox_offset=offset))
+        with raises(path, f"corrupt header: vox_offset {offset:g} is not a whole number of bytes "
+                          f"past the 352-byte header"):
+            read_volume(path)
+
+
+def test_nifti_pixdim_zero(tmp_path, ct_crop):
+    path = tmp_path / "ct.nii"
+    data = patch_nifti(nifti_bytes(ct_crop), sform_code=0, qform_code=1)
+    path.write_bytes(data)
+    assert read_volume(path).spacing == pytest.approx((0.5, 0.6, 0.7))
+    path.write_bytes(patch_nifti(data, pixdim=[1, 0, 0, 0, 1, 1, 1, 1]))  # sizes not given
+    vol = read_volume(path)
+    assert_volume(vol, ct_crop, spacing=(1, 1, 1), origin=(0, 0, 0),
+                  orientation=np.diag([-1.0, -1.0, 1.0]), units="", spacing_known=False,
+                  source=path)
+    for bad in (0.0, -0.6, np.nan, np.inf):  # one size 0 or invalid: corrupt, not 1 mm
+        path.write_bytes(patch_nifti(data, pixdim=[1, 0.5, bad, 0.7, 1, 1, 1, 1]))
+        with raises(path, r"corrupt header: voxel sizes pixdim\[1:4\] = \[0\.5, "
+                          f"{re.escape(repr(float(np.float32(bad))))}"):
+            read_volume(path)
+
+
+def test_nifti_trailing_bytes(tmp_path, ct_crop):
+    path = tmp_path / "ct.nii"
+    data = nifti_bytes(ct_crop)
+    path.write_bytes(data + b"\0" * 4)
+    with raises(path, r"the file has 74084 bytes but its header announces 352 \+ 73728 for "
+                      r"64x48x12 voxels of int16\); the file is truncated"):
+        read_volume(path)
+    path.write_bytes(patch_nifti(data, dim=[3, 64, 48, 11, 1, 1, 1, 1]))  # shrunk dimensions
+    with raises(path, r"the file has 74080 bytes but its header announces 352 \+ 67584"):
+        read_volume(path)
+
+
+def test_nifti_huge_header(tmp_path, ct_crop):
+    # 70 TB announced by a 74 kB file: refused by the file length, before any allocation.
+    path = tmp_path / "ct.nii"
+    path.write_bytes(patch_nifti(nifti_bytes(ct_crop), dim=[3, 32767, 32767, 32767, 1, 1, 1, 1]))
+    with raises(path, f"the file has 74080 bytes but its header announces 352 \\+ {2 * 32767**3} "
+                      f"for 32767x32767x32767 voxels of int16"):
+        read_volume(path)
+
+
+@pytest.mark.parametrize(("fields", "match"), [
+    ({"datatype": 16}, r"bitpix 16 disagrees with datatype float32, 32 bits"),
+    ({"datatype": 16, "bitpix": 32}, r"header announces 352 \+ 147456"),
+    ({"datatype": 99}, r"datatype code 99 is not one NIfTI defines"),
+    ({"datatype": 32, "bitpix": 64}, r"unsupported data type complex64"),
+    # dim[0] outside 1..7 means the other byte order (NIfTI rule): the sizes read as garbage
+    ({"dim": [9, 64, 48, 12, 1, 1, 1, 1]}, r"dimensions \[2304, .*\] are not 1 to 7"),
+    ({"dim": [3, 64, -48, 12, 1, 1, 1, 1]}, r"are not 1 to 7 positive sizes"),
+    ({"magic": b"ni1"}, r"magic b'ni1', expected b'n\+1': a \.hdr/\.img pair header"),
+    ({"sizeof_hdr": 349}, r"the header size field is not 348 or 540"),
+    ({"xyzt_units": 7}, r"xyzt_units 7 holds no known spatial unit code"),
+    ({"scl_slope": 2.0, "scl_inter": np.inf}, r"Valid slope but invalid intercept inf"),
+    ({"sform_code": 0, "qform_code": 1, "pixdim": [3, 1, 1, 1, 1, 1, 1, 1]},
+     r"qfac \(pixdim\[0\]\) should be 1 or -1"),
+])
+def test_nifti_corrupt_header_fields(tmp_path, ct_crop, fields, match):
+    path = tmp_path / "ct.nii"
+    path.write_bytes(patch_nifti(nifti_bytes(ct_crop), **fields))
+    with raises(path, r"not a readable NIfTI image|unsupported data type") as caught:
+        read_volume(path)
+    assert re.search(match, str(caught.value)), str(caught.value)
+
+
+@pytest.mark.parametrize("slope", [0.0, np.nan])
+def test_nifti_slope_zero_or_nan_means_unscaled(tmp_path, ct_crop, slope):
+    # NIfTI-1: "if scl_slope is 0, no scaling"; nibabel also reads NaN so.
+    path = tmp_path / "ct.nii"
+    path.write_bytes(patch_nifti(nifti_bytes(ct_crop), scl_slope=slope, scl_inter=5.0))
+    vol = read_volume(path)
+    assert vol.array.dtype == np.int16
+    np.testing.assert_array_equal(vol.array, ct_crop)
+
+
+@pytest.mark.parametrize(("name", "version", "scaling", "endian"), [
+    ("mr.nii", 1, None, "<"), ("mr.nii.gz", 1, (0.25, 3.0), "<"), ("mr.nii", 1, None, ">"),
+    ("mr.nii", 2, None, "<"), ("mr.nii.gz", 2, (0.25, 3.0), ">"),
+])
+def test_nifti_same_as_nibabel(tmp_path, data_dir, name, version, scaling, endian):
+    # The reader's own data path gives nibabel's own values and affine: NIfTI-1 and -2, both
+    # byte orders, scaled or not.
+    import nibabel as nib
+
+    array, meta = load(data_dir, "mr_t1_itk_kmeans")
+    image_class, header_class = ((nib.Nifti1Image, nib.Nifti1Header) if version == 1
+                                 else (nib.Nifti2Image, nib.Nifti2Header))
+    header = header_class(endianness=endian)
+    header.set_data_dtype(np.int16)
+    img = image_class(array, np.array(meta["affine"]), header)
+    if scaling:
+        img.header.set_slope_inter(*scaling)
+    path = tmp_path / name
+    nib.save(img, path)
+    vol = read_volume(path)
+    reference = nib.load(path)
+    assert reference.header.endianness == endian
+    expected = np.asanyarray(reference.dataobj)
+    assert vol.array.dtype == expected.dtype.newbyteorder("=")
+    np.testing.assert_array_equal(vol.array, expected)
+    np.testing.assert_allclose(vol.index_to_physical()[:3],
+                               (np.diag([-1, -1, 1, 1]) @ reference.affine)[:3])
+
+
+# NRRD
+
+
+def test_nrrd_misspelt_field(tmp_path, ct_crop):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"space": "left-posterior-superior", "encoding": "raw",
+                               "space directions": np.eye(3), "space origin": [5.0, 6.0, 7.0]})
+    data = path.read_bytes()
+    path.write_bytes(data.replace(b"space origin:", b"space orign:", 1))
+    with raises(path, r"header line \d+ has the unknown field 'space orign' \(did you mean "
+                      r"'space origin'\?\)"):
+        read_volume(path)
+    path.write_bytes(data.replace(b"space origin:", b"my origin:=", 1))  # a key/value pair
+    assert read_volume(path).origin == (0.0, 0.0, 0.0)
+
+
+def test_nrrd_non_ascii_header(tmp_path, ct_crop):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"space": "left-posterior-superior", "encoding": "raw",
+                               "space directions": np.eye(3), "space origin": [5.0, 6.0, 7.0]})
+    data = path.read_bytes()
+    path.write_bytes(data.replace(b"space origin: (5", b"space origin: (\xb55", 1))
+    with raises(path, r"header line \d+ holds bytes that are not ASCII: b'space origin: "):
+        read_volume(path)
+
+
+def test_nrrd_trailing_bytes_and_shrunk_sizes(tmp_path, ct_crop):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"encoding": "raw"})
+    data = path.read_bytes()
+    path.write_bytes(data + b"\0")
+    with raises(path, r"the data holds 73729 bytes but sizes \[64, 48, 12\] of int16 need "
+                      r"exactly 73728"):
+        read_volume(path)
+    path.write_bytes(data.replace(b"sizes: 64 48 12", b"sizes: 64 48 11", 1))
+    with raises(path, r"the data holds 73728 bytes but sizes \[64, 48, 11\]"):
+        read_volume(path)
+    path.write_bytes(data.replace(b"type: int16", b"type: int8", 1))  # a changed type
+    with raises(path, r"the data holds 73728 bytes but sizes \[64, 48, 12\] of int8 need "
+                      r"exactly 36864"):
+        read_volume(path)
+
+
+@pytest.mark.parametrize("encoding", ["gzip", "bzip2"])
+def test_nrrd_compressed_stream_checked(tmp_path, ct_crop, encoding):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"encoding": encoding})
+    data = path.read_bytes()
+    path.write_bytes(data.replace(b"sizes: 64 48 12", b"sizes: 64 48 11", 1))
+    with raises(path, f"the {encoding}-compressed NRRD data holds more than the 67584 bytes"):
+        read_volume(path)
+    path.write_bytes(data[:-10])
+    with raises(path, f"the {encoding}-compressed NRRD data is corrupt or truncated"):
+        read_volume(path)
+    if encoding == "gzip":
+        changed = bytearray(data)
+        changed[-8] ^= 0x01  # the stored CRC-32
+        path.write_bytes(bytes(changed))
+        with raises(path, r"is corrupt or truncated \(BadGzipFile: CRC check failed"):
+            read_volume(path)
+
+
+def test_nrrd_huge_header(tmp_path, monkeypatch, ct_crop):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"encoding": "gzip"})
+    path.write_bytes(path.read_bytes().replace(b"sizes: 64 48 12", b"sizes: 4096 4096 4096", 1))
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "2G")
+    with raises(path, r"reading a 4096x4096x4096 int16 volume needs about 256\.0 GiB of memory "
+                      r"but only 2\.0 GiB is available"):
+        read_volume(path)
+
+
+@pytest.mark.parametrize(("old", "new", "match"), [
+    (b"encoding: raw", b"encoding: hex", r"encoding 'hex' is not one VolumeEVM reads"),
+    (b"endian: little", b"endian: middle", r"'endian' is 'middle'; 'little' or 'big' is required"),
+    (b"type: int16", b"type: block", r"type 'block' is not a NRRD scalar type"),
+    (b"sizes: 64 48 12", b"sizes: 64 48 x", r"corrupt NRRD file \(ValueError: "),
+    (b"dimension: 3", b"dimension: 4", r"sizes \[64, 48, 12\] are not 4 positive numbers"),
+    (b"sizes: 64 48 12", b"sizes: 64 0 12", r"sizes \[64, 0, 12\] are not 3 positive numbers"),
+    (b"space origin: (5,6,7)", b"space origin: (5,6,7", r"Vector should be enclosed"),
+    (b"space origin: (5,6,7)", b"space origin: (5,6)", r"'space origin' \[5\. 6\.\] is not 3-D"),
+    (b"NRRD0005", b"NRRD0009", r"Unsupported NRRD file version"),
+    (b"NRRD0005", b"PK\x03\x04\x00\x00\x00\x00", r"not a NRRD file: it does not start"),
+    (b"encoding: raw\n", b"encoding: raw\nbyte skip: -2\n", r"byte skip -2: skips are >= 0"),
+    (b"encoding: raw\n", b"encoding: raw\ndata file: a%03d.raw 0 9 1\n",
+     r"the data is split over several files"),
+    (b"encoding: raw\n", b"encoding: raw\nspace: left-posterior-superior\n",
+     r"Duplicate header field: space"),
+])
+def test_nrrd_corrupt_header_fields(tmp_path, ct_crop, old, new, match):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"space": "left-posterior-superior", "encoding": "raw",
+                               "space directions": np.eye(3), "space origin": [5.0, 6.0, 7.0]})
+    data = path.read_bytes()
+    assert old in data
+    path.write_bytes(data.replace(old, new, 1))
+    with raises(path, match):
+        read_volume(path)
+
+
+def test_nrrd_header_without_end(tmp_path):
+    path = tmp_path / "ct.nrrd"
+    path.write_bytes(b"NRRD0005\n" + b"# comment\n" * 200_000)  # 2 MB and no blank line
+    with raises(path, r"no blank line ends the header within 1048576 bytes"):
+        read_volume(path)
+
+
+def test_nrrd_ascii_encoding(tmp_path, ct_crop):
+    path = tmp_path / "ct.nrrd"
+    write_nrrd(path, ct_crop, {"encoding": "ascii", "spacings": [0.5, 0.6, 0.7]})
+    np.testing.assert_array_equal(read_volume(path).array, ct_crop)
+    path.write_bytes(path.read_bytes() + b" 12")
+    with raises(path, r"the ASCII data holds 36865 numbers but the sizes announce 36864"):
+        read_volume(path)
+
+
+# VolPack .den
+
+
+def test_den_huge_and_negative_sizes(tmp_path, ct_crop):
+    path = tmp_path / "v.den"
+    array = np.ascontiguousarray(ct_crop[:16, :8, :4] > 0, dtype=np.uint8)
+    write_den(path, array, "<")
+    data = bytearray(path.read_bytes())
+    data[50:56] = np.array([32767, 32767, 32767], "<i2").tobytes()  # map_len
+    path.write_bytes(bytes(data))
+    with raises(path, r"map_len \(32767, 32767, 32767\) and map_length 512 disagree"):
+        read_volume(path)
+    data[50:56] = np.array([16, -8, 4], "<i2").tobytes()
+    path.write_bytes(bytes(data))
+    with raises(path, r"map_len \(16, -8, 4\) and map_length 512 disagree"):
+        read_volume(path)
+
+
+# memory checked before reading (section 4)
+
+
+@pytest.mark.parametrize("name", ["ct.npy", "ct.raw", "ct.nii", "ct.nii.gz", "ct.nrrd", "ct.nhdr",
+                                  "ct.den"])
+def test_import_memory_budget(tmp_path, monkeypatch, data_dir, name):
+    import nibabel as nib
+
+    array, _ = load(data_dir, "ct_head_invesalius")  # 256 x 256 x 108 int16: 13.5 MiB
+    if name == "ct.den":
+        array = np.clip(array // 16 + 64, 0, 255).astype(np.uint8)
+    path = tmp_path / name
+    options = {}
+    if name == "ct.npy":
+        np.save(path, array)
+    elif name == "ct.raw":
+        path.write_bytes(array.T.tobytes())
+        options = {"shape": array.shape, "dtype": "int16"}
+    elif name.startswith("ct.nii"):
+        nib.save(nib.Nifti1Image(array, np.eye(4)), path)
+    elif name == "ct.den":
+        write_den(path, array, "<")
+    else:
+        write_nrrd(path, array, {}, detached_header=name.endswith(".nhdr"), compression_level=1)
+    copies = 1 if name == "ct.npy" else 2  # the read buffer, and the C-ordered array
+    needed = copies * array.nbytes / 2**20 + 1  # MiB, with one read chunk of headroom
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", f"{needed - 0.5:.1f}M")
+    with raises(path, f"reading a 256x256x108 {array.dtype} volume needs about {needed:.1f} MiB "
+                      f"of memory but only {needed - 0.5:.1f} MiB is available; crop or "
+                      f"downsample"):
+        read_volume(path, **options)
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", f"{needed + 0.5:.1f}M")
+    np.testing.assert_array_equal(read_volume(path, **options).array, array)
+
+
+def test_import_memory_estimate_bounds_the_peak(tmp_path, data_dir, monkeypatch):
+    # The estimate is a close upper bound of what each reader allocates (tracemalloc).
+    import tracemalloc
+
+    import nibabel as nib
+
+    from volumeevm_addon.readers import _checks
+
+    array, _ = load(data_dir, "ct_head_invesalius")
+    files = {"ct.nii.gz": None, "scaled.nii.gz": (2.5, -10.0), "ct.nrrd": None}
+    estimates = []
+    original = _checks.check_memory
+    def spy(needed, *args, **kwargs):
+        estimates.append(needed)
+        return original(needed, *args, **kwargs)
+
+    monkeypatch.setattr(_checks, "check_memory", spy)
+    for name, scaling in files.items():
+        path = tmp_path / name
+        if name.endswith(".nii.gz"):
+            img = nib.Nifti1Image(array, np.eye(4))
+            if scaling:
+                img.header.set_slope_inter(*scaling)
+            nib.save(img, path)
+        else:
+            write_nrrd(path, array, {}, compression_level=1)  # gzip encoding
+        tracemalloc.start()
+        try:
+            read_volume(path)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak <= estimates[-1] <= peak * 1.1 + (1 << 20), (name, peak, estimates[-1])

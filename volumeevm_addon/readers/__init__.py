@@ -8,10 +8,21 @@ when it runs, so importing this package needs NumPy alone.
 Whatever the format, the result follows the conventions of ``_volume.py``: array ``[x, y, z]``
 (C-contiguous, native byte order), spacing in mm, origin = centre of voxel ``(0, 0, 0)`` and
 orientation columns in LPS. Bad input raises :class:`~volumeevm_addon._errors.VolumeEVMError`
-with the file and the problem in the message.
+with the file and the problem in the message, chained to the library's own error if any:
+
+- the path is looked at before any reader runs: a ``bytes`` path, a missing file, a broken
+  link, a path too long or not accessible, a FIFO, socket or device (which would be read
+  forever) and a folder named like a volume file are refused;
+- every reader checks its header before reading data: the data must be exactly as long as the
+  header announces (uncompressed files by their length, compressed streams by inflating no
+  further and by their checksums), and the peak memory of the read must fit
+  (:func:`~volumeevm_addon._memory.check_memory`), so a corrupt or hostile header costs neither
+  a huge allocation nor silently different voxels.
 """
 
+import errno
 import os
+import stat
 from pathlib import Path
 
 from .._errors import VolumeEVMError
@@ -71,8 +82,11 @@ def read_volume(path, **options):
     Raises
     ------
     VolumeEVMError
-        If the path does not exist, its extension is not supported, or the reader finds the
-        file unusable (the message names the file and the problem).
+        If the path is not a ``str`` or ``Path`` (a ``bytes`` path), does not exist (or is a
+        broken link), cannot be accessed, is neither a regular file nor a folder (a FIFO or
+        device would be read forever), is a folder named like a volume file, has an unsupported
+        extension, or the reader finds the file unusable or too large for the memory available
+        (the message names the file and the problem).
     TypeError
         If an option is not one the format takes.
 
@@ -82,18 +96,57 @@ def read_volume(path, **options):
     >>> vol.array.shape, vol.spacing  # doctest: +SKIP
     ((256, 256, 108), (0.957, 0.957, 1.5))
     """
+    if isinstance(path, (bytes, bytearray)):
+        raise VolumeEVMError(
+            f"{path!r}: a path given as bytes is not supported; pass a str or pathlib.Path "
+            f"(os.fsdecode(path) converts it)"
+        )
     if not isinstance(path, (str, os.PathLike)):
         return read_dicom(list(path), **options)
-    path = Path(path)
-    if not path.exists():
-        raise VolumeEVMError(f"{path}: no such file or folder")
-    if path.is_dir():
-        return read_dicom(path, **options)
+    try:
+        path = Path(path)
+    except TypeError as exc:  # an os.PathLike whose __fspath__ gives bytes
+        raise VolumeEVMError(f"{path!r}: not a usable path ({exc})") from exc
     name = path.name.lower()
-    for ending, reader in _READERS.items():
-        if name.endswith(ending):
-            return reader(path, **options)
-    raise VolumeEVMError(
-        f"{path}: unsupported file type; supported are {', '.join(SUPPORTED_EXTENSIONS)}, "
-        f"or a folder of DICOM files"
-    )
+    ending = next((e for e in _READERS if name.endswith(e)), None)
+    mode = _file_mode(path)
+    if stat.S_ISDIR(mode):
+        if ending is not None and _READERS[ending] is not read_dicom:
+            raise VolumeEVMError(
+                f"{path}: is a folder, not a {ending} file (a folder is read as a DICOM series "
+                f"only when its name has no volume file extension)"
+            )
+        return read_dicom(path, **options)
+    if not stat.S_ISREG(mode):
+        raise VolumeEVMError(
+            f"{path}: not a regular file or folder (a FIFO, socket or device), which would be "
+            f"read forever or not at all; copy the data to a file first"
+        )
+    if ending is None:
+        raise VolumeEVMError(
+            f"{path}: unsupported file type; supported are {', '.join(SUPPORTED_EXTENSIONS)}, "
+            f"or a folder of DICOM files"
+        )
+    return _READERS[ending](path, **options)
+
+
+def _file_mode(path):
+    """``st_mode`` of ``path`` (following symbolic links), or the reason it has none, in words."""
+    try:
+        return path.stat().st_mode
+    except FileNotFoundError as exc:
+        if path.is_symlink():
+            raise VolumeEVMError(
+                f"{path}: broken symbolic link (its target {os.readlink(path)} does not exist)"
+            ) from exc
+        raise VolumeEVMError(f"{path}: no such file or folder") from exc
+    except OSError as exc:
+        if exc.errno == errno.ENAMETOOLONG:
+            reason = "the path or one of its names is too long for the operating system"
+        elif isinstance(exc, PermissionError):
+            reason = "permission denied (a folder on the way cannot be searched)"
+        else:
+            reason = exc.strerror or str(exc)
+        raise VolumeEVMError(f"{path}: cannot access this path ({reason})") from exc
+    except ValueError as exc:  # e.g. an embedded null character
+        raise VolumeEVMError(f"{path!r}: not a usable path ({exc})") from exc

@@ -6,14 +6,29 @@ empty grid, a dtype that is not a real number, NaN or Inf densities, degenerate 
 :class:`~volumeevm_addon._errors.VolumeEVMError` naming the file, and otherwise returns the
 :class:`~volumeevm_addon._volume.Volume` in the core's conventions (native byte order,
 C-contiguous ``[x, y, z]`` array).
+
+Before that, the readers share one way to get at the bytes: :func:`require_regular_file` and
+:func:`open_file` (no FIFO read forever, an unreadable file named in words),
+:func:`check_read_memory` (the read's peak against the memory available, before allocating)
+and :func:`read_payload` (exactly the bytes the header announces, from a file or a
+decompressing stream, checksums verified).
 """
 
 import importlib
+import math
+import os
+import stat
+import zlib
 
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._memory import check_memory
 from .._volume import Volume
+
+#: Bytes read per call when filling a buffer, so a decompressing stream never holds a second
+#: full-size copy of the data.
+_CHUNK_BYTES = 1 << 20
 
 #: Length units found in file headers (NRRD, NIfTI, ImageJ, OME), as millimetres per unit.
 MM_PER_UNIT = {
@@ -98,6 +113,150 @@ def mm_per_unit(unit, path, what):
             f"{', '.join(sorted(MM_PER_UNIT))}"
         )
     return MM_PER_UNIT[key]
+
+
+def require_regular_file(path):
+    """Refuse a path that is not a regular file: a FIFO or device would be read forever.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``path`` cannot be examined (missing, a broken link, permission denied) or is a
+        folder, FIFO, socket or device.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise VolumeEVMError(f"{path}: cannot read the file ({reason})") from exc
+    if not stat.S_ISREG(mode):
+        raise VolumeEVMError(f"{path}: not a regular file (a folder, FIFO, socket or device)")
+
+
+def open_file(path):
+    """Open ``path`` for binary reading, or refuse with a message that names it.
+
+    Returns
+    -------
+    file object
+        Open in ``"rb"`` mode; the caller closes it (``with open_file(path) as f:``).
+
+    Raises
+    ------
+    VolumeEVMError
+        If the file cannot be opened (missing, permission denied, a folder, path too long).
+    """
+    try:
+        return open(path, "rb")  # noqa: SIM115 - the caller's with block closes it
+    except (OSError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise VolumeEVMError(f"{path}: cannot open the file for reading ({reason})") from exc
+
+
+def read_payload(stream, nbytes, path, what, *, start=0):
+    """Read exactly ``nbytes`` from ``stream`` into a new buffer; refuse any other length.
+
+    ``stream`` is an open file or a decompressing reader (``gzip.GzipFile``, ``bz2.BZ2File``)
+    positioned where the data starts. The buffer is allocated once and filled in chunks, so a
+    compressed stream never inflates past the size the header declared (a decompression bomb is
+    cut off after ``nbytes + 1`` bytes), and the stream is read to its end, which makes the
+    decompressors verify their checksums (gzip: CRC-32 and length, bzip2: CRC).
+
+    Parameters
+    ----------
+    stream : binary file object
+        Supports ``readinto`` and ``read``.
+    nbytes : int
+        Bytes the header announces.
+    path : str
+        The file read, for the message.
+    what : str
+        What the bytes are ("voxel data", "gzip-compressed voxel data"), for the message.
+    start : int, optional
+        Bytes of the same stream already read (a header), so that messages give totals.
+
+    Returns
+    -------
+    bytearray
+        Exactly ``nbytes`` bytes.
+
+    Raises
+    ------
+    VolumeEVMError
+        If the stream ends early, holds more than ``nbytes`` bytes, or is corrupt (a failed
+        checksum, a broken compressed stream, an I/O error).
+    """
+    buffer = bytearray(nbytes)
+    view = memoryview(buffer)
+    filled = 0
+    try:
+        while filled < nbytes:
+            got = stream.readinto(view[filled:filled + _CHUNK_BYTES])
+            if not got:
+                break
+            filled += got
+        extra = stream.read(1) if filled == nbytes else b""
+    except (OSError, EOFError, zlib.error) as exc:
+        raise VolumeEVMError(
+            f"{path}: the {what} is corrupt or truncated ({type(exc).__name__}: {exc})"
+        ) from exc
+    if filled < nbytes:
+        raise VolumeEVMError(
+            f"{path}: the {what} ends after {start + filled} bytes but the header announces "
+            f"{start + nbytes}; "
+            f"the file is truncated or its header is corrupt"
+        )
+    if extra:
+        raise VolumeEVMError(
+            f"{path}: the {what} holds more than the {start + nbytes} bytes the header "
+            f"announces; the file or its header is corrupt"
+        )
+    return buffer
+
+
+def check_read_memory(path, shape, dtype, *, copies, extra=0):
+    """Refuse to read a volume whose peak memory would not fit, before anything is allocated.
+
+    The peak of a reader is ``copies`` full copies of the data as the file stores it (the buffer
+    read from the file, the C-ordered array :func:`checked_array` makes from it, ...), a 1-byte
+    finiteness mask per voxel for floating point data, ``extra`` bytes of the reader's own
+    (scaled copies) and one read chunk of headroom (chunks, headers, decompressor state). Measured
+    with ``tracemalloc`` on the CT head (256x256x108 int16) this is at most 1 MiB above the peak
+    of the .npy, raw, NIfTI (plain, gzip, scaled), NRRD and .den readers.
+
+    Parameters
+    ----------
+    path : str
+        The file read, named first in the message.
+    shape : sequence of int
+        Grid shape from the header (Python ints: the product cannot overflow).
+    dtype : numpy dtype
+        Sample type from the header.
+    copies : int
+        Full-size copies of the data the reader holds at once.
+    extra : int, optional
+        Further bytes at the peak.
+
+    Returns
+    -------
+    int
+        The data's size in bytes (``prod(shape) * itemsize``).
+
+    Raises
+    ------
+    VolumeEVMError
+        When the estimate exceeds the memory available (see :mod:`volumeevm_addon._memory`).
+    """
+    count = math.prod(int(n) for n in shape)
+    nbytes = count * dtype.itemsize
+    mask = count if dtype.kind == "f" else 0
+    check_memory(
+        copies * nbytes + mask + extra + _CHUNK_BYTES,
+        f"reading a {'x'.join(str(int(n)) for n in shape)} {dtype.name} volume",
+        source=str(path),
+        advice="crop or downsample the volume in another tool, or free memory",
+    )
+    return nbytes
 
 
 def check_ndim(shape, path):

@@ -19,12 +19,13 @@ machine's: VolPack reads the version and swaps bytes when it is not 1, and so do
 The format stores no voxel size, so spacing is unknown.
 """
 
+import math
 import os
 
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import checked_volume
+from ._checks import check_read_memory, checked_volume, open_file, read_payload
 
 _HEADER_BYTES = 62
 _VERSION = 1
@@ -49,35 +50,38 @@ def read_den(path):
     ------
     VolumeEVMError
         If the header is short or not version 1 in either byte order, ``map_length`` disagrees
-        with ``map_len``, or the file length is not header plus ``map_length`` bytes.
+        with ``map_len``, the file length is not header plus ``map_length`` bytes, or the
+        volume would not fit in memory.
     """
-    size = os.path.getsize(path)
-    with open(path, "rb") as f:
+    with open_file(path) as f:
+        size = os.fstat(f.fileno()).st_size
         header = f.read(_HEADER_BYTES)
-    if len(header) < _HEADER_BYTES:
-        raise VolumeEVMError(
-            f"{path}: truncated VolPack .den file: {size} bytes, shorter than the "
-            f"{_HEADER_BYTES}-byte header"
-        )
-    for order in "<>":
-        fields = np.frombuffer(header, dtype=f"{order}i2", count=29)
-        if fields[0] == _VERSION:
-            break
-    else:
-        raise VolumeEVMError(
-            f"{path}: corrupt header: not a VolPack .den file (version field is "
-            f"{int(fields[0])} in either byte order, expected {_VERSION})"
-        )
-    map_length = int(np.frombuffer(header, dtype=f"{order}i4", count=1, offset=58)[0])
-    map_len = tuple(int(n) for n in fields[_MAP_LEN])
-    if min(map_len) <= 0 or map_length != int(np.prod(map_len)):
-        raise VolumeEVMError(
-            f"{path}: corrupt header: map_len {map_len} and map_length {map_length} disagree"
-        )
-    if size != _HEADER_BYTES + map_length:
-        raise VolumeEVMError(
-            f"{path}: file has {size} bytes but its header announces "
-            f"{_HEADER_BYTES} + {map_length}; the file is truncated or corrupt"
-        )
-    flat = np.fromfile(path, dtype=np.uint8, count=map_length, offset=_HEADER_BYTES)
+        if len(header) < _HEADER_BYTES:
+            raise VolumeEVMError(
+                f"{path}: truncated VolPack .den file: {size} bytes, shorter than the "
+                f"{_HEADER_BYTES}-byte header"
+            )
+        for order in "<>":
+            fields = np.frombuffer(header, dtype=f"{order}i2", count=29)
+            if fields[0] == _VERSION:
+                break
+        else:
+            raise VolumeEVMError(
+                f"{path}: corrupt header: not a VolPack .den file (version field is "
+                f"{int(fields[0])} in either byte order, expected {_VERSION})"
+            )
+        map_length = int(np.frombuffer(header, dtype=f"{order}i4", count=1, offset=58)[0])
+        map_len = tuple(int(n) for n in fields[_MAP_LEN])
+        if min(map_len) <= 0 or map_length != math.prod(map_len):
+            raise VolumeEVMError(
+                f"{path}: corrupt header: map_len {map_len} and map_length {map_length} disagree"
+            )
+        if size != _HEADER_BYTES + map_length:
+            raise VolumeEVMError(
+                f"{path}: file has {size} bytes but its header announces "
+                f"{_HEADER_BYTES} + {map_length}; the file is truncated or corrupt"
+            )
+        check_read_memory(path, map_len, np.dtype(np.uint8), copies=2)  # bytes, then C order
+        buffer = read_payload(f, map_length, path, "density data")
+    flat = np.frombuffer(buffer, dtype=np.uint8)
     return checked_volume(flat.reshape(map_len[::-1]).transpose(), path)

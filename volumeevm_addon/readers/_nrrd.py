@@ -1,7 +1,19 @@
-"""NRRD volumes (``.nrrd``, and ``.nhdr`` with a detached data file) via pynrrd.
+"""NRRD volumes (``.nrrd``, and ``.nhdr`` with a detached data file): the header parsed strictly,
+its fields by pynrrd, the data read here.
 
-pynrrd returns the data in Fortran index order, so the first NRRD axis (the fastest in the file)
-is the first array index: the array is already ``[x, y, z]``.
+The header is read line by line up to the blank line that ends it and refused, before pynrrd
+parses it, when a line holds bytes that are not ASCII or names a field the NRRD format does not
+define (Teem, the reference implementation, refuses both): a misspelt ``space origin`` would
+otherwise be kept as a custom field and the origin silently taken as 0. Key/value pairs
+(``key:=value``) may carry any key. pynrrd then parses the values; ``dimension``, ``type``,
+``sizes`` and ``encoding`` are required, and ``endian`` for multi-byte samples.
+
+The data (raw, gzip, bzip2 or ASCII encoding, attached or in the one ``data file`` of a
+``.nhdr``, after ``line skip`` lines and ``byte skip`` bytes) must hold exactly the samples the
+sizes and type announce: a raw file of another length, a compressed stream that inflates to
+another size (it is never inflated past the announced size) or fails its checksum, and an ASCII
+section with another count of numbers are refused. The first NRRD axis is the fastest in the
+file, so the array is indexed ``[x, y, z]``.
 
 Geometry: the NRRD ``space directions`` give one vector per axis (voxel step in ``space``
 coordinates, its length is the spacing) and ``space origin`` is the centre of the first voxel.
@@ -12,10 +24,26 @@ Patient spaces are converted to LPS by flipping the axes the space names opposit
 than millimetres are converted to millimetres.
 """
 
+import bz2
+import difflib
+import gzip
+import math
+import os
+from pathlib import Path
+
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import check_ndim, checked_volume, import_reader_package, mm_per_unit
+from ._checks import (
+    check_ndim,
+    check_read_memory,
+    checked_volume,
+    import_reader_package,
+    mm_per_unit,
+    open_file,
+    read_payload,
+    require_regular_file,
+)
 
 #: Sign per space axis that maps a NRRD space to LPS.
 _TO_LPS = {
@@ -28,6 +56,45 @@ _TO_LPS = {
     "scanner-xyz": (1.0, 1.0, 1.0),
     "3d-right-handed": (1.0, 1.0, 1.0),
 }
+
+#: Field names the NRRD format defines (NRRD0005, with the spellings Teem accepts).
+_FIELDS = frozenset([
+    "dimension", "type", "sizes", "endian", "encoding", "content", "min", "max", "old min",
+    "oldmin", "old max", "oldmax", "spacings", "thicknesses", "axis mins", "axismins",
+    "axis maxs", "axismaxs", "centers", "centerings", "labels", "units", "kinds", "space",
+    "space dimension", "space units", "space origin", "space directions", "measurement frame",
+    "sample units", "data file", "datafile", "line skip", "lineskip", "byte skip", "byteskip",
+    "block size", "blocksize", "number",
+])
+
+#: NRRD sample types (every spelling the format allows) as NumPy type codes.
+_TYPES = {
+    **dict.fromkeys(["signed char", "int8", "int8_t"], "i1"),
+    **dict.fromkeys(["uchar", "unsigned char", "uint8", "uint8_t"], "u1"),
+    **dict.fromkeys(["short", "short int", "signed short", "signed short int", "int16",
+                     "int16_t"], "i2"),
+    **dict.fromkeys(["ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"],
+                    "u2"),
+    **dict.fromkeys(["int", "signed int", "int32", "int32_t"], "i4"),
+    **dict.fromkeys(["uint", "unsigned int", "uint32", "uint32_t"], "u4"),
+    **dict.fromkeys(["longlong", "long long", "long long int", "signed long long",
+                     "signed long long int", "int64", "int64_t"], "i8"),
+    **dict.fromkeys(["ulonglong", "unsigned long long", "unsigned long long int", "uint64",
+                     "uint64_t"], "u8"),
+    "float": "f4",
+    "double": "f8",
+}
+
+#: Encodings and the opener of the decompressing reader each needs (``None``: plain bytes).
+_ENCODINGS = {"raw": None, "gzip": gzip.open, "gz": gzip.open, "bzip2": bz2.open, "bz2": bz2.open,
+              "ascii": None, "text": None, "txt": None}
+
+#: Longest header (and longest skipped line) accepted: far beyond any real one, and a bound on
+#: what a file with no blank line after its header makes the reader hold.
+_MAX_HEADER_BYTES = 1 << 20
+
+#: Python bytes per number while an ASCII data section is parsed (a str object per token).
+_ASCII_BYTES_PER_VALUE = 64
 
 
 def read_nrrd(path):
@@ -47,16 +114,202 @@ def read_nrrd(path):
     Raises
     ------
     VolumeEVMError
-        If pynrrd is missing, the header or data cannot be parsed (corrupt, truncated), the
-        space is not 3-D or not one listed above, or the data is not a 3-D scalar grid.
+        If pynrrd is missing, the header is not strict NRRD (non-ASCII bytes, an unknown or
+        misspelt field, a value that does not parse, a required field missing), the data does
+        not hold exactly what the header announces (truncated, padded, a corrupt compressed
+        stream), the space is not 3-D or not one listed above, the data is not a 3-D scalar
+        grid, or it would not fit in memory.
     """
     nrrd = import_reader_package("nrrd", "pynrrd", path)
-    try:
-        data, header = nrrd.read(str(path))
-    except (nrrd.NRRDError, KeyError, ValueError, OSError, EOFError) as exc:
-        raise VolumeEVMError(f"{path}: corrupt NRRD file ({exc})") from exc
-    check_ndim(data.shape, path)
+    path = Path(path)
+    with open_file(path) as f:
+        header = _parse_header(nrrd, _header_lines(f, path), path)
+        sizes, dtype, encoding = _layout(header, path)
+        data_file = _data_file(header, path)
+        if data_file is None:
+            data = _read_data(f, header, sizes, dtype, encoding, path, path)
+        else:
+            require_regular_file(data_file)
+            with open_file(data_file) as g:
+                data = _read_data(g, header, sizes, dtype, encoding, data_file, path)
+    spacing, origin, orientation = _geometry(header, path)
+    return checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation)
 
+
+def _header_lines(f, path):
+    """The header's lines (magic line first) as text, up to the blank line or the end of file."""
+    if not f.readline(16).startswith(b"NRRD"):
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file (not a NRRD file: it does not start with 'NRRD000x')"
+        )
+    f.seek(0)
+    lines = []
+    total = 0
+    while True:
+        line = f.readline(_MAX_HEADER_BYTES + 1 - total)
+        total += len(line)
+        if total > _MAX_HEADER_BYTES:
+            raise VolumeEVMError(
+                f"{path}: corrupt NRRD file (no blank line ends the header within "
+                f"{_MAX_HEADER_BYTES} bytes)"
+            )
+        if not line.isascii():
+            raise VolumeEVMError(
+                f"{path}: corrupt NRRD file (header line {len(lines) + 1} holds bytes that are "
+                f"not ASCII: {line!r})"
+            )
+        text = line.decode("ascii")
+        if not text.strip():  # a blank line (or the end of a detached header) ends it
+            return lines
+        lines.append(text)
+
+
+def _parse_header(nrrd, lines, path):
+    """pynrrd's header dict, after refusing fields the format does not define."""
+    for number, line in enumerate(lines[1:], start=2):
+        if line.startswith("#"):
+            continue
+        name, colon, rest = line.partition(":")
+        if not colon:
+            raise VolumeEVMError(
+                f"{path}: corrupt NRRD file (header line {number} {line.strip()!r} is not "
+                f"'field: value')"
+            )
+        if rest.startswith("="):  # key:=value pairs may use any key
+            continue
+        if name.strip() not in _FIELDS:
+            close = difflib.get_close_matches(name.strip(), _FIELDS, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise VolumeEVMError(
+                f"{path}: corrupt NRRD file (header line {number} has the unknown field "
+                f"{name.strip()!r}{hint})"
+            )
+    try:
+        return nrrd.read_header(lines)
+    except Exception as exc:  # pynrrd reports a bad value in several exception types
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _layout(header, path):
+    """Sizes (3 Python ints), sample dtype and encoding, checked."""
+    for field in ("dimension", "type", "sizes", "encoding"):
+        if field not in header:
+            raise VolumeEVMError(f"{path}: corrupt NRRD file (required field '{field}' missing)")
+    sizes = tuple(int(n) for n in np.atleast_1d(header["sizes"]))
+    if header["dimension"] != len(sizes) or min(sizes) < 1:
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file (sizes {list(sizes)} are not {header['dimension']} "
+            f"positive numbers as 'dimension' says)"
+        )
+    check_ndim(sizes, path)
+    if header["type"] not in _TYPES:
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file (type {header['type']!r} is not a NRRD scalar type "
+            f"VolumeEVM reads; known: {', '.join(sorted(set(_TYPES)))})"
+        )
+    encoding = header["encoding"].lower()
+    if encoding not in _ENCODINGS:
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file (encoding {header['encoding']!r} is not one VolumeEVM "
+            f"reads: {', '.join(_ENCODINGS)})"
+        )
+    dtype = np.dtype(_TYPES[header["type"]])
+    if dtype.itemsize > 1 and encoding not in ("ascii", "text", "txt"):
+        endian = {"little": "<", "big": ">"}.get(header.get("endian"))
+        if endian is None:
+            raise VolumeEVMError(
+                f"{path}: corrupt NRRD file ('endian' is {header.get('endian')!r}; "
+                f"'little' or 'big' is required for {header['type']} samples)"
+            )
+        dtype = dtype.newbyteorder(endian)
+    return sizes, dtype, encoding
+
+
+def _data_file(header, path):
+    """The detached data file named by the header, or ``None`` when the data is attached."""
+    name = header.get("data file", header.get("datafile"))
+    if name is None:
+        return None
+    if name == "LIST" or len(name.split()) != 1:
+        raise VolumeEVMError(
+            f"{path}: the data is split over several files ('data file: {name}'); only one "
+            f"data file is supported"
+        )
+    return path.parent / name
+
+
+def _skips(header, encoding, path):
+    """``(line skip, byte skip)`` from the header, checked."""
+    line_skip = header.get("line skip", header.get("lineskip", 0))
+    byte_skip = header.get("byte skip", header.get("byteskip", 0))
+    if line_skip < 0 or byte_skip < -1 or (byte_skip == -1 and encoding != "raw"):
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file (line skip {line_skip} / byte skip {byte_skip}: skips "
+            f"are >= 0, and byte skip -1 is for raw data only)"
+        )
+    return line_skip, byte_skip
+
+
+def _read_data(f, header, sizes, dtype, encoding, path, source):
+    """The samples as an ``(X, Y, Z)`` array, from ``f`` positioned after the header (if any).
+
+    ``path`` is the file ``f`` reads (named in messages about the data), ``source`` the file the
+    user opened (named when the volume would not fit in memory).
+    """
+    line_skip, byte_skip = _skips(header, encoding, path)
+    for _ in range(line_skip):
+        line = f.readline(_MAX_HEADER_BYTES)
+        if len(line) == _MAX_HEADER_BYTES and not line.endswith(b"\n"):
+            raise VolumeEVMError(f"{path}: 'line skip' passes a line longer than 1 MiB")
+    count = math.prod(sizes)
+    nbytes = count * dtype.itemsize
+    size = os.fstat(f.fileno()).st_size
+    if encoding in ("ascii", "text", "txt"):
+        check_read_memory(source, sizes, dtype, copies=2,
+                          extra=size + _ASCII_BYTES_PER_VALUE * count)
+        f.seek(max(byte_skip, 0), os.SEEK_CUR)
+        return _parse_ascii(f.read(), count, dtype, path).reshape(sizes[::-1]).T
+    if encoding == "raw":
+        start = size - nbytes if byte_skip == -1 else f.tell() + byte_skip
+        if start < f.tell() or size - start != nbytes:
+            held = size - f.tell() - max(byte_skip, 0)
+            raise VolumeEVMError(
+                f"{path}: corrupt NRRD file (the data holds {held} bytes "
+                f"but sizes {list(sizes)} of {dtype.name} need exactly {nbytes}); the file is "
+                f"truncated or its header is corrupt"
+            )
+        check_read_memory(source, sizes, dtype, copies=2)  # the file's bytes, then C order
+        f.seek(start)
+        buffer = read_payload(f, nbytes, path, "NRRD raw data")
+        skip = 0
+    else:
+        check_read_memory(source, sizes, dtype, copies=2, extra=byte_skip)
+        buffer = read_payload(_ENCODINGS[encoding](f), byte_skip + nbytes, path,
+                              f"{encoding}-compressed NRRD data")
+        skip = byte_skip
+    return np.frombuffer(buffer, dtype, count, skip).reshape(sizes[::-1]).T
+
+
+def _parse_ascii(content, count, dtype, path):
+    """``count`` numbers from an ASCII data section, as a flat array of ``dtype``."""
+    if not content.isascii():
+        raise VolumeEVMError(f"{path}: corrupt NRRD file (the ASCII data holds other bytes)")
+    values = content.decode("ascii").replace(",", " ").split()
+    if len(values) != count:
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file (the ASCII data holds {len(values)} numbers but the "
+            f"sizes announce {count})"
+        )
+    try:
+        return np.array(values, dtype=dtype)
+    except (ValueError, OverflowError) as exc:
+        raise VolumeEVMError(f"{path}: corrupt NRRD file (ASCII data: {exc})") from exc
+
+
+def _geometry(header, path):
+    """Spacing (``None`` when unknown), origin and orientation in LPS mm from the header."""
     space = header.get("space")
     sign = np.ones(3)
     if space is not None:
@@ -66,12 +319,16 @@ def read_nrrd(path):
                 f"{path}: unsupported NRRD space {space!r}; supported: {', '.join(_TO_LPS)}"
             )
         sign = np.asarray(_TO_LPS[key])
+    elif header.get("space dimension", 3) != 3:
+        raise VolumeEVMError(
+            f"{path}: 'space dimension' is {header['space dimension']}; a volume needs 3"
+        )
     units = header.get("space units")
     scale = np.ones(3)
     if units is not None:
-        scale = np.array([mm_per_unit(u, path, "'space units'") for u in units], dtype=float)
-        if scale.shape != (3,):
+        if len(units) != 3:
             raise VolumeEVMError(f"{path}: corrupt header: 'space units' {units} is not 3 units")
+        scale = np.array([mm_per_unit(u, path, "'space units'") for u in units], dtype=float)
 
     directions = header.get("space directions")
     if directions is not None:
@@ -88,12 +345,16 @@ def read_nrrd(path):
     else:
         spacings = header.get("spacings")
         spacing = None
-        if spacings is not None and np.all(np.isfinite(spacings)):
-            spacing = np.asarray(spacings, dtype=np.float64) * scale
+        if spacings is not None:
+            spacings = np.asarray(spacings, dtype=np.float64)
+            if spacings.shape != (3,):
+                raise VolumeEVMError(
+                    f"{path}: corrupt header: 'spacings' {spacings} is not 3 numbers"
+                )
+            if np.all(np.isfinite(spacings)):  # NaN marks an axis without spacing
+                spacing = spacings * scale
         orientation = None
     origin = np.asarray(header.get("space origin", np.zeros(3)), dtype=np.float64)
     if origin.shape != (3,):
         raise VolumeEVMError(f"{path}: corrupt header: 'space origin' {origin} is not 3-D")
-    return checked_volume(
-        data, path, spacing=spacing, origin=origin * scale * sign, orientation=orientation
-    )
+    return spacing, origin * scale * sign, orientation

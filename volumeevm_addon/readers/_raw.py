@@ -7,12 +7,13 @@ equal ``header_bytes + X * Y * Z * itemsize`` exactly, which catches most wrong 
 and truncated downloads.
 """
 
+import math
 import os
 
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import checked_volume
+from ._checks import check_read_memory, checked_volume, open_file, read_payload
 
 _BYTE_ORDERS = {"little": "<", "big": ">"}
 
@@ -46,7 +47,8 @@ def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=
     ------
     VolumeEVMError
         If ``shape`` or ``dtype`` is missing or invalid, ``byte_order`` or ``header_bytes`` is
-        invalid, or the file length does not match the layout.
+        invalid, the file length does not match the layout, or the volume would not fit in
+        memory.
     """
     if shape is None or dtype is None:
         raise VolumeEVMError(
@@ -55,7 +57,7 @@ def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=
         )
     try:
         sample = np.dtype(dtype)
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:
         raise VolumeEVMError(f"{path}: unknown dtype {dtype!r} ({exc})") from exc
     if sample.kind not in "uif":
         raise VolumeEVMError(
@@ -66,21 +68,29 @@ def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=
             f"{path}: byte_order must be 'little' or 'big', got {byte_order!r}"
         )
     sample = sample.newbyteorder(_BYTE_ORDERS[byte_order])
-    shape = tuple(shape)
-    if len(shape) != 3 or not all(isinstance(n, (int, np.integer)) and n > 0 for n in shape):
-        raise VolumeEVMError(f"{path}: shape must be 3 positive integers (X, Y, Z), got {shape}")
+    if (
+        not isinstance(shape, (tuple, list, np.ndarray))
+        or len(shape) != 3
+        or not all(isinstance(n, (int, np.integer)) and n > 0 for n in shape)
+    ):
+        raise VolumeEVMError(f"{path}: shape must be 3 positive integers (X, Y, Z), got {shape!r}")
     if not isinstance(header_bytes, (int, np.integer)) or header_bytes < 0:
         raise VolumeEVMError(
             f"{path}: header_bytes must be a non-negative integer, got {header_bytes!r}"
         )
-    count = int(np.prod(shape))
-    expected = header_bytes + count * sample.itemsize
-    size = os.path.getsize(path)
-    if size != expected:
-        raise VolumeEVMError(
-            f"{path}: file has {size} bytes but shape {shape} of {sample.name} after "
-            f"{header_bytes} header bytes needs exactly {expected}; the file is truncated or "
-            f"the layout is wrong"
-        )
-    flat = np.fromfile(path, dtype=sample, count=count, offset=header_bytes)
+    shape = tuple(int(n) for n in shape)
+    nbytes = math.prod(shape) * sample.itemsize  # Python ints: no overflow for any shape
+    expected = int(header_bytes) + nbytes
+    with open_file(path) as f:
+        size = os.fstat(f.fileno()).st_size
+        if size != expected:
+            raise VolumeEVMError(
+                f"{path}: file has {size} bytes but shape {shape} of {sample.name} after "
+                f"{header_bytes} header bytes needs exactly {expected}; the file is truncated or "
+                f"the layout is wrong"
+            )
+        check_read_memory(path, shape, sample, copies=2)  # the file's bytes, then C order
+        f.seek(header_bytes)
+        buffer = read_payload(f, nbytes, path, "raw data")
+    flat = np.frombuffer(buffer, dtype=sample)
     return checked_volume(flat.reshape(shape[::-1]).transpose(), path, spacing=spacing)
