@@ -53,7 +53,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory, format_bytes
-from ._checks import checked_volume, import_reader_package
+from ._checks import checked_volume, import_reader_package, require_regular_file
 
 #: Largest deviation of a slice step from the mean step, relative to the mean step.
 _SPACING_RTOL = 1e-2
@@ -193,18 +193,6 @@ def _is_regular_file(path):
         return stat.S_ISREG(path.stat().st_mode)
     except OSError as exc:
         raise VolumeEVMError(f"{path}: cannot read this entry of the folder ({exc})") from exc
-
-
-def require_regular_file(path):
-    """Refuse a named path that is not a regular file: a FIFO or device would be read forever."""
-    try:
-        mode = path.stat().st_mode
-    except OSError as exc:
-        raise VolumeEVMError(f"{path}: cannot read the file ({exc})") from exc
-    if not stat.S_ISREG(mode):
-        raise VolumeEVMError(
-            f"{path}: not a regular file (a folder, FIFO or device); a DICOM file is needed"
-        )
 
 
 def _marked_as_dicom(path):

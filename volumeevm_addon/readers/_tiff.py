@@ -34,8 +34,7 @@ from pathlib import Path
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ._checks import check_ndim, checked_volume, import_reader_package, mm_per_unit
-from ._dicom import require_regular_file
+from ._checks import check_ndim, checked_volume, import_reader_package, mm_per_unit, require_regular_file
 
 #: TIFF compression code of uncompressed data.
 _UNCOMPRESSED = 1
