@@ -447,6 +447,67 @@ def test_warp_chunks_do_not_change_the_image(brain_half, monkeypatch):
     np.testing.assert_array_equal(depth_chunked, depth)
 
 
+# ---------------------------------------------------------------------------- intermediate origin
+def test_span_and_shift_move_indices_only():
+    """A slice's samples over the intermediate image (first tap, fraction) are the same for any
+    integer origin: only the array indices of the span move with it."""
+    rng = np.random.default_rng(11)
+    for trial in range(400):
+        alpha = 1.0 if trial % 2 else float(rng.uniform(0.3, 1.0))
+        beta = float(rng.uniform(-60, 60))
+        if trial % 5 == 0:
+            beta = float(np.round(beta)) + [0.0, 1e-15, -1e-15][trial % 3]  # near an integer
+        t0 = int(rng.integers(-5, 40))
+        t1 = t0 + int(rng.integers(1, 30))
+        origin = int(rng.integers(-80, 80))
+        lo, hi = int(rng.integers(-5, 20)), int(rng.integers(30, 120))
+        span = _shear_warp._span(t0, t1, alpha, beta, origin, lo, hi)
+        for k in (1, 2, 7, -3):
+            moved = _shear_warp._span(t0, t1, alpha, beta, origin - k, lo + k, hi + k)
+            assert (span is None) == (moved is None)
+            if span is None:
+                continue
+            assert (moved[0], moved[1]) == (span[0] + k, span[1] + k)
+            np.testing.assert_array_equal(moved[2], span[2])
+            np.testing.assert_array_equal(moved[3], span[3])
+
+
+ORIGIN_CASES = [(mode, {}) for mode in MODES] + [
+    ("over", {"classification": "post", "shading": True}),
+    ("over", {"slices_per_voxel": 2}),
+    ("under", {"intermediate_scale": 1.5}),
+    ("over", {"depth_in": "middle", "termination": 0.9}),
+]
+
+
+@pytest.mark.parametrize("mode, options", ORIGIN_CASES,
+                         ids=[mode + "".join(f"-{k}" for k in opts) for mode, opts in ORIGIN_CASES])
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_intermediate_origin_moves_nothing(ct_head, monkeypatch, kind, mode, options):
+    """Starting the intermediate image a whole number of pixels earlier (odd and even: a
+    rounding of halves to even would depend on the parity) changes neither the image nor the
+    depth, bit for bit: only the indices move. (The region's path and the dense path start
+    it at different places, so the exactness contract depends on this.)"""
+    g = grid_to_world(ct_head.spacing, (0.0, 0.0, 0.0))
+    cam = orbit_camera(g, ct_head.shape, ct_head.spacing, (0.4, -1.0, 0.3), kind, res=(56, 44))
+    opts = dict(options, **xray_options(mode, 0.002))
+    if opts.get("depth_in") == "middle":
+        _, depth = render_shear_warp(ct_head, cam, CT_BONE, g)
+        opts["depth_in"] = np.full(cam.shape, np.median(depth[depth < BACKGROUND_DEPTH]))
+    rgba, depth = render_shear_warp(ct_head, cam, CT_BONE, g, mode=mode, **opts)
+    assert rgba[..., 3].max() > 0.3 and (depth < BACKGROUND_DEPTH).sum() > 200
+    extent = _View.extent
+    for shift in ((1, 0), (2, 7)):
+        def earlier(foot, img, shift=shift):
+            origin, size = extent(foot, img)
+            return origin - shift, (size[0] + shift[0] + 2, size[1] + shift[1] + 3)
+
+        monkeypatch.setattr(_View, "extent", staticmethod(earlier))
+        moved_rgba, moved_depth = render_shear_warp(ct_head, cam, CT_BONE, g, mode=mode, **opts)
+        np.testing.assert_array_equal(moved_rgba, rgba)
+        np.testing.assert_array_equal(moved_depth, depth)
+
+
 # ---------------------------------------------------------------------------- modes
 def aligned_camera(g, shape, spacing, axis, sign):
     """Orthographic camera along ``sign`` times grid ``axis`` with one pixel per voxel, pixel

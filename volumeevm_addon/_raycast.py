@@ -41,9 +41,10 @@ with a fixed step, fast:
   density along the ray over points in region cells, classified without length correction;
   each segment's two ends and middle are evaluated, as the reference does), with the
   reference's conventions.
-- **Depth out**: axial depth where the first segment with non-zero opacity enters the region
-  (X-ray: attenuation; MIP: the sample holding the maximum among samples in region cells, if
-  its opacity is non-zero); ``1e10`` where there is none.
+- **Depth out**: axial depth where the first visible segment enters the region
+  (:mod:`._depth`: opacity per unit length at least ``VISIBLE_ALPHA``; X-ray: attenuation;
+  MIP: the sample holding the maximum among samples in region cells, if its class is
+  visible); ``1e10`` where there is none.
 
 Space leaping (``skip_empty=True``)
 -----------------------------------
@@ -82,6 +83,7 @@ import weakref
 
 import numpy as np
 
+from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._errors import VolumeEVMError
 from ._reference import MODES, Shading, _shade
@@ -189,7 +191,7 @@ def finish_mode(acc, vmax, mode, tf):
             straight = tf.evaluate(vmax[seen])
             acc[seen, 3] = straight[:, 3]
             acc[seen, :3] = straight[:, :3] * straight[:, 3:4]
-        return seen & (acc[:, 3] > 0)
+        return seen & _depth.visible(acc[:, 3], 1.0)
     return None
 
 
@@ -848,8 +850,9 @@ def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, terminati
             front = kf - half + start * (2 * half)  # lattice position where it starts
             if mode == "xray":
                 mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-                acc[:, 0] += mu * length * np.float32(step_mm)
-                hit = (mu * length > 0) & np.isnan(kev)
+                tau = mu * length * np.float32(step_mm)
+                acc[:, 0] += tau
+                hit = _depth.attenuates(tau, length * np.float32(step_mm)) & np.isnan(kev)
                 kev[hit] = front[hit]
             else:
                 rgb, alpha = _classify(lut, value, length)
@@ -864,7 +867,7 @@ def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, terminati
                 if grad is not None:
                     rgb = _shade(rgb, grad, inv_t, st["dirs"], shading).astype(np.float32)
                 c = rgb * alpha[:, None]
-                hit = alpha > 0
+                hit = _depth.visible(alpha, length * np.float32(step_mm / tf.unit_length_mm))
                 if backward:
                     keep = 1 - alpha
                     acc[:, :3] *= keep[:, None]

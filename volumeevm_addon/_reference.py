@@ -57,16 +57,20 @@ function's opacity is 0 on the range of the 8 neighbours' densities; X-ray: no d
 
 Depth out
 ---------
-Axial depth (Blender units, float32) of the **front end of the first part with non-zero
-opacity** (over, under; X-ray: non-zero attenuation); for MIP, of the frontmost point holding
-the maximum, if its classified opacity is non-zero. ``1e10`` where there is none (Blender's
-background). At the VoI's surface, the volume's box, the near clip and ``depth_in`` this is exact.
+Axial depth (Blender units, float32) of the **front end of the first visible part**: its
+opacity per unit length is at least :data:`._depth.VISIBLE_ALPHA` (over, under; X-ray: its
+attenuation per mm, :data:`._depth.VISIBLE_OPTICAL_DEPTH`); for MIP, of the frontmost point
+holding the maximum, if its classified opacity is at least ``VISIBLE_ALPHA``. ``1e10`` where
+there is none (Blender's background). The threshold is per unit length, so a part's length does
+not matter: at the VoI's surface, the volume's box, the near clip and ``depth_in`` the depth is
+exact.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
+from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera  # noqa: F401  (Camera: doctest)
 from ._errors import VolumeEVMError
 from ._transfer import TransferFunction  # noqa: F401  (doctest)
@@ -527,8 +531,9 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
         inside, value, grad = sampler(p)
         if mode == "xray":
             mu = xray_scale * np.maximum(value - xray_offset, 0.0) * inside
-            acc[:a, 0] += mu * dmm[rows]
-            first = (mu > 0) & np.isinf(tdepth[:a])
+            tau = mu * dmm[rows]
+            acc[:a, 0] += tau
+            first = _depth.attenuates(tau, dmm[rows]) & np.isinf(tdepth[:a])
             tdepth[:a][first] = tf_[first]
             continue
         if mode == "mip":
@@ -548,8 +553,10 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
                 tmax[:a][better] = tt[better]
             continue
         straight = tf.evaluate(value)
-        alpha = 1.0 - np.power(1.0 - straight[:, 3], dmm[rows] / tf.unit_length_mm)
+        units = dmm[rows] / tf.unit_length_mm
+        alpha = 1.0 - np.power(1.0 - straight[:, 3], units)
         alpha *= inside
+        hit = _depth.visible(alpha, units)
         rgb = straight[:, :3]
         if grad is not None:
             rgb = _shade(rgb, grad, inv_t, dirs[:a], shading)
@@ -558,13 +565,12 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
             trans = 1.0 - acc[:a, 3]
             acc[:a, :3] += trans[:, None] * c
             acc[:a, 3] += trans * alpha
-            first = (alpha > 0) & np.isinf(tdepth[:a])
+            first = hit & np.isinf(tdepth[:a])
             tdepth[:a][first] = tf_[first]
         else:  # under: C = c + (1 - alpha) C
             keep = 1.0 - alpha
             acc[:a, :3] = c + keep[:, None] * acc[:a, :3]
             acc[:a, 3] = alpha + keep * acc[:a, 3]
-            hit = alpha > 0
             tdepth[:a][hit] = tf_[hit]  # the last one met (the frontmost) wins
     if mode == "xray":
         acc[:] = (1.0 - np.exp(-acc[:, 0]))[:, None]
@@ -575,7 +581,7 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
             st = tf.evaluate(vmax[seen])
             acc[seen, 3] = st[:, 3]
             acc[seen, :3] = st[:, :3] * st[:, 3:4]
-        tdepth = np.where(seen & (acc[:, 3] > 0), tmax, np.inf)
+        tdepth = np.where(seen & _depth.visible(acc[:, 3], 1.0), tmax, np.inf)
     inverse = np.empty_like(order)
     inverse[order] = np.arange(n)
     acc, tdepth = acc[inverse], tdepth[inverse]

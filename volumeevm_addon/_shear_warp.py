@@ -88,9 +88,14 @@ Depth
   through, nearest); per slice the sample depth is affine in ``(p, q)`` and is only evaluated
   on slices whose depth range crosses a limit.
 - Depth out: axial depth of the front end (half a slice before the sample, along the ray) of the
-  first sample with non-zero opacity (``"xray"``: attenuation; ``"mip"``: the frontmost sample
-  holding the maximum, if its class is not transparent), taken from the **nearest**
-  intermediate pixel (depths are not blended); ``1e10`` where there is none.
+  first visible sample (:mod:`._depth`: opacity per unit length at least ``VISIBLE_ALPHA``;
+  ``"xray"``: attenuation; ``"mip"``: the frontmost sample holding the maximum, if its class is
+  visible), taken from the **nearest** intermediate pixel (halves rounded up; depths are not
+  blended); ``1e10`` where there is none.
+- Neither depends on where the intermediate image starts (:meth:`_View.extent`): its origin is
+  an integer that moves array indices only; fractions, taps and depths are computed in
+  absolute intermediate coordinates. (Rounding ``β + origin`` instead gave a fraction of 1e-15
+  on the region's path and 0 on the dense path, whose images start elsewhere.)
 
 Known limits: by default one sample per slice (inter-slice aliasing unless
 ``slices_per_voxel`` > 1), one intermediate pixel per voxel (zooming in blurs unless
@@ -118,6 +123,7 @@ import weakref
 
 import numpy as np
 
+from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._densities import TABLE_ORDERS
 from ._errors import VolumeEVMError
@@ -450,12 +456,7 @@ class _View:
         foot = [((bx[:, 0] - 1 - beta_a) / alpha).min(), ((bx[:, 1] - beta_a) / alpha).max(),
                 ((bx[:, 2] - 1 - beta_b) / alpha).min(), ((bx[:, 3] - beta_b) / alpha).max()]
         img = [seen[0] - 1, seen[1] + 2, seen[2] - 1, seen[3] + 2]
-        p_lo = np.floor(max(foot[0], img[0]))
-        p_hi = np.ceil(min(foot[1], img[1]))
-        q_lo = np.floor(max(foot[2], img[2]))
-        q_hi = np.ceil(min(foot[3], img[3]))
-        self.origin = np.array([p_lo, q_lo])
-        self.size = (max(int(p_hi - p_lo) + 1, 0), max(int(q_hi - q_lo) + 1, 0))
+        self.origin, self.size = self.extent(foot, img)
         if self.size[0] * self.size[1] == 0:
             self.empty = True
             return
@@ -473,18 +474,41 @@ class _View:
             self.delta = float(np.linalg.norm(sp * self.slope))
             self.ratio = None
         else:
-            p = (self.origin[0] + np.arange(self.size[0])) / scale
-            q = (self.origin[1] + np.arange(self.size[1])) / scale
-            span = self.c_ref - self.eye[axis]
-            va = ((p - self.eye[a]) / span * sp[a]) ** 2
-            vb = ((q - self.eye[b]) / span * sp[b]) ** 2
-            delta = np.sqrt(va[:, None] + vb[None, :] + sp[axis] ** 2)
+            p = self.origin[0] + np.arange(self.size[0])
+            q = self.origin[1] + np.arange(self.size[1])
+            delta = self.ray_step(p[:, None], q[None, :], sp)
+            # The table's step: the central ray's nearest intermediate pixel (the centre of the
+            # rays' footprint if the central ray is not in this pass).
             centre = np.array(camera.shape) // 2
             k = centre[0] * camera.shape[1] + centre[1]
-            pc = np.clip(np.rint(self.pq[k] - self.origin).astype(np.int64), 0,
-                         np.array(self.size) - 1) if ok[k] else np.array(self.size) // 2
-            self.delta = float(delta[pc[0], pc[1]])
+            pc = self.pq[k] if ok[k] else np.array([seen[0] + seen[1], seen[2] + seen[3]]) / 2
+            pc = np.floor(pc + 0.5)
+            self.delta = float(self.ray_step(pc[0], pc[1], sp))
             self.ratio = (delta / self.delta).astype(np.float32)
+
+    def ray_step(self, p, q, spacing):
+        """Perspective: mm between consecutive slices along the ray through the absolute
+        intermediate point ``(p, q)`` (arrays broadcast), for voxel ``spacing``."""
+        a, b, c = self.abc
+        span = self.c_ref - self.eye[c]
+        va = ((p / self.scale - self.eye[a]) / span * spacing[a]) ** 2
+        vb = ((q / self.scale - self.eye[b]) / span * spacing[b]) ** 2
+        return np.sqrt(va + vb + spacing[c] ** 2)
+
+    @staticmethod
+    def extent(foot, img):
+        """The intermediate image over the region's footprint ``foot`` within the image's
+        footprint ``img`` (both ``(p min, p max, q min, q max)``, absolute intermediate
+        coordinates): its origin, the absolute point of array index ``(0, 0)``, and its size.
+
+        The origin is an integer applied to indices only: the samples' fractions, the warp's
+        taps and the depths are computed in absolute coordinates, so that they do not depend
+        on where the image starts (the region's path and the dense path start it differently).
+        """
+        p_lo, p_hi = math.floor(max(foot[0], img[0])), math.ceil(min(foot[1], img[1]))
+        q_lo, q_hi = math.floor(max(foot[2], img[2])), math.ceil(min(foot[3], img[3]))
+        return (np.array([p_lo, q_lo], np.int64),
+                (max(p_hi - p_lo + 1, 0), max(q_hi - q_lo + 1, 0)))
 
     def ortho_plane(self, camera, rot):
         """Orthographic: the intermediate coordinates of every pixel's ray, ``(H*W, 2)``, and
@@ -562,16 +586,11 @@ class _View:
         lam = (s - self.eye[c]) / (self.c_ref - self.eye[c])
         return lam / self.scale, self.eye[a] * (1 - lam), self.eye[b] * (1 - lam)
 
-    def shifted_maps(self, s):
-        """:meth:`slice_maps` for intermediate array indices ``(p, q)`` (origin applied)."""
-        alpha, beta_a, beta_b = self.slice_maps(s)
-        return alpha, beta_a + alpha * self.origin[0], beta_b + alpha * self.origin[1]
-
     def depth_coefficients(self, s):
-        """Axial depth ``k0 + kp·p + kq·q`` of the sample of slice ``s`` at array index
-        ``(p, q)``, as ``(k0, kp, kq)``."""
+        """Axial depth ``k0 + kp·p + kq·q`` of the sample of slice ``s`` at the absolute
+        intermediate point ``(p, q)`` (array index plus origin), as ``(k0, kp, kq)``."""
         a, b, c = self.abc
-        alpha, beta_a, beta_b = self.shifted_maps(s)
+        alpha, beta_a, beta_b = self.slice_maps(s)
         ga, gb, gc = self.depth_grad[a], self.depth_grad[b], self.depth_grad[c]
         k0 = self.depth0 + ga * beta_a + gb * beta_b + gc * np.asarray(s, dtype=np.float64)
         return k0, ga * alpha, gb * alpha
@@ -787,12 +806,14 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
     if mode == "under":
         owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
     # Per-sample scalars as Python floats: the loop reads them one at a time.
-    alpha_s, beta_a, beta_b = (v.tolist() for v in view.shifted_maps(owner + offset))
+    alpha_s, beta_a, beta_b = (v.tolist() for v in view.slice_maps(owner + offset))
+    o_p, o_q = (int(o) for o in view.origin)
     k0, kp, kq = (v.tolist() for v in view.depth_coefficients(owner + offset))
     limit = None if depth_in is None else view.depth_limit(camera, g, depth_in)
     far_min = camera.clip_end if limit is None else float(limit.min())
     near = camera.clip_start
     delta = view.delta / per_voxel
+    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
     post = mode in ("xray", "mip") or classification == "post"
     n_slices = len(layout.boxes)
     table = voxels = classes = lut = None
@@ -843,19 +864,21 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             continue
         al, ba, bb = alpha_s[n], beta_a[n], beta_b[n]
         if translated:
-            rows = _shift(box[0], box[1], ba, active[0], active[1])
-            cols = _shift(box[2], box[3], bb, active[2], active[3])
+            rows = _shift(box[0], box[1], ba, o_p, active[0], active[1])
+            cols = _shift(box[2], box[3], bb, o_q, active[2], active[3])
             if rows is None or cols is None:
                 continue
             (p0, p1, i0, f), (q0, q1, j0, g) = rows, cols
             out, inside = _translated(pixels, slice_rows[s], layout.boxes[s],
                                       (i0, i0 + p1 - p0 + 1, j0, j0 + q1 - q0 + 1), f, g)
             area = (slice(p0, p1), slice(q0, q1))
-            _clip(inside, k0[n], kp[n], kq[n], area, near, far_min, camera.clip_end, limit)
+            _clip(inside, k0[n], kp[n], kq[n], area, view.origin, near, far_min, camera.clip_end,
+                  limit)
             # One per-pixel factor: the clamp policy's renormalisation, the depth limits and,
             # front to back, the transparency left in front (zero where terminated).
             factor = _renormaliser(out, inside)
             c, target = out[:4], image[(slice(None),) + area]
+            hit = _depth.visible(out[3] * factor, units)  # the sample's own opacity
             if mode == "over":
                 trans = 1.0 - target[3]
                 if termination < 1.0:
@@ -863,8 +886,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
                 factor *= trans
                 c *= factor
                 target += c
-                # (A ray without a depth sample yet has nothing in front: its trans is 1.)
-                np.copyto(rank_map[area], ranks[n], where=(c[3] > 0) & (rank_map[area] == _NEVER))
+                np.copyto(rank_map[area], ranks[n], where=hit & (rank_map[area] == _NEVER))
                 if (n + 1) % _ERT_EVERY == 0:
                     active = _active_box(image, termination, active)
                     if active is None:
@@ -873,10 +895,10 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
                 c *= factor
                 target *= 1.0 - c[3]
                 target += c
-                np.copyto(rank_map[area], ranks[n], where=c[3] > 0)
+                np.copyto(rank_map[area], ranks[n], where=hit)
             continue
-        rows = _span(box[0], box[1], al, ba, active[0], active[1])
-        cols = _span(box[2], box[3], al, bb, active[2], active[3])
+        rows = _span(box[0], box[1], al, ba, o_p, active[0], active[1])
+        cols = _span(box[2], box[3], al, bb, o_q, active[2], active[3])
         if rows is None or cols is None:
             continue
         p0, p1, ia, fa = rows
@@ -896,19 +918,21 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
         sample = _normalise(out, inside)
         area = (slice(p0, p1), slice(q0, q1))
-        clipped = _clip(inside, k0[n], kp[n], kq[n], area, near, far_min, camera.clip_end, limit)
+        clipped = _clip(inside, k0[n], kp[n], kq[n], area, view.origin, near, far_min,
+                        camera.clip_end, limit)
         if mode in ("xray", "mip"):
             value = sample[0]
             if mode == "xray":
                 np.subtract(value, np.float32(xray_offset), out=value)
                 np.maximum(value, 0, out=value)
                 value *= np.float32(xray_scale * delta)
+                value *= inside
+                # (The ray's own step is ratio times the table's: so are μΔ and the threshold.)
+                hit = _depth.attenuates(value, delta)
+                hit &= rank_map[area] == _NEVER
                 if view.ratio is not None:
                     value *= view.ratio[area]
-                value *= inside
                 image[area] += value
-                hit = value > 0
-                hit &= rank_map[area] == _NEVER
             else:
                 # Ties (within float32 rounding of the renormalised weights) keep the first,
                 # frontmost sample, as the reference does.
@@ -923,11 +947,12 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
                                shading, straight if shading is not None else None)
         else:
             c = sample
-        if view.ratio is not None:
-            _correct(c, view.ratio[area])
         if clipped or post:  # (pre: _normalise already made outside samples zero)
             c *= inside
-        hit = c[3] > 0
+        # Before the correction to each ray's step: the threshold scales with the step too.
+        hit = _depth.visible(c[3], units)
+        if view.ratio is not None:
+            _correct(c, view.ratio[area])
         target = image[(slice(None),) + area]
         if mode == "over":
             trans = 1.0 - target[3]
@@ -956,7 +981,7 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         rgba[3][seen] = straight[:, 3]
         for ch in range(3):
             rgba[ch][seen] = straight[:, ch] * straight[:, 3]
-        rank_map[~seen | (rgba[3] <= 0)] = _NEVER
+        rank_map[~(seen & _depth.visible(rgba[3], 1.0))] = _NEVER
         image = rgba
     return image, rank_map, centre - 0.5 * view.step / per_voxel
 
@@ -980,40 +1005,47 @@ def _post_classify(sample, inside, lut, tf, lut_size, view, shading, straight):
     return c
 
 
-def _span(t0, t1, alpha, beta, lo, hi):
+def _span(t0, t1, alpha, beta, origin, lo, hi):
     """Intermediate indices ``[p0, p1)`` whose samples touch voxels ``[t0, t1)`` of a slice,
-    within ``[lo, hi)``, with each sample's first tap ``i`` and fraction ``f`` (``x = i + f``)."""
+    within ``[lo, hi)``, with each sample's first tap ``i`` and fraction ``f`` (``x = i + f``).
+
+    Sample ``p`` (array index) is at ``x = α (p + origin) + β``: the integer ``origin`` is
+    applied to indices only, so ``i - origin`` and ``f`` do not depend on it.
+    """
     if alpha == 1.0:
-        span = _shift(t0, t1, beta, lo, hi)
+        span = _shift(t0, t1, beta, origin, lo, hi)
         if span is None:
             return None
         p0, p1, i0, f = span
         return p0, p1, np.arange(i0, i0 + p1 - p0, dtype=np.int64), np.full(p1 - p0, f)
-    p0 = max(int(np.ceil((t0 - 1 - beta) / alpha)), lo)
-    p1 = min(int(np.ceil((t1 - beta) / alpha)), hi)
+    p0 = max(int(np.ceil((t0 - 1 - beta) / alpha)), lo + origin)
+    p1 = min(int(np.ceil((t1 - beta) / alpha)), hi + origin)
     if p1 <= p0:
         return None
     x = alpha * np.arange(p0, p1, dtype=np.float64) + beta
     i = np.floor(x).astype(np.int64)
-    return p0, p1, i, (x - i).astype(np.float32)
+    return p0 - origin, p1 - origin, i, (x - i).astype(np.float32)
 
 
-def _shift(t0, t1, beta, lo, hi):
+def _shift(t0, t1, beta, origin, lo, hi):
     """:func:`_span` of a translated slice (``α = 1``): ``(p0, p1, i0, f)``, sample ``p`` at
-    ``x = (p - p0 + i0) + f``, the one fraction as float32; None if empty."""
+    ``x = (p - p0 + i0) + f``, the one fraction ``f = β - floor(β)`` as float32 (the integer
+    ``origin`` goes to the indices only); None if empty."""
     base = math.floor(beta)
-    p0, p1 = max(t0 - 1 - base, lo), min(t1 - base, hi)
+    p0, p1 = max(t0 - 1 - base, lo + origin), min(t1 - base, hi + origin)
     if p1 <= p0:
         return None
-    return p0, p1, p0 + base, np.float32(beta - base)
+    return p0 - origin, p1 - origin, p0 + base, np.float32(beta - base)
 
 
-def _clip(inside, k0, kp, kq, area, near, far_min, far, limit):
-    """The depth test on samples ``inside`` over ``area`` of the intermediate image, whose
-    axial depth is ``k0 + kp p + kq q``: clears those not in ``[near, min(far, limit))``.
-    Only evaluated per pixel where the area's depth range crosses a limit (``far_min``: the
-    smallest); returns whether it did."""
-    (p0, p1), (q0, q1) = (area[0].start, area[0].stop), (area[1].start, area[1].stop)
+def _clip(inside, k0, kp, kq, area, origin, near, far_min, far, limit):
+    """The depth test on samples ``inside`` over ``area`` of the intermediate image (array
+    indices; ``origin`` added gives the absolute point), whose axial depth is
+    ``k0 + kp p + kq q``: clears those not in ``[near, min(far, limit))``. Only evaluated per
+    pixel where the area's depth range crosses a limit (``far_min``: the smallest); returns
+    whether it did."""
+    p0, p1 = area[0].start + origin[0], area[0].stop + origin[0]
+    q0, q1 = area[1].start + origin[1], area[1].stop + origin[1]
     corners = [k0 + kp * pp + kq * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
     if min(corners) >= near and max(corners) < far_min:
         return False
@@ -1183,34 +1215,39 @@ def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
     depth_flat = depth_out.reshape(-1)
     for start in range(0, len(view.pq), _WARP_CHUNK):
         part = slice(start, start + _WARP_CHUNK)
-        p = view.pq[part, 0] - view.origin[0]
-        q = view.pq[part, 1] - view.origin[1]
+        # Taps, fractions and nearest pixels from the absolute intermediate point: the origin
+        # (an integer) only moves the indices, so none of them depends on it.
+        p, q = view.pq[part, 0], view.pq[part, 1]
         ok = view.rays_ok[part]
         fp, fq = np.floor(p), np.floor(q)
-        ia, ib = fp.astype(np.int64), fq.astype(np.int64)
+        fa, fb = p - fp, q - fq
+        ia = fp.astype(np.int64) - view.origin[0]
+        ib = fq.astype(np.int64) - view.origin[1]
         idx = np.flatnonzero(ok & (ia >= -1) & (ia < hi) & (ib >= -1) & (ib < wi))
         # Each pixel's fractions repeated for its 4 channels: NumPy's broadcasting of an
         # (n, 1) factor over (n, 4) is several times slower than flat arrays.
-        fa = np.repeat((p[idx] - fp[idx]).astype(np.float32), 4)
-        fb = np.repeat((q[idx] - fq[idx]).astype(np.float32), 4)
+        fa4 = np.repeat(fa[idx].astype(np.float32), 4)
+        fb4 = np.repeat(fb[idx].astype(np.float32), 4)
         base = (ia[idx] + 1) * (wi + 2) + ib[idx] + 1
         top = _texels(pixels, base)
-        top += fb * (_texels(pixels, base + 1) - top)
+        top += fb4 * (_texels(pixels, base + 1) - top)
         base += wi + 2
         bottom = _texels(pixels, base)
-        bottom += fb * (_texels(pixels, base + 1) - bottom)
+        bottom += fb4 * (_texels(pixels, base + 1) - bottom)
         bottom -= top
-        bottom *= fa
+        bottom *= fa4
         top += bottom
         rgba_flat[start + idx] = top.view(np.complex128)
-        near_p, near_q = np.rint(p).astype(np.int64), np.rint(q).astype(np.int64)
+        # The nearest intermediate pixel, halves rounded up (as the clamp policy's nearest
+        # voxel): np.rint's half to even would depend on the origin's parity.
+        near_p, near_q = ia + (fa >= 0.5), ib + (fb >= 0.5)
         idx = np.flatnonzero(ok & (near_p >= 0) & (near_p < hi) & (near_q >= 0) & (near_q < wi))
         pp, qq = near_p[idx], near_q[idx]
         r = rank_map[pp, qq]
         hit = r != _NEVER
         idx, r, pp, qq = idx[hit], r[hit], pp[hit], qq[hit]
         k0, kp, kq = view.depth_coefficients(front[r])
-        depth_flat[start + idx] = k0 + kp * pp + kq * qq
+        depth_flat[start + idx] = k0 + kp * (pp + view.origin[0]) + kq * (qq + view.origin[1])
 
 
 def _texels(pixels, index):

@@ -69,8 +69,10 @@ deficit at the grazing rim (-1.4 %, either way); linear along ``A`` fixes the po
 total deviation grows from 0.009 to 0.013.
 
 Modes follow the reference: over, under, xray (``exp(-Σ μ·length)``), mip (maximum sheet
-density). Depth out: axial depth where the ray enters the region's cells in the first sub-slab
-with non-zero opacity (MIP: the sheet holding the maximum), exact at the region's surface.
+density). Depth out: axial depth where the ray enters the region's cells in the first visible
+sub-slab (:mod:`._depth`: opacity per unit length at least ``VISIBLE_ALPHA``; X-ray:
+attenuation; MIP: the sheet holding the maximum, if its class is visible), exact at the
+region's surface.
 
 Sheets are taken outward from the camera, the side the view faces first, then the other side
 (perspective cameras inside the volume: rays running against the principal direction see
@@ -100,6 +102,7 @@ import weakref
 
 import numpy as np
 
+from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._densities import TABLE_ORDERS
 from ._errors import VolumeEVMError
@@ -684,8 +687,9 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
             first_depth = a0_f[q] + kz_f[q] * (ta.ravel()[sees] + S[sees] * span.ravel()[sees])
             if mode == "xray":
                 mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-                acc_f[q, 0] += mu * length
-                hit = (mu > 0) & (depth_f[q] == BACKGROUND_DEPTH)
+                tau = mu * length
+                acc_f[q, 0] += tau
+                hit = _depth.attenuates(tau, length) & (depth_f[q] == BACKGROUND_DEPTH)
                 depth_f[q[hit]] = first_depth[hit]
                 continue
             if mode == "mip":
@@ -698,14 +702,15 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
             i = np.minimum(x.astype(np.int64), len(tab) - 2)
             f = (x - i)[:, None]
             st = tab[i] + f * (tab[i + 1] - tab[i])
-            alpha = 1 - np.power(1 - st[:, 3], length / np.float32(unit))
+            units = length / np.float32(unit)
+            alpha = 1 - np.power(1 - st[:, 3], units)
             rgb = st[:, :3]
             if shading is not None:
                 grad = np.empty((len(q), 3))
                 grad[:, [axis, b_ax, c_ax]] = G[sees] / W[sees][:, None]
                 rgb = _shade(rgb, grad, inv_t, dirs_f[q], shading).astype(np.float32)
             c = rgb * alpha[:, None]
-            hit = alpha > 0
+            hit = _depth.visible(alpha, units)
             if mode == "over":
                 trans = 1 - acc_f[q, 3]
                 acc_f[q, :3] += trans[:, None] * c
