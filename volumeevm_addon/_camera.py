@@ -40,25 +40,33 @@ BACKGROUND_DEPTH = 1e10
 _FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 
 
-def _positive(name, value):
-    v = float(value)
-    if not np.isfinite(v) or v <= 0:
-        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
-    return v
-
-
 def _finite(name, value):
-    v = float(value)
+    """``value`` as a finite float, or a :class:`VolumeEVMError` naming ``name``."""
+    if isinstance(value, (bool, np.bool_, str, bytes)):
+        raise VolumeEVMError(f"{name}: expected a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as error:
+        raise VolumeEVMError(f"{name}: expected a number, got {value!r}") from error
     if not np.isfinite(v):
         raise VolumeEVMError(f"{name}: must be finite, got {value!r}")
     return v
 
 
+def _positive(name, value):
+    v = _finite(name, value)
+    if v <= 0:
+        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
+    return v
+
+
 def _positive_int(name, value):
+    if isinstance(value, (bool, np.bool_, str, bytes)):
+        raise VolumeEVMError(f"{name}: expected an integer, got {value!r}")
     try:
         v = int(value)
-    except (TypeError, ValueError):
-        raise VolumeEVMError(f"{name}: expected an integer, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError) as error:
+        raise VolumeEVMError(f"{name}: expected an integer, got {value!r}") from error
     if v != value or v < 1:
         raise VolumeEVMError(f"{name}: must be an integer >= 1, got {value!r}")
     return v
@@ -111,7 +119,11 @@ class Camera:
     def __post_init__(self):
         if self.projection not in ("ORTHO", "PERSP"):
             raise VolumeEVMError(f"projection: 'ORTHO' or 'PERSP', got {self.projection!r}")
-        m = np.array(self.matrix_world, dtype=np.float64)
+        try:
+            m = np.array(self.matrix_world, dtype=np.float64)
+        except (TypeError, ValueError) as error:
+            raise VolumeEVMError(f"matrix_world: expected a 4x4 matrix of numbers, got "
+                                 f"{type(self.matrix_world).__name__}") from error
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise VolumeEVMError(f"matrix_world: expected a finite 4x4 matrix, got shape {m.shape}")
         if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0)):

@@ -28,17 +28,36 @@ def openexr_module():
     return OpenEXR
 
 
+def checked_image(name, array, shape=None, dtype=np.float32):
+    """``array`` as a contiguous image of ``dtype``, checked: numbers, ``(H, W, 4)`` (or exactly
+    ``shape``), and at least one pixel (a 0x0 or 0xN image has nothing to write).
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming ``name`` when the array is not numeric, has the wrong shape or no pixels.
+    """
+    try:
+        image = np.ascontiguousarray(array, dtype)
+    except (TypeError, ValueError) as error:
+        raise VolumeEVMError(f"{name}: expected an array of numbers, got {type(array).__name__}") \
+            from error
+    if shape is None and (image.ndim != 3 or image.shape[2] != 4):
+        raise VolumeEVMError(f"{name}: expected (H, W, 4), got shape {image.shape}")
+    if shape is not None and image.shape != tuple(shape):
+        raise VolumeEVMError(f"{name}: expected shape {tuple(shape)}, got {image.shape}")
+    if image.size == 0:
+        raise VolumeEVMError(f"{name}: the image is empty (shape {image.shape}); it needs at "
+                             f"least one pixel")
+    return image
+
+
 def exr_channels(rgba, depth=None):
-    """The named float32 channels of an RGBA (+ Z) image, checked."""
-    rgba = np.ascontiguousarray(rgba, np.float32)
-    if rgba.ndim != 3 or rgba.shape[2] != 4:
-        raise VolumeEVMError(f"rgba: expected (H, W, 4), got shape {rgba.shape}")
+    """The named float32 channels of an RGBA (+ Z) image, checked (:func:`checked_image`)."""
+    rgba = checked_image("rgba", rgba)
     channels = {name: np.ascontiguousarray(rgba[..., i]) for i, name in enumerate("RGBA")}
     if depth is not None:
-        depth = np.ascontiguousarray(depth, np.float32)
-        if depth.shape != rgba.shape[:2]:
-            raise VolumeEVMError(f"depth: expected shape {rgba.shape[:2]}, got {depth.shape}")
-        channels["Z"] = depth
+        channels["Z"] = checked_image("depth", depth, rgba.shape[:2])
     return channels
 
 
@@ -97,11 +116,14 @@ def write_png(path, rgba, *, overwrite=False):
     """Write a premultiplied, linear RGBA image as an 8-bit sRGB PNG preview, atomically.
 
     Colour is un-premultiplied and encoded with the sRGB transfer function; alpha stays linear
-    (PNG stores straight alpha).
+    (PNG stores straight alpha). An image without pixels, of another shape than ``(H, W, 4)``
+    or with NaN values (which have no 8-bit value) raises :class:`VolumeEVMError` naming
+    ``rgba``.
     """
-    rgba = np.asarray(rgba, np.float64)
-    if rgba.ndim != 3 or rgba.shape[2] != 4:
-        raise VolumeEVMError(f"rgba: expected (H, W, 4), got shape {rgba.shape}")
+    rgba = checked_image("rgba", rgba, dtype=np.float64)
+    if np.isnan(rgba).any():
+        raise VolumeEVMError(f"rgba: {int(np.isnan(rgba).sum())} NaN values; a PNG has no value "
+                             f"for them")
     alpha = np.clip(rgba[..., 3:], 0.0, 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         colour = np.where(alpha > 0, rgba[..., :3] / alpha, 0.0)

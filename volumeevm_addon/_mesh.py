@@ -18,6 +18,14 @@ consistently oriented but that edge is non-manifold. Where voxels touch only at 
 faces of both sheets share that vertex. Nothing is duplicated or split apart to hide these: the
 mesh is the exact boundary of the voxel region, and Blender shows such edges and vertices as
 non-manifold (Select > Select All by Trait > Non Manifold).
+
+Memory is checked (:func:`._memory.check_memory`) before each stage allocates, from the sizes
+known by then: each axis's rectangles from its count of face runs, then the polygon mesh from
+the count of rectangles. The bytes per run and per rectangle are tracemalloc peaks measured on
+real and synthetic regions (CT head at two thresholds, noise, checkerboard, ball; see
+``bench/bench_memory.py``), rounded up. The peak is about 600 bytes per extreme vertex for CT
+data, but a checkerboard has a few hundred vertices and 10⁵ faces: faces, not vertices, are what
+the mesh costs.
 """
 
 from dataclasses import dataclass
@@ -25,9 +33,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _sweep
+from ._memory import check_memory
 
 # Cyclic axis orders "ABC" with e_B x e_C = +e_A, so (B, C) counter-clockwise faces +A.
 _CYCLIC = ("xyz", "yzx", "zxy")
+
+_BYTES_PER_RUN = 250
+"""Peak of cutting one face run into rectangles: positions, merge sort keys, corners."""
+_BYTES_PER_RECTANGLE = 700
+"""Peak per rectangle of the polygon mesh: corner keys, T-junction orders, loops (about 4.5
+loops per rectangle)."""
+_MESH_OVERHEAD = 1 << 20
+"""Fixed part of the mesh's working set (small regions)."""
+_ADVICE = "build the VolumeEVM with a higher threshold, crop it (clip) or mesh a coarser level"
+
+
+def _check_memory(needed, what):
+    check_memory(needed, f"making the boundary mesh ({what})", source="mesh", advice=_ADVICE)
 
 
 @dataclass(frozen=True)
@@ -77,6 +99,9 @@ def boundary_rectangles(evm):
         ends, starts = _sweep.combine_1d(_sweep.sections(before, 2, lines),
                                          _sweep.sections(after, 2, lines),
                                          ["difference", "reverse difference"])
+        count = (len(ends) + len(starts)) // 2
+        _check_memory(sum(r.nbytes for r in rectangles) + _BYTES_PER_RUN * count + _MESH_OVERHEAD,
+                      f"{count} face runs perpendicular to axis {order[0]}")
         for runs, flip in ((ends, False), (starts, True)):
             line = runs[0::2] >> _sweep.BITS
             lo = np.stack([lines[line] & _sweep.MASK, runs[0::2] & _sweep.MASK], axis=1) - _sweep.OFFSET
@@ -125,6 +150,8 @@ def boundary_mesh(evm):
         Merged rectangles with T-junction vertices inserted.
     """
     corners = boundary_rectangles(evm)
+    _check_memory(corners.nbytes + _BYTES_PER_RECTANGLE * len(corners) + _MESH_OVERHEAD,
+                  f"{len(corners)} rectangles")
     if len(corners) == 0:
         empty = np.zeros(0, np.int32)
         return np.zeros((0, 3)), Polygons(empty, empty, empty)

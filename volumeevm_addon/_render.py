@@ -13,14 +13,68 @@ everything outside the region transparent, which is the exactness contract every
 Resolution levels (:mod:`._levels`): ``level="auto"`` renders a volume much finer than the
 image's pixels from a coarser VolumeEVM (cached on the VolumeEVM); the exactness contract holds
 for the level rendered, and the default ``level="full"`` renders the VolumeEVM itself.
+
+Before anything is allocated, :func:`render` checks its inputs (every error a
+:class:`VolumeEVMError` naming the parameter), bounds the work (:data:`MAX_SAMPLES`) and checks
+the memory the render needs (:func:`render_memory`) against what is available
+(:func:`._memory.check_memory`).
 """
 
+import inspect
+import numbers
 
+import numpy as np
+
+from ._camera import Camera
+from ._errors import VolumeEVMError
 from ._levels import level_factor
+from ._memory import check_memory
 from ._reference import MODES
 from ._volume import grid_to_world
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
+
+MAX_SAMPLES = 20_000_000_000
+"""Most samples a render may take: covered pixels x samples per ray through the volume's box.
+
+Ray casting every sample (``skip_empty=False``) marched 3.5e6 samples per second on one core
+(CT head, 128² image; the reference is slower), so 2e10 samples are about an hour and a half
+where space leaping skips nothing: a step that asks for more would take hours, which is never
+what a user means (a step in the wrong unit, a typo). A 4K frame (3840 x 2160) of a 512³ volume
+at the ray casters' default step (half a voxel) is about 1.5e10 samples, still allowed.
+"""
+
+# Memory model of each method, bytes, fitted to tracemalloc peaks (bench/bench_memory.py:
+# CT head 256x256x108 and the same upsampled to 512³, MRI 128x128x84; 64² to 512² images) and
+# rounded up. Per grid voxel: the tables a method builds on first use and caches on the
+# VolumeEVM, with their construction temporaries (counted even when they are cached already:
+# the conservative rule). Per pixel: the ray set-up and per-ray state beside the image buffers.
+_IMAGE_BYTES_PER_PIXEL = 20
+"""The float32 RGBA image and depth every method returns."""
+_GRID_BYTES = {
+    # dense float32 + region mask + complex64 sampling table, built through a float32 and two
+    # complex64 temporaries (the space-leaping block grid's two float32 grids come before)
+    "raycast": 36,
+    # no dense table; the block grid is made through a temporary float32 grid and the mask
+    "raycast_navigate": 19,
+    # per-axis slice layouts (codes over each slice's box, int32) and the region mask
+    "shear_warp": 11,
+    # per-axis sheets come from the region's voxels only: see _REGION_BYTES
+    "splat": 0,
+    # dense float64 densities, masks, the padded (P, 2) float64 sampling table and the
+    # float64 min/max block-range grids of the sampler
+    "reference": 64,
+}
+_SHADING_GRID_BYTES = {"raycast": 20, "shear_warp": 32, "reference": 32}
+"""Per grid voxel, with ``shading``: the gradient tables and their temporaries."""
+_REGION_BYTES = {"splat": 56}
+"""Per region voxel: splatting's culled voxel lists and their keys, per axis."""
+_PIXEL_BYTES = {"raycast": 640, "raycast_navigate": 640, "shear_warp": 24, "splat": 340,
+                "reference": 360}
+_INTERMEDIATE_BYTES = 40
+"""Shear-warp, per intermediate pixel: the RGBA image, its rank and depth maps, slice buffers."""
+_CHUNK_BYTES = {"reference": 40 << 20}
+"""Fixed working set: the reference's chunks (bounded by samples and breakpoints per chunk)."""
 
 
 def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None, matrix_world=None,
@@ -47,7 +101,10 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         by the factor (the ray casters keep their samples per voxel). The reference method
         ignores it: it is the full-resolution oracle.
     **options
-        Method-specific quality settings.
+        Method-specific quality settings (the keywords of the method's renderer). An option
+        the method does not take raises ``TypeError``; a value of the wrong type (a number
+        where a flag is expected, a fraction where an integer is) or out of range raises
+        :class:`VolumeEVMError` naming it.
 
     Returns
     -------
@@ -55,32 +112,232 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Premultiplied colour and opacity, row 0 at the top of the image.
     depth : (H, W) float32
         Axial depth in Blender units of the first visible sample; 1e10 where none.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad method, mode, camera, option or placement; for a render that would take
+        more than :data:`MAX_SAMPLES` samples (the message says which ``step_mm`` or
+        ``substeps`` would do); and when the image or the render's estimated peak memory
+        (:func:`render_memory`) exceeds the memory available
+        (:func:`._memory.available_memory`; the message suggests a coarser level, a smaller
+        image or another method).
     """
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
     if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
+    if not isinstance(camera, Camera):
+        raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
+    if not all(hasattr(vevm, a) for a in ("evm", "shape", "spacing", "origin", "orientation")):
+        raise VolumeEVMError(f"vevm: expected a VolumeEVM, got {type(vevm).__name__}")
+    if depth_in is not None:
+        depth_in = _numbers("depth_in", depth_in)
+    renderer = _renderers()[method]
+    _check_option_types(method, renderer, options)
+    h, w = camera.shape
+    check_memory(h * w * _IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",
+                 advice="lower the resolution or resolution_percentage")
+    matrix_world = _checked_placement(matrix_world)
     to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
     factor = level_factor(level, vevm.shape, to_world, camera)
-    if method == "reference":
-        from ._reference import render_reference
-
-        return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), to_world,
-                                vevm.spacing, camera, tf, mode=mode, depth_in=depth_in, **options)
-    if factor > 1:
+    if factor > 1 and method != "reference":
         vevm = vevm.level(factor)
         to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
         if options.get("step_mm") is not None:
             options["step_mm"] = options["step_mm"] * factor
-    renderer = _renderers()[method]
+    check_samples(method, vevm, camera, to_world, options)
+    advice = ("the reference renders the full grid at full resolution: use another method "
+              "or a smaller image" if method == "reference" else
+              "render a coarser level (level='auto' or an integer >= 2), a smaller image or "
+              "another method")
+    check_memory(render_memory(method, vevm, camera, options),
+                 f"rendering {'x'.join(map(str, vevm.shape))} voxels at {w}x{h} pixels "
+                 f"({method})", source="render", advice=advice)
+    if method == "reference":
+        return renderer(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), to_world, vevm.spacing,
+                        camera, tf, mode=mode, depth_in=depth_in, **options)
     return renderer(vevm, camera, tf, to_world, mode=mode, depth_in=depth_in, **options)
+
+
+def check_samples(method, vevm, camera, grid_to_world, options):
+    """Refuse a render of more than :data:`MAX_SAMPLES` samples, naming the option to change.
+
+    The count is the pixels the volume's box covers times the samples a ray takes through the
+    box's diagonal: ``diagonal_mm / step_mm`` for the ray casters and the reference (default
+    steps: half, resp. a sixteenth of the smallest voxel), the sheets (the largest side)
+    times ``substeps`` for splatting. Shear-warp is bounded by its own ranges
+    (``slices_per_voxel <= 8``, ``intermediate_scale <= 8``).
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`METHODS`.
+    vevm : VolumeEVM
+        The VolumeEVM rendered (the level, when a coarser one is rendered).
+    camera : Camera
+    grid_to_world : (4, 4) ndarray
+        Voxel-centre indices to world (:func:`._volume.grid_to_world`).
+    options : dict
+        The method's options (``step_mm`` or ``substeps`` are read).
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming ``step_mm`` or ``substeps``, with the smallest step (largest substeps) allowed.
+    """
+    if method == "shear_warp":
+        return
+    spacing = np.asarray(vevm.spacing, dtype=np.float64)
+    pixels = _covered_pixels(vevm.shape, grid_to_world, camera)
+    if method == "splat":
+        substeps = options.get("substeps", 1)
+        per_ray = max(vevm.shape) * substeps
+        if pixels * per_ray > MAX_SAMPLES:
+            most = max(1, MAX_SAMPLES // (pixels * max(vevm.shape)))
+            raise VolumeEVMError(
+                f"substeps: {substeps} sub-slabs per sheet would take about "
+                f"{pixels * per_ray:.2g} samples ({pixels} pixels x {per_ray} per ray), more "
+                f"than the {MAX_SAMPLES:.0e} a render may take (hours); use substeps <= {most} "
+                f"or a smaller image")
+        return
+    default = spacing.min() / (16.0 if method == "reference" else 2.0)
+    step = options.get("step_mm")
+    step = default if step is None else _positive_number("step_mm", step)
+    diagonal = float(np.linalg.norm(np.asarray(vevm.shape) * spacing))
+    samples = pixels * diagonal / step
+    if samples > MAX_SAMPLES:
+        smallest = pixels * diagonal / MAX_SAMPLES
+        raise VolumeEVMError(
+            f"step_mm: a step of {step:.3g} mm would take about {samples:.2g} samples "
+            f"({pixels} pixels x {diagonal / step:.3g} samples per ray through the volume's "
+            f"box), more than the {MAX_SAMPLES:.0e} a render may take (hours); use "
+            f"step_mm >= {smallest:.3g} or a smaller image")
+
+
+def render_memory(method, vevm, camera, options):
+    """Estimated peak memory (bytes) of rendering ``vevm`` with ``method`` for ``camera``.
+
+    The sum of the image buffers, the per-pixel ray state (all rays of the image: the ray
+    casters' default chunk holds a 512² image), the tables the method builds from the grid
+    (counted as if not cached yet: the conservative rule) and per-method working sets
+    (shear-warp's intermediate image, the reference's chunks). The constants are tracemalloc
+    peaks per voxel and per pixel measured on real volumes and rounded up
+    (``bench/bench_memory.py`` prints each estimate beside the measured peak).
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`METHODS`.
+    vevm : VolumeEVM
+        The VolumeEVM rendered (the level, when a coarser one is rendered).
+    camera : Camera
+    options : dict
+        The method's options (``shading`` and ``intermediate_scale`` change the estimate).
+
+    Returns
+    -------
+    int
+        Bytes.
+    """
+    h, w = camera.shape
+    pixels = h * w
+    grid = int(np.prod(np.asarray(vevm.shape, dtype=np.int64) + 2))
+    needed = pixels * (_IMAGE_BYTES_PER_PIXEL + _PIXEL_BYTES[method])
+    needed += grid * _GRID_BYTES[method] + _CHUNK_BYTES.get(method, 0)
+    needed += int(vevm.voxel_count) * _REGION_BYTES.get(method, 0)
+    if options.get("shading") not in (None, False):
+        needed += grid * _SHADING_GRID_BYTES.get(method, 0)
+    if method == "shear_warp":
+        # One intermediate pixel per voxel (times the scale) along the two in-slice axes, the
+        # slices sheared across up to one voxel per slice: at most (n1 + n2)² for the two
+        # largest sides.
+        scale = float(options.get("intermediate_scale", 1.0))
+        n1, n2 = sorted(vevm.shape)[-2:]
+        needed += int((scale * (n1 + n2)) ** 2) * _INTERMEDIATE_BYTES
+    return int(needed)
+
+
+def _covered_pixels(shape, grid_to_world, camera):
+    """Pixels in the bounding rectangle of the volume box's projection (all pixels when a
+    corner is at or behind a perspective camera)."""
+    n = np.asarray(shape, dtype=np.float64)
+    corners = np.array([[a, b, c] for a in (-0.5, n[0] - 0.5) for b in (-0.5, n[1] - 0.5)
+                        for c in (-0.5, n[2] - 0.5)])
+    g = np.asarray(grid_to_world, dtype=np.float64)
+    uv, _ = camera.project(corners @ g[:3, :3].T + g[:3, 3])
+    h, w = camera.shape
+    if not np.isfinite(uv).all():
+        return h * w
+    u0, v0 = np.clip(np.floor(uv.min(axis=0)), 0, (w, h))
+    u1, v1 = np.clip(np.ceil(uv.max(axis=0)), 0, (w, h))
+    return int((u1 - u0) * (v1 - v0))
+
+
+def _check_option_types(method, renderer, options):
+    """Refuse an option value of the wrong type for the renderer's keyword, judged by the
+    keyword's default: a flag (default True/False) must be a bool, a count (an int default) an
+    integer, a quantity (a float default) a finite real number; ``step_mm`` a number > 0. Ranges are
+    the renderer's to check. An option the renderer does not take raises ``TypeError``, as
+    calling it would."""
+    parameters = {name: p for name, p in inspect.signature(renderer).parameters.items()
+                  if p.kind == p.KEYWORD_ONLY and name not in ("mode", "depth_in")}
+    for name, value in options.items():
+        if name not in parameters:
+            raise TypeError(f"{name}: not an option of method {method!r}; its options are "
+                            f"{', '.join(sorted(parameters))}")
+        default = parameters[name].default
+        if isinstance(default, bool):
+            ok, kind = isinstance(value, (bool, np.bool_)), "True or False"
+        elif isinstance(default, int):
+            ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+            kind = "an integer"
+        elif isinstance(default, float):
+            ok = (isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+                  and bool(np.isfinite(value)))
+            kind = "a finite number"
+        else:
+            continue
+        if not ok:
+            raise VolumeEVMError(f"{name}: {kind} for method {method!r}, got {value!r}")
+    if "step_mm" in options and options["step_mm"] is not None:
+        _positive_number("step_mm", options["step_mm"])
+
+
+def _positive_number(name, value):
+    """``value`` as a finite float > 0, or a :class:`VolumeEVMError` naming ``name``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) \
+            or not np.isfinite(value) or value <= 0:
+        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
+    return float(value)
+
+
+def _numbers(name, value):
+    """``value`` as a float64 array, or a :class:`VolumeEVMError` naming ``name``."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise VolumeEVMError(f"{name}: expected an array of numbers, got "
+                             f"{type(value).__name__}") from error
+
+
+def _checked_placement(matrix_world):
+    """``matrix_world`` as a finite affine 4x4 float64 matrix (None stays None)."""
+    if matrix_world is None:
+        return None
+    m = _numbers("matrix_world", matrix_world)
+    if m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], (0, 0, 0, 1)):
+        raise VolumeEVMError(f"matrix_world: expected a finite affine 4x4 matrix (last row "
+                             f"0, 0, 0, 1), got shape {m.shape}")
+    return m
 
 
 def _renderers():
     """The method implementations, imported when first used."""
     from ._raycast import render_raycast, render_raycast_navigate
+    from ._reference import render_reference
     from ._shear_warp import render_shear_warp
     from ._splat import render_splat
 
     return {"shear_warp": render_shear_warp, "splat": render_splat, "raycast": render_raycast,
-            "raycast_navigate": render_raycast_navigate}
+            "raycast_navigate": render_raycast_navigate, "reference": render_reference}
