@@ -25,10 +25,12 @@ CAD tools (a non-destructive stack per volume object, see ``add_tool``)::
     drill.location.x += 0.01; api.evaluate(vol)     # or any depsgraph update (handler)
     api.apply_stack(vol)                            # the result becomes the VolumeEVM
 
-Errors: bad input raises :class:`VolumeEVMError` (and ``OSError`` for unreadable files).
+Errors: bad input raises :class:`VolumeEVMError` (and ``OSError`` for unreadable files). Whatever
+the error, ``import_volume``, ``build``, ``make_mesh`` and ``add_tool`` leave the scene as it was.
 Under ``blender --background`` progress lines ``[volumeevm] 42% building EVM`` are printed.
 """
 
+import functools
 import hashlib
 import json
 import time
@@ -224,8 +226,8 @@ def import_job(context, path, *, name=None, **reader_options):
         s.histogram = counts.tolist()
         s.threshold = threshold
         s.upper = hi
-        _runtime.put_volume(s.uid, vol)
         _link(context, obj)
+        _runtime.put_volume(s.uid, vol)
         _runtime.forget_except({o.volumeevm.uid for o in bpy.data.objects})
         return obj
 
@@ -280,23 +282,21 @@ def build_job(obj, threshold=None, upper=None):
         target = bpy.data.objects.get(name)
         if target is None:
             raise VolumeEVMError(f"{name}: the volume object was deleted while building")
-        file = sidecar.save_new(uid, vevm)
-        _runtime.put_volume(uid, vol)
-        t = target.volumeevm
         report = vevm.size_report()
-        t.threshold = threshold
-        t.use_upper = upper is not None
+        file = sidecar.save_new(uid, vevm)
+        _jobs.on_undo(functools.partial(file.unlink, missing_ok=True))
+        values = dict(threshold=threshold, use_upper=upper is not None,
+                      built_threshold=threshold, built_use_upper=upper is not None,
+                      built_upper=upper if upper is not None else 0.0,
+                      voxel_count=vevm.voxel_count, ev_count=len(vevm.evm),
+                      vevm_bytes=report["total_bytes"], dense_bytes=report["dense_bytes"],
+                      vevm_path=str(file))
         if upper is not None:
-            t.upper = upper
-        t.built_threshold = threshold
-        t.built_use_upper = upper is not None
-        t.built_upper = upper if upper is not None else 0.0
-        t.voxel_count = vevm.voxel_count
-        t.ev_count = len(vevm.evm)
-        t.vevm_bytes = report["total_bytes"]
-        t.dense_bytes = report["dense_bytes"]
-        t.vevm_path = str(file)
+            values["upper"] = upper
+        _jobs.assign(target.volumeevm, **values)
+        _jobs.on_undo(functools.partial(_runtime.set_status, uid, _runtime.status(uid)))
         _runtime.set_status(uid, "")
+        _runtime.put_volume(uid, vol)
         return vevm
 
     return _jobs.Job(f"Build VolumeEVM of {name}",
@@ -374,23 +374,31 @@ def own_surface(vol_obj):
 
 
 def _attach_surface(context, owner, mesh):
-    """Give ``mesh`` to the owner's surface object (keeping its materials), or make one."""
+    """Give ``mesh`` to the owner's surface object (keeping its materials), or make one.
+
+    In a job's commit the change is undone if the job fails (:func:`._jobs.transaction`), and
+    the replaced mesh is removed only once it succeeded.
+    """
     surface = own_surface(owner)
     if surface is not None:
         old = surface.data
         for material in old.materials:
             mesh.materials.append(material)
-        surface.data = mesh
-        if old.users == 0:
-            bpy.data.meshes.remove(old)
+        _jobs.assign(surface, data=mesh)
+        _jobs.on_success(functools.partial(_remove_unused_mesh, old))
         return surface
     surface = bpy.data.objects.new(f"{owner.name}_surface", mesh)
     surface.volumeevm.role = "SURFACE"
     surface.volumeevm.volume = owner
     surface.parent = owner
-    owner.volumeevm.surface = surface
+    _jobs.assign(owner.volumeevm, surface=surface)
     _link(context, surface)
     return surface
+
+
+def _remove_unused_mesh(mesh):
+    if mesh.users == 0:
+        bpy.data.meshes.remove(mesh)
 
 
 def mesh_job(context, obj):
@@ -415,7 +423,7 @@ def mesh_job(context, obj):
         mesh = bpy.data.meshes.new(f"{name}_surface")
         fill_mesh(mesh, co, polys)
         surface = _attach_surface(context, owner, mesh)
-        surface.volumeevm.stack_signature = ""
+        _jobs.assign(surface.volumeevm, stack_signature="")
         if len(owner.volumeevm.tools):
             # The surface shows the tool stack's result, not the bare VolumeEVM.
             refresh_quietly(owner, context.evaluated_depsgraph_get())
@@ -692,7 +700,7 @@ def _write_surface(context, vol_obj, result, signature, timing, *, create):
         mesh = surface.data
         mesh.clear_geometry()
         fill_mesh(mesh, co, polys)
-    surface.volumeevm.stack_signature = signature
+    _jobs.assign(surface.volumeevm, stack_signature=signature)
     end = time.perf_counter()
     timing["mesh_s"], timing["write_s"] = middle - start, end - middle
     timing["polygons"] = len(polys)
@@ -784,11 +792,12 @@ def entry_changed(vol_obj):
 def _commit_entry(vol_obj, kind, tool_obj, density):
     s = vol_obj.volumeevm
     entry = s.tools.add()
+    _jobs.on_undo(functools.partial(s.tools.remove, len(s.tools) - 1))
     entry.operation = kind
     entry.tool = tool_obj if kind != "LARGEST" else None
     entry.use_density = density is not None
     entry.density = 0.0 if density is None else float(density)
-    s.tool_index = len(s.tools) - 1
+    _jobs.assign(s, tool_index=len(s.tools) - 1)
     return entry
 
 
@@ -832,10 +841,11 @@ def add_tool(volume_obj, tool_obj, operation, density=None):
     if density is not None and kind != "ADD":
         raise VolumeEVMError(f"density is for 'add' only, not {operation!r}")
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    result = refresh(vol_obj, depsgraph, extra=(kind, tool_obj, density))
-    with _exclusive():
-        _commit_entry(vol_obj, kind, tool_obj, density)
-    return refresh(vol_obj, depsgraph, create=True, force=True)
+    refresh(vol_obj, depsgraph, extra=(kind, tool_obj, density))
+    with _jobs.transaction():  # an error now (e.g. making the mesh) takes the entry back
+        with _exclusive():
+            _commit_entry(vol_obj, kind, tool_obj, density)
+        return refresh(vol_obj, depsgraph, create=True, force=True)
 
 
 def evaluate(obj):

@@ -57,9 +57,8 @@ class _AddToolOperator:
         tool = None if self.operation == "largest" else obj.volumeevm.tool_object
         try:
             result = api.add_tool(obj, tool, self.operation, self.density_value())
-        except _jobs.REPORTED_ERRORS as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+        except Exception as error:
+            return _jobs.report_failure(self, error, self.bl_label)
         timing = api.stack_state(obj).timing
         self.report({"INFO"}, f"{api.TOOL_LABELS[api.TOOL_OPERATIONS[self.operation]]}: "
                               f"{result.voxel_count:,} voxels, refreshed in "
@@ -201,9 +200,8 @@ class VOLUMEEVM_OT_tool_refresh(_StackOperator, bpy.types.Operator):
     def execute(self, context):
         try:
             api.evaluate(active_volume(context))
-        except _jobs.REPORTED_ERRORS as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+        except Exception as error:
+            return _jobs.report_failure(self, error, self.bl_label)
         return {"FINISHED"}
 
 
@@ -217,9 +215,8 @@ class VOLUMEEVM_OT_tool_apply(_StackOperator, bpy.types.Operator):
     def execute(self, context):
         try:
             result = api.apply_stack(active_volume(context))
-        except _jobs.REPORTED_ERRORS as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+        except Exception as error:
+            return _jobs.report_failure(self, error, self.bl_label)
         self.report({"INFO"}, f"Applied: the VolumeEVM has {result.voxel_count:,} voxels")
         return {"FINISHED"}
 
