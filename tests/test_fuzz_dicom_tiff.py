@@ -23,7 +23,6 @@ Crafted values and truncations must be exact or an error. The counts per format 
 printed (``pytest -s``) and the whole file runs in well under a minute on one core.
 """
 
-import copy
 import shutil
 import struct
 import warnings
@@ -35,6 +34,8 @@ import pytest
 
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.readers import read_volume
+
+from reader_files import write_series, write_tiff
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 20261124
@@ -100,31 +101,6 @@ def summary(fmt, counts):
 
 # ---------------------------------------------------------------------------------------------
 # DICOM
-
-
-def write_series(folder, hu):
-    """``hu`` as an axial CT series cloned from pydicom's CT_small: ``IM000k.dcm`` = slice k."""
-    import pydicom
-    from pydicom.data import get_testdata_file
-    from pydicom.uid import generate_uid
-
-    folder.mkdir()
-    template = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
-    uid = generate_uid()
-    for k in range(hu.shape[2]):
-        ds = copy.deepcopy(template)
-        ds.SeriesInstanceUID = uid
-        ds.SOPInstanceUID = generate_uid()
-        ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
-        ds.InstanceNumber = k + 1
-        ds.Rows, ds.Columns = hu.shape[1], hu.shape[0]
-        ds.PixelSpacing = [0.75, 0.5]
-        ds.ImageOrientationPatient = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
-        ds.ImagePositionPatient = [-16.0, -20.5, 42.0 + 1.25 * k]
-        ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
-        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
-        ds.PixelData = np.ascontiguousarray(hu[:, :, k].T + 1024, dtype="<i2").tobytes()
-        ds.save_as(folder / f"IM{k:04d}.dcm", enforce_file_format=True)
 
 
 #: Crafted values of the fields the DICOM reader uses; none is a valid alternative.
@@ -291,21 +267,6 @@ def test_fuzz_dicom_series(tmp_path, hu):
 
 # ---------------------------------------------------------------------------------------------
 # TIFF
-
-
-def write_tiff(path, hu, kind):
-    """``hu`` as an uncompressed TIFF stack: ``plain``, ``imagej`` or ``ome``."""
-    import tifffile
-
-    if kind == "imagej":
-        tifffile.imwrite(path, hu.T, imagej=True, resolution=(2.0, 4.0),
-                         metadata={"spacing": 1.5, "unit": "mm", "axes": "ZYX"})
-    elif kind == "ome":
-        tifffile.imwrite(path, hu.T, ome=True, photometric="minisblack",
-                         metadata={"axes": "ZYX", "PhysicalSizeX": 0.5, "PhysicalSizeY": 0.5,
-                                   "PhysicalSizeZ": 2.0})
-    else:
-        tifffile.imwrite(path, hu.T, photometric="minisblack", metadata=None)
 
 
 def tiff_layout(path):

@@ -1,0 +1,67 @@
+"""Volume files written by the reference libraries, shared by the DICOM and TIFF reader tests.
+
+A DICOM series is cloned from pydicom's real ``CT_small.dcm``; TIFF stacks are written by
+tifffile in its plain, ImageJ and OME flavours. Both hold an ``(X, Y, Z)`` int16 array in HU.
+"""
+
+import copy
+import warnings
+
+import numpy as np
+
+#: Voxel size (mm) and the centre of voxel (0, 0, 0) (mm, LPS) of the written DICOM series.
+SPACING = (0.5, 0.75, 1.25)
+ORIGIN = np.array([-16.0, -20.5, 42.0])
+
+
+def write_series(folder, hu, edit=None):
+    """Write ``hu`` (``(X, Y, Z)`` int16) as an axial CT series cloned from pydicom's CT_small.
+
+    Stored values are HU + 1024 with intercept -1024; slice ``k`` is ``IM000k.dcm`` at
+    ``ORIGIN + k * 1.25 mm`` along z. ``edit(k, ds)`` may change a slice's dataset before it is
+    saved. Returns the files in slice order.
+    """
+    import pydicom
+    from pydicom.data import get_testdata_file
+    from pydicom.uid import generate_uid
+
+    folder.mkdir(exist_ok=True)
+    template = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
+    uid = generate_uid()
+    files = []
+    for k in range(hu.shape[2]):
+        ds = copy.deepcopy(template)
+        ds.SeriesInstanceUID = uid
+        ds.SOPInstanceUID = generate_uid()
+        ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+        ds.InstanceNumber = k + 1
+        ds.Rows, ds.Columns = hu.shape[1], hu.shape[0]
+        ds.PixelSpacing = [SPACING[1], SPACING[0]]
+        ds.ImageOrientationPatient = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+        ds.ImagePositionPatient = [float(v) for v in ORIGIN + [0, 0, k * SPACING[2]]]
+        ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.PixelData = np.ascontiguousarray(hu[:, :, k].T + 1024, dtype="<i2").tobytes()
+        if edit is not None:
+            edit(k, ds)
+        files.append(folder / f"IM{k:04d}.dcm")
+        with warnings.catch_warnings():  # crafted invalid values make pydicom warn
+            warnings.simplefilter("ignore")
+            ds.save_as(files[-1], enforce_file_format=True)
+    return files
+
+
+def write_tiff(path, hu, kind):
+    """Write ``hu`` as an uncompressed TIFF stack: ``plain``, ``imagej`` or ``ome``."""
+    import tifffile
+
+    if kind == "imagej":
+        tifffile.imwrite(path, hu.T, imagej=True, resolution=(2.0, 4.0),
+                         metadata={"spacing": 1.5, "unit": "mm", "axes": "ZYX"})
+    elif kind == "ome":
+        tifffile.imwrite(path, hu.T, ome=True, photometric="minisblack",
+                         metadata={"axes": "ZYX", "PhysicalSizeX": 0.5, "PhysicalSizeY": 0.5,
+                                   "PhysicalSizeZ": 2.0})
+    else:
+        tifffile.imwrite(path, hu.T, photometric="minisblack", metadata=None)
+    return path
