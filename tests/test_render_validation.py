@@ -2,6 +2,7 @@
 VolumeEVMError naming the parameter (issue 9, sections 3 and 4)."""
 
 import re
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from volumeevm_addon import Camera, EVM, VolumeEVM, render, write_exr, write_png
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._images import openexr_module
 from volumeevm_addon._memory import format_bytes
+from volumeevm_addon._raycast import _Blocks, _DenseSampler
 from volumeevm_addon._render import METHODS, check_samples, render_memory
 from volumeevm_addon._volume import grid_to_world
 from render_helpers import camera, const_tf
@@ -145,7 +147,8 @@ def test_sample_bound_counts_covered_pixels_only(scene):
 @pytest.mark.parametrize("method", METHODS)
 def test_small_budget_refuses_render_naming_what_and_how_much(scene, method, monkeypatch):
     vevm, cam, tf = scene
-    needed = render_memory(method, vevm, cam, {})
+    g = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation)
+    needed = render_memory(method, vevm, cam, tf, g, {"mode": "over"})
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", str(needed - 1))
     with pytest.raises(VolumeEVMError, match=(
             rf"^render: rendering 6x7x5 voxels at 8x6 pixels \({method}\) needs about "
@@ -168,15 +171,99 @@ def test_generous_budget_renders_as_without_one(scene, monkeypatch):
 
 
 def test_render_memory_grows_with_image_and_grid(scene):
-    vevm, cam, _ = scene
+    vevm, cam, tf = scene
     g = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation)
     big = camera("ORTHO", g, vevm, (0.0, -0.05, 0.02), 0.02, res=(16, 12))
+    over = {"mode": "over"}
     for method in METHODS:
-        small = render_memory(method, vevm, cam, {})
-        assert render_memory(method, vevm, big, {}) > small
+        small = render_memory(method, vevm, cam, tf, g, over)
+        assert render_memory(method, vevm, big, tf, g, over) > small
     for method in ("raycast", "shear_warp", "reference"):  # gradient tables when shading
-        assert render_memory(method, vevm, cam, {"shading": True}) > render_memory(
-            method, vevm, cam, {})
+        assert render_memory(method, vevm, cam, tf, g, {**over, "shading": True}) > \
+            render_memory(method, vevm, cam, tf, g, over)
+
+
+def _blob(n):
+    """A smooth ellipsoidal density (positive inside), as real data: a compact EVM."""
+    x, y, z = np.indices((n, n, n)) - (n - 1) / 2
+    return (n / 2 - np.sqrt(x * x + 1.3 * y * y + 0.8 * z * z)).astype(np.float32)
+
+
+def _traced_peak(step):
+    """``(result of step(), tracemalloc peak of the call in bytes)``."""
+    tracemalloc.start()
+    try:
+        result = step()
+        return result, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("method", ["shear_warp", "splat", "raycast", "raycast_navigate"])
+def test_warm_estimate_drops_cached_tables_and_covers_the_warm_peak(method, monkeypatch):
+    """Once a render has cached the method's tables on the VolumeEVM, the estimate of the
+    same render no longer counts them: smaller than the cold one, still at least the measured
+    peak of the warm render. A budget of the warm estimate renders the warm VolumeEVM (same
+    image) and refuses a fresh one, whose tables would still have to be built."""
+    spacing = (1.0, 1.5, 2.0)
+    vevm = VolumeEVM.from_array(_blob(48), 0.0, spacing=spacing)
+    g = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation)
+    cam = camera("ORTHO", g, vevm, (0.3, -0.5, 0.2), 0.2, res=(64, 48))
+    tf = const_tf(0.3)
+    cold = render_memory(method, vevm, cam, tf, g, {"mode": "over"})
+    want = render(vevm, cam, tf, method=method)
+    assert (want[0][..., 3] > 0).any()
+    warm = render_memory(method, vevm, cam, tf, g, {"mode": "over"})
+    assert warm < cold
+    got, peak = _traced_peak(lambda: render(vevm, cam, tf, method=method))
+    assert peak <= warm
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", str(warm))
+    np.testing.assert_array_equal(render(vevm, cam, tf, method=method)[0], want[0])
+    fresh = VolumeEVM.from_array(_blob(48), 0.0, spacing=spacing)
+    with pytest.raises(VolumeEVMError, match=rf"^render: rendering 48x48x48 voxels at 64x48 "
+                                             rf"pixels \({method}\) needs about "):
+        render(fresh, cam, tf, method=method)
+
+
+def test_estimate_counts_the_tables_a_render_would_still_build():
+    """Tables cached for one render do not make another one warm when it needs others: a
+    different block size (ray casting), transfer function (shear-warp's classes), shading
+    (gradients) or principal axis (splatting's sections) is estimated as cold."""
+    vevm = VolumeEVM.from_array(_blob(24), 0.0)
+    g = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation)
+    front = camera("ORTHO", g, vevm, (0.0, -1.0, 0.0), 0.1, res=(16, 16))
+    side = camera("ORTHO", g, vevm, (1.0, 0.0, 0.0), 0.1, res=(16, 16))
+    tf, other = const_tf(0.3), const_tf(0.5)
+    over = {"mode": "over"}
+
+    def estimate(method, cam=front, tf_=tf, **options):
+        return render_memory(method, vevm, cam, tf_, g, {**over, **options})
+
+    cold = {m: estimate(m) for m in ("raycast", "shear_warp", "splat")}
+    cold_side, cold_block = estimate("splat", side), estimate("raycast", block=4)
+    cold_shaded = estimate("shear_warp", shading=True)
+    for method in cold:
+        render(vevm, front, tf, method=method)
+        assert estimate(method) < cold[method]
+    assert estimate("raycast", block=4) == cold_block
+    assert estimate("shear_warp", tf_=other) == cold["shear_warp"]
+    assert estimate("shear_warp", shading=True) == cold_shaded
+    assert estimate("splat", side) == cold_side
+
+
+def test_ray_casting_tables_are_built_without_grid_sized_temporaries():
+    """The dense sampling table (complex64, written in place) and the space-leaping blocks
+    (a float32 grid filtered a plane at a time) cost about their own size, not the 34 and 18
+    bytes per voxel that whole-grid temporaries took."""
+    vevm = VolumeEVM.from_array(_blob(64), 0.0)
+    voxels = 66 ** 3  # the padded grid
+    sampler, peak = _traced_peak(lambda: _DenseSampler(vevm, False))
+    assert sampler.table.nbytes == 8 * voxels
+    assert peak <= 12 * voxels + (256 << 10)
+    _, peak = _traced_peak(lambda: _Blocks(vevm, 8))
+    assert peak <= 8 * voxels + (256 << 10)
 
 
 def test_small_budget_refuses_mesh_naming_what_and_how_much(monkeypatch):

@@ -68,8 +68,10 @@ made once through a temporary grid). Slow by design; same image as :func:`render
 
 Python loops over ray steps (and chunks of rays); all rays of a chunk advance together and the
 active set is compacted as rays finish. The padded sampling tables (complex64 density and
-weight, the region mask, float32 gradients when shading) and the block grid are built on first
-use and cached per VolumeEVM (about 8 bytes per grid voxel, 20 with gradients).
+weight, float32 gradients when shading) and the block grid are built on first use, in place
+(no grid-sized temporaries beside the region mask), and cached per VolumeEVM (about 8 bytes
+per grid voxel, 20 with gradients); :func:`tables_to_build` tells whether a render would
+build them.
 
 References
 ----------
@@ -94,6 +96,8 @@ _CACHE = weakref.WeakKeyDictionary()
 """Per VolumeEVM: the padded sampling tables and the block grid, made once."""
 
 _LUT_SIZE = 4096
+_SLAB_VOXELS = 1 << 18
+"""Voxels per slab of the gradient tables' construction (bounds its temporaries, ~1 MB each)."""
 _PREINT_SIZE = 256
 """Rows and columns of the pre-integrated table (over the data's and the function's range)."""
 _CAMERA_API = ("rays", "axial_depth", "shape", "clip_start", "clip_end", "project", "forward",
@@ -250,24 +254,32 @@ def _lerp8(v, f):
     return c0 + fx * (c1 - c0)
 
 
-def _voxel_gradients(dens, mask):
+def _voxel_gradients(tab, out):
     """Per-voxel index-space central differences over region voxels (one-sided where one
-    neighbour is outside, 0 where both are; 0 outside), as the reference's; (3, X, Y, Z)
-    float32."""
-    dpad = np.pad(np.where(mask, dens, 0).astype(np.float32), 1)
-    mpad = np.pad(mask, 1)
-    out = np.zeros((3,) + mask.shape, np.float32)
+    neighbour is outside, 0 where both are; 0 outside), as the reference's, into ``out``
+    ``(3,) + padded shape`` float32 (zeros; its one-voxel border stays 0), from the padded
+    sampling table ``tab`` (real: density in the region, 0 elsewhere; imaginary: 1 in the
+    region). Made a slab of x-slices at a time, so the temporaries stay small beside the grid.
+    """
+    nx = tab.shape[0] - 2
+    per_slice = tab.shape[1] * tab.shape[2]
+    slab = max(1, _SLAB_VOXELS // per_slice)
     core = (slice(1, -1),) * 3
-    for ax in range(3):
-        plus = [slice(1, -1)] * 3
-        minus = [slice(1, -1)] * 3
-        plus[ax] = slice(2, None)
-        minus[ax] = slice(0, -2)
-        fp, fm, f0 = dpad[tuple(plus)], dpad[tuple(minus)], dpad[core]
-        mp, mm = mpad[tuple(plus)], mpad[tuple(minus)]
-        g = np.where(mp & mm, 0.5 * (fp - fm), np.where(mp, fp - f0, np.where(mm, f0 - fm, 0)))
-        out[ax] = np.where(mask, g, 0)
-    return out
+    for x0 in range(0, nx, slab):
+        x1 = min(nx, x0 + slab)
+        dpad = tab.real[x0:x1 + 2]  # padded slices x0 .. x1 + 1
+        mpad = tab.imag[x0:x1 + 2] > 0
+        f0, mask = dpad[core], mpad[core]
+        for ax in range(3):
+            plus = [slice(1, -1)] * 3
+            minus = [slice(1, -1)] * 3
+            plus[ax] = slice(2, None)
+            minus[ax] = slice(0, -2)
+            fp, fm = dpad[tuple(plus)], dpad[tuple(minus)]
+            mp, mm = mpad[tuple(plus)], mpad[tuple(minus)]
+            g = np.where(mp & mm, 0.5 * (fp - fm),
+                         np.where(mp, fp - f0, np.where(mm, f0 - fm, 0)))
+            out[ax, x0 + 1:x1 + 1, 1:-1, 1:-1] = np.where(mask, g, 0)
 
 
 class _Grid:
@@ -305,16 +317,18 @@ class _DenseSampler:
 
     def __init__(self, vevm, with_gradient):
         self.grid = _Grid(vevm.shape)
-        dens, mask = _dense(vevm)
+        mask = vevm.evm.to_mask(vevm.shape)
         pad = tuple(int(s) + 2 for s in vevm.shape)
+        # Written in place into the real and imaginary parts: no grid-sized temporaries.
         tab = np.zeros(pad, np.complex64)
-        tab[1:-1, 1:-1, 1:-1] = np.where(mask, dens, 0).astype(np.float32) + 1j * mask
+        inner = tab[1:-1, 1:-1, 1:-1]
+        inner.real[mask] = vevm.table(0)
+        inner.imag[...] = mask
         self.table = tab.ravel()
         self.grad = None
         if with_gradient:
-            gr = _voxel_gradients(dens, mask)
             gpad = np.zeros((3,) + pad, np.float32)
-            gpad[:, 1:-1, 1:-1, 1:-1] = gr
+            _voxel_gradients(tab, gpad)
             self.grad = gpad.reshape(3, -1)
 
     def __call__(self, p):
@@ -433,17 +447,6 @@ def _coverage(pf, pb, base, readable):
     return frac, first
 
 
-def _dense(vevm):
-    """The VolumeEVM's densities as a dense float32 grid and its region mask (cached)."""
-    entry = _CACHE.setdefault(vevm, {})
-    if "dense" not in entry:
-        mask = vevm.evm.to_mask(vevm.shape)
-        dens = np.zeros(vevm.shape, np.float32)
-        dens[mask] = vevm.table(0)
-        entry["dense"] = (dens, mask)
-    return entry["dense"]
-
-
 # ---------------------------------------------------------------------------- blocks
 class _Blocks:
     """Coarse occupancy of the region (from the EVM's boxes) with per-block density ranges.
@@ -481,22 +484,18 @@ class _Blocks:
         # and max filters), then reduced block by block.
         mask = vevm.evm.to_mask(vevm.shape)
         dens = np.asarray(vevm.table(0), dtype=np.float32)
-        padded = tuple(int(b) * size for b in self.nb)
-        ranges = []
-        for op, fill in ((np.minimum, np.inf), (np.maximum, -np.inf)):
-            grid = np.full(padded, fill, np.float32)
-            grid[tuple(slice(0, int(n)) for n in shape)][mask] = dens
-            for ax in [0, 1, 2] * reach:
-                src = grid.copy()
-                lo = [slice(None)] * 3
-                hi = [slice(None)] * 3
-                lo[ax], hi[ax] = slice(0, -1), slice(1, None)
-                op(grid[tuple(lo)], src[tuple(hi)], out=grid[tuple(lo)])
-                op(grid[tuple(hi)], src[tuple(lo)], out=grid[tuple(hi)])
-            nx, ny, nz = (int(b) for b in self.nb)
-            blocks = grid.reshape(nx, size, ny, size, nz, size)
-            ranges.append((blocks.min if op is np.minimum else blocks.max)(axis=(1, 3, 5)))
-        self.range_lo, self.range_hi = ranges
+        self.range_lo = self._ranges(mask, dens, reach, np.minimum, np.inf)
+        self.range_hi = self._ranges(mask, dens, reach, np.maximum, -np.inf)
+
+    def _ranges(self, mask, dens, reach, op, fill):
+        """Per block, ``op`` (``np.minimum`` or ``np.maximum``) of the densities ``dens`` of the
+        region ``mask`` within ``reach`` voxels of the block's cells (``fill`` for none)."""
+        size = self.size
+        grid = np.full(tuple(int(b) * size for b in self.nb), fill, np.float32)
+        grid[tuple(slice(0, n) for n in mask.shape)][mask] = dens
+        _grow(grid, op, reach)
+        nx, ny, nz = (int(b) for b in self.nb)
+        return op.reduce(grid.reshape(nx, size, ny, size, nz, size), axis=(1, 3, 5))
 
     def visible(self, mode, tf, lut_step, xray_scale, xray_offset):
         """Flat bool array over the blocks padded by one invisible block on each side."""
@@ -509,6 +508,57 @@ class _Blocks:
         elif mode == "xray":
             vis &= (self.range_hi > xray_offset) & (xray_scale > 0)
         return np.pad(vis, 1).ravel()
+
+
+def _grow(grid, op, reach):
+    """Replace, in place, every value of ``grid`` by ``op`` (``np.minimum`` or ``np.maximum``)
+    of the values within ``reach`` voxels along each axis (a min or max filter over a cube).
+
+    One axis at a time, one plane across another axis at a time: the copy each step needs is
+    a plane, not the grid (min and max are exact, so the order does not change the result).
+    """
+    for _ in range(reach):
+        for ax in range(3):
+            across = 1 if ax == 0 else 0
+            k = ax - (ax > across)  # `ax` among the plane's two axes
+            lo, hi = [slice(None)] * 2, [slice(None)] * 2
+            lo[k], hi[k] = slice(0, -1), slice(1, None)
+            lo, hi = tuple(lo), tuple(hi)
+            for i in range(grid.shape[across]):
+                plane = grid[(slice(None),) * across + (i,)]
+                src = plane.copy()
+                op(plane[lo], src[hi], out=plane[lo])
+                op(plane[hi], src[lo], out=plane[hi])
+
+
+def _reach(spacing, step_mm, preintegrate):
+    """Voxels from a sample's cell whose densities the sample may read: 1 (trilinear
+    interpolation), more with pre-integration, whose segment ends lie half a step away."""
+    if not preintegrate:
+        return 1
+    return int(np.floor(1.5 + 0.5 * step_mm / float(np.min(spacing))))
+
+
+def tables_to_build(vevm, options, *, navigate):
+    """1 when the render would build grid tables (the dense sampling tables, unless
+    ``navigate``; the space-leaping blocks with ``skip_empty``) that are not cached for
+    ``vevm`` yet, else 0. Changes nothing: it only looks at the cache.
+
+    ``options`` are the renderer's keywords (``mode`` included).
+    """
+    if vevm.evm.is_empty():
+        return 0
+    mode = options.get("mode", "over")
+    shaded = mode in ("over", "under") and options.get("shading") not in (None, False)
+    keys = [] if navigate else [("sampler", shaded)]
+    if options.get("skip_empty", True):
+        spacing = np.asarray(vevm.spacing, dtype=np.float64)
+        step_mm = options.get("step_mm")
+        step_mm = float(spacing.min()) / 2 if step_mm is None else float(step_mm)
+        preintegrate = bool(options.get("preintegrate", False)) and mode in ("over", "under")
+        keys.append(("blocks", options.get("block", 8), _reach(spacing, step_mm, preintegrate)))
+    entry = _CACHE.get(vevm, {})
+    return int(not all(key in entry for key in keys))
 
 
 def _blocks(vevm, size, reach):
@@ -663,10 +713,7 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     lut = None if mode == "xray" else _lut(tf, step_mm)
     pre = _preintegration(vevm, tf, step_mm) if preintegrate else None
     if skip_empty:
-        # Pre-integration reads densities at segment ends, up to half a step from a sample.
-        reach = 1 if pre is None else int(np.floor(
-            1.5 + 0.5 * step_mm / float(spacing.min())))
-        blocks = _blocks(vevm, block, reach)
+        blocks = _blocks(vevm, block, _reach(spacing, step_mm, pre is not None))
         margin = 0.0 if lut is None else lut[3] if pre is None else max(lut[3], pre[3])
         visible = blocks.visible(mode, tf, margin, xray_scale, xray_offset)
         # Start and stop at the region's bounding box (cells lo .. hi - 1) grown by one voxel,

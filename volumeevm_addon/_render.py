@@ -47,34 +47,44 @@ at the ray casters' default step (half a voxel) is about 1.5e10 samples, still a
 # Memory model of each method, bytes, fitted to tracemalloc peaks (bench/bench_memory.py:
 # CT head 256x256x108 and the same upsampled to 512³, MRI 128x128x84; 64² to 512² images) and
 # rounded up. Per grid voxel: the tables a method builds on first use and caches on the
-# VolumeEVM, with their construction temporaries (counted even when they are cached already:
-# the conservative rule). Per pixel: the ray set-up and per-ray state beside the image buffers.
+# VolumeEVM, with their construction temporaries, counted once per set of tables the render
+# would build (the renderers' ``tables_to_build``: none when they are cached already). Per
+# pixel: the ray set-up and per-ray state beside the image buffers.
 _IMAGE_BYTES_PER_PIXEL = 20
 """The float32 RGBA image and depth every method returns."""
 _GRID_BYTES = {
-    # dense float32 + region mask + complex64 sampling table, built through a float32 and two
-    # complex64 temporaries (the space-leaping block grid's two float32 grids come before)
-    "raycast": 36,
+    # padded complex64 sampling table written in place, and the region mask (the space-leaping
+    # blocks, made first, need less: a float32 grid and the mask, filtered a plane at a time)
+    "raycast": 10,
     # no dense table; the block grid is made through a temporary float32 grid and the mask
-    "raycast_navigate": 19,
-    # per-axis slice layouts (codes over each slice's box, int32) and the region mask
-    "shear_warp": 11,
-    # per-axis sheets come from the region's voxels only: see _REGION_BYTES
+    "raycast_navigate": 7,
+    # per-axis slice layouts (codes over each slice's box, int32) and the region mask, beside
+    # the axis's densities table (_TABLE_METHODS)
+    "shear_warp": 9,
+    # per-axis sheets come from the region's voxels (_REGION_BYTES), beside the axis's
+    # densities table (_TABLE_METHODS)
     "splat": 0,
     # dense float64 densities, masks, the padded (P, 2) float64 sampling table and the
     # float64 min/max block-range grids of the sampler
     "reference": 64,
 }
-_SHADING_GRID_BYTES = {"raycast": 20, "shear_warp": 32, "reference": 32}
-"""Per grid voxel, with ``shading``: the gradient tables and their temporaries."""
+_TABLE_METHODS = ("shear_warp", "splat")
+"""Methods that read the densities table of the principal axis (:meth:`VolumeEVM.table`),
+made through a transient grid of the table's type and the mask: ``1 + itemsize`` per voxel."""
+_SHADING_GRID_BYTES = {"raycast": 14, "shear_warp": 32, "reference": 32}
+"""Per grid voxel, with ``shading``: the gradient tables and their temporaries (counted even
+when cached: shear-warp lights every voxel per view)."""
 _REGION_BYTES = {"splat": 56}
-"""Per region voxel: splatting's culled voxel lists and their keys, per axis."""
+"""Per region voxel: splatting's sections (cells per slab) and culled voxel lists, per axis."""
 _PIXEL_BYTES = {"raycast": 640, "raycast_navigate": 640, "shear_warp": 24, "splat": 340,
                 "reference": 360}
 _INTERMEDIATE_BYTES = 40
 """Shear-warp, per intermediate pixel: the RGBA image, its rank and depth maps, slice buffers."""
-_CHUNK_BYTES = {"reference": 40 << 20}
-"""Fixed working set: the reference's chunks (bounded by samples and breakpoints per chunk)."""
+_FIXED_BYTES = {"reference": 40 << 20, "shear_warp": 1 << 20, "splat": 1 << 20,
+                "raycast": 1 << 20, "raycast_navigate": 1 << 20}
+"""Fixed working set: the reference's chunks (bounded by samples and breakpoints per chunk);
+the transfer function's lookup tables and the renderers' small tables, which dominate
+renders of a few thousand pixels (shear-warp: 0.45 MiB for a 2x2 image)."""
 
 
 def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None, matrix_world=None,
@@ -151,7 +161,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
               "or a smaller image" if method == "reference" else
               "render a coarser level (level='auto' or an integer >= 2), a smaller image or "
               "another method")
-    check_memory(render_memory(method, vevm, camera, options),
+    check_memory(render_memory(method, vevm, camera, tf, to_world, {"mode": mode, **options}),
                  f"rendering {'x'.join(map(str, vevm.shape))} voxels at {w}x{h} pixels "
                  f"({method})", source="render", advice=advice)
     if method == "reference":
@@ -215,15 +225,16 @@ def check_samples(method, vevm, camera, grid_to_world, options):
             f"step_mm >= {smallest:.3g} or a smaller image")
 
 
-def render_memory(method, vevm, camera, options):
+def render_memory(method, vevm, camera, tf, grid_to_world, options):
     """Estimated peak memory (bytes) of rendering ``vevm`` with ``method`` for ``camera``.
 
     The sum of the image buffers, the per-pixel ray state (all rays of the image: the ray
     casters' default chunk holds a 512² image), the tables the method builds from the grid
-    (counted as if not cached yet: the conservative rule) and per-method working sets
-    (shear-warp's intermediate image, the reference's chunks). The constants are tracemalloc
-    peaks per voxel and per pixel measured on real volumes and rounded up
-    (``bench/bench_memory.py`` prints each estimate beside the measured peak).
+    (once per set the render would build: tables cached on ``vevm`` by an earlier render
+    cost nothing, :func:`_tables_to_build`) and per-method working sets (shear-warp's
+    intermediate image, the reference's chunks, lookup tables). The constants are
+    tracemalloc peaks per voxel and per pixel measured on real volumes and rounded up
+    (``bench/bench_memory.py`` prints each estimate beside the measured peak, cold and warm).
 
     Parameters
     ----------
@@ -232,8 +243,14 @@ def render_memory(method, vevm, camera, options):
     vevm : VolumeEVM
         The VolumeEVM rendered (the level, when a coarser one is rendered).
     camera : Camera
+    tf : TransferFunction
+        The render's transfer function (shear-warp caches its classes per function).
+    grid_to_world : (4, 4) ndarray
+        Voxel-centre indices to world (:func:`._volume.grid_to_world`): the view decides the
+        principal axes whose tables shear-warp and splatting build.
     options : dict
-        The method's options (``shading`` and ``intermediate_scale`` change the estimate).
+        The renderer's keywords, ``mode`` included (``shading``, ``intermediate_scale`` and
+        those that select the cached tables change the estimate).
 
     Returns
     -------
@@ -244,8 +261,11 @@ def render_memory(method, vevm, camera, options):
     pixels = h * w
     grid = int(np.prod(np.asarray(vevm.shape, dtype=np.int64) + 2))
     needed = pixels * (_IMAGE_BYTES_PER_PIXEL + _PIXEL_BYTES[method])
-    needed += grid * _GRID_BYTES[method] + _CHUNK_BYTES.get(method, 0)
-    needed += int(vevm.voxel_count) * _REGION_BYTES.get(method, 0)
+    needed += _FIXED_BYTES[method]
+    per_set = grid * _GRID_BYTES[method] + int(vevm.voxel_count) * _REGION_BYTES.get(method, 0)
+    if method in _TABLE_METHODS:
+        per_set += grid * (1 + vevm.table(0).dtype.itemsize)
+    needed += _tables_to_build(method, vevm, camera, tf, grid_to_world, options) * per_set
     if options.get("shading") not in (None, False):
         needed += grid * _SHADING_GRID_BYTES.get(method, 0)
     if method == "shear_warp":
@@ -256,6 +276,20 @@ def render_memory(method, vevm, camera, options):
         n1, n2 = sorted(vevm.shape)[-2:]
         needed += int((scale * (n1 + n2)) ** 2) * _INTERMEDIATE_BYTES
     return int(needed)
+
+
+def _tables_to_build(method, vevm, camera, tf, grid_to_world, options):
+    """Sets of grid tables the render would build (the renderer's ``tables_to_build``: one
+    per principal axis for shear-warp and splatting, one for the ray casters; 0 when all are
+    cached). The reference caches nothing: always 1."""
+    from . import _raycast, _shear_warp, _splat
+
+    if method == "reference":
+        return 1
+    if method in ("raycast", "raycast_navigate"):
+        return _raycast.tables_to_build(vevm, options, navigate=method == "raycast_navigate")
+    module = _shear_warp if method == "shear_warp" else _splat
+    return module.tables_to_build(vevm, camera, tf, grid_to_world, options)
 
 
 def _covered_pixels(shape, grid_to_world, camera):

@@ -739,6 +739,40 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     return rgba_out, depth_out
 
 
+def tables_to_build(vevm, camera, tf, grid_to_world, options):
+    """How many principal axes the render would build slice tables for: the axes of its passes
+    (:func:`_passes`) whose layout is not cached on ``vevm`` yet, or lacks what this render
+    reads (the transfer function's classes, or the post-classification table; the gradients
+    with shading); every one with ``skip_empty=False`` (the dense layout is made per render).
+    Changes nothing: it only looks at the caches.
+
+    ``options`` are the renderer's keywords (``mode`` included).
+    """
+    if vevm.evm.is_empty():
+        return 0
+    axes = {axis for axis, _, _ in _passes(vevm, camera, np.asarray(grid_to_world, float))}
+    if not options.get("skip_empty", True):
+        return len(axes)
+    mode = options.get("mode", "over")
+    shaded = mode in ("over", "under") and options.get("shading") not in (None, False)
+    post = mode in ("xray", "mip") or options.get("classification", "pre") == "post"
+    lut_size = options.get("lut_size", 4096)
+    layouts = _LAYOUTS.get(vevm, {})
+    count = 0
+    for axis in axes:
+        layout = layouts.get(axis)
+        if layout is None:
+            ready = False
+        elif post:
+            ready = ("post_shaded" if shaded else "post") in layout.tables
+        else:
+            classes = layout.classes[tf].get(lut_size) if tf in layout.classes else None
+            ready = classes is not None and (layout.gradients is not None if shaded
+                                             else "slice_rows" in vars(classes))
+        count += not ready
+    return count
+
+
 def _passes(vevm, camera, g):
     """``(principal axis, step, rays)`` of each shear-warp pass; ``step`` (perspective) is the
     front-to-back direction along the axis, ``rays`` (flat bool mask or None: all) the pixels

@@ -376,20 +376,10 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     if vevm.evm.is_empty():
         return np.zeros((h, w, 4), np.float32), depth.reshape(h, w)
 
-    spacing = np.asarray(vevm.spacing, dtype=np.float64)
     r = camera_rays(camera, g, vevm.shape, depth_in)
     inv = np.linalg.inv(g)
-    # View direction in index space (perspective: camera to the volume's centre).
-    cam_i = None
-    if camera.is_ortho:
-        view = camera.forward @ inv[:3, :3].T
-    else:
-        cam_i = camera.position @ inv[:3, :3].T + inv[:3, 3]
-        centre = (np.asarray(vevm.shape) - 1) / 2.0
-        view = centre - cam_i
-        if not np.any(view):
-            view = camera.forward @ inv[:3, :3].T
-    weights = _family_weights(view * spacing, blend)
+    view, cam_i = _view(vevm, camera, inv)
+    weights = _family_weights(view * np.asarray(vevm.spacing, dtype=np.float64), blend)
     out = None
     for axis in np.argsort(-weights, kind="stable"):  # ties: the lower axis first
         if weights[axis] == 0:
@@ -403,6 +393,40 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         else:
             out += acc * np.float32(weights[axis])
     return out, depth
+
+
+def tables_to_build(vevm, camera, tf, grid_to_world, options):
+    """How many sheet families (principal axes) the render would build tables for: the axes
+    the view blends (:func:`_family_weights`) whose sections (:func:`_slabs`, made with the
+    axis's densities table) are not cached on ``vevm`` yet; every one with ``skip_empty=False``
+    (the dense slices are made per render). Changes nothing: it only looks at the caches.
+
+    ``options`` are the renderer's keywords (``mode`` included); ``tf`` is unused (the culled
+    voxels per transfer function are made a slice at a time, small beside the sections).
+    """
+    if vevm.evm.is_empty():
+        return 0
+    view, _ = _view(vevm, camera, np.linalg.inv(grid_to_world))
+    weights = _family_weights(view * np.asarray(vevm.spacing, dtype=np.float64),
+                              float(options.get("blend", 0.2)))
+    axes = np.flatnonzero(weights > 0)
+    if not options.get("skip_empty", True):
+        return len(axes)
+    entry = _CACHE.get(vevm, {})
+    return sum(int(axis) not in entry for axis in axes)
+
+
+def _view(vevm, camera, inv):
+    """The view direction in index space (perspective: from the camera to the volume's
+    centre) and the camera's position in index space (None when orthographic); ``inv``:
+    world to index space."""
+    if camera.is_ortho:
+        return camera.forward @ inv[:3, :3].T, None
+    cam_i = camera.position @ inv[:3, :3].T + inv[:3, 3]
+    view = (np.asarray(vevm.shape) - 1) / 2.0 - cam_i
+    if not np.any(view):
+        view = camera.forward @ inv[:3, :3].T
+    return view, cam_i
 
 
 def _family_weights(view, blend):
