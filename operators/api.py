@@ -49,6 +49,7 @@ from ..volumeevm_addon import (
     VolumeEVMError,
     read_volume,
 )
+from ..volumeevm_addon._mesh import Polygons
 from ..volumeevm_addon._voxelize import box_evm, voxelize_mesh_evm
 from ..volumeevm_addon._volume import grid_to_world, index_to_physical
 from . import _jobs, _runtime, sidecar
@@ -341,6 +342,12 @@ def _attribute(mesh, name, kind, domain):
     return found if found is not None else mesh.attributes.new(name, kind, domain)
 
 
+def _corner_vertices(mesh):
+    """The corners' vertex indices of a mesh and their field name, for ``foreach_get/set``."""
+    found = mesh.attributes.get(".corner_vert")
+    return (found.data, "value") if found is not None else (mesh.loops, "vertex_index")
+
+
 def fill_mesh(mesh, co, polys):
     """Fill an empty mesh in bulk: vertices ``co`` (n, 3) and polygons (loops, starts).
 
@@ -351,12 +358,8 @@ def fill_mesh(mesh, co, polys):
     _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_set(
         "vector", np.ascontiguousarray(co, np.float32).ravel())
     mesh.loops.add(len(polys.indices))
-    indices = np.ascontiguousarray(polys.indices, np.int32)
-    corner_vert = mesh.attributes.get(".corner_vert")
-    if corner_vert is not None:
-        corner_vert.data.foreach_set("value", indices)
-    else:
-        mesh.loops.foreach_set("vertex_index", indices)
+    corners, field = _corner_vertices(mesh)
+    corners.foreach_set(field, np.ascontiguousarray(polys.indices, np.int32))
     mesh.polygons.add(len(polys))
     mesh.polygons.foreach_set("loop_start", np.ascontiguousarray(polys.starts, np.int32))
     # Flat faces: a voxel boundary has no smooth normals (new meshes shade smooth since 4.1).
@@ -683,8 +686,45 @@ def _evaluate(state, entries, timing):
     return result
 
 
+def _mesh_geometry(mesh):
+    """What :func:`fill_mesh` writes, read back from ``mesh``: ``(co, Polygons)``."""
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_get("vector", co)
+    indices = np.empty(len(mesh.loops), np.int32)
+    corners, field = _corner_vertices(mesh)
+    corners.foreach_get(field, indices)
+    starts = np.empty(len(mesh.polygons), np.int32)
+    mesh.polygons.foreach_get("loop_start", starts)
+    sizes = np.diff(starts, append=np.int32(len(indices))).astype(np.int32)
+    return co.reshape(-1, 3), Polygons(indices, starts, sizes)
+
+
+def _refill_mesh(mesh, co, polys):
+    """Replace the geometry of ``mesh`` in place, all or nothing.
+
+    If filling fails half way, the old geometry is put back before the error goes on; in a
+    :func:`._jobs.transaction` it is also put back if a later step fails.
+    """
+    old = _mesh_geometry(mesh)
+
+    def restore():
+        mesh.clear_geometry()
+        fill_mesh(mesh, *old)
+
+    mesh.clear_geometry()
+    try:
+        fill_mesh(mesh, co, polys)
+    except BaseException:
+        restore()
+        raise
+    _jobs.on_undo(restore)
+
+
 def _write_surface(context, vol_obj, result, signature, timing, *, create):
-    """Put the result's mesh into the volume's surface (in place), or make the surface."""
+    """Put the result's mesh into the volume's surface (in place), or make the surface.
+
+    All or nothing: if writing fails, the surface keeps its old mesh (or none is made).
+    """
     surface = own_surface(vol_obj)
     if surface is None and not create:
         return None
@@ -692,15 +732,14 @@ def _write_surface(context, vol_obj, result, signature, timing, *, create):
     verts_mm, polys = result.mesh()
     co = (np.asarray(verts_mm, np.float64) * BLENDER_UNITS_PER_MM).astype(np.float32)
     middle = time.perf_counter()
-    if surface is None:
-        mesh = bpy.data.meshes.new(f"{vol_obj.name}_surface")
-        fill_mesh(mesh, co, polys)
-        surface = _attach_surface(context, vol_obj, mesh)
-    else:
-        mesh = surface.data
-        mesh.clear_geometry()
-        fill_mesh(mesh, co, polys)
-    _jobs.assign(surface.volumeevm, stack_signature=signature)
+    with _jobs.transaction():
+        if surface is None:
+            mesh = bpy.data.meshes.new(f"{vol_obj.name}_surface")
+            fill_mesh(mesh, co, polys)
+            surface = _attach_surface(context, vol_obj, mesh)
+        else:
+            _refill_mesh(surface.data, co, polys)
+        _jobs.assign(surface.volumeevm, stack_signature=signature)
     end = time.perf_counter()
     timing["mesh_s"], timing["write_s"] = middle - start, end - middle
     timing["polygons"] = len(polys)
@@ -861,30 +900,52 @@ def evaluate(obj):
 
 
 def remove_tool(obj, index):
-    """Remove entry ``index`` (0-based) of the stack and refresh; returns the problem or ""."""
+    """Remove entry ``index`` (0-based) of the stack and refresh; returns the problem or "".
+
+    A problem of the new stack (shown in the sidebar; the surface keeps its last good mesh) is
+    returned with the entry removed; any other error puts the entry back and is raised.
+    """
     vol_obj = volume_object(obj)
     s = vol_obj.volumeevm
     if not 0 <= index < len(s.tools):
         raise VolumeEVMError(f"{vol_obj.name}: no tool entry {index} (the stack has "
                              f"{len(s.tools)})")
+    with _jobs.transaction():  # an unexpected error while refreshing puts the entry back
+        with _exclusive():
+            values = {p.identifier: getattr(s.tools[index], p.identifier)
+                      for p in s.tools[index].bl_rna.properties if p.identifier != "rna_type"}
+            s.tools.remove(index)
+            _jobs.on_undo(functools.partial(_insert_entry, s, index, values))
+            _jobs.assign(s, tool_index=max(0, min(s.tool_index, len(s.tools) - 1)))
+        return refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
+
+
+def _insert_entry(settings, index, values):
+    """Put a removed entry back at ``index`` (undoing :func:`remove_tool`)."""
     with _exclusive():
-        s.tools.remove(index)
-        s.tool_index = max(0, min(s.tool_index, len(s.tools) - 1))
-    return refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
+        entry = settings.tools.add()
+        for name, value in values.items():
+            setattr(entry, name, value)
+        settings.tools.move(len(settings.tools) - 1, index)
 
 
 def move_tool(obj, index, offset):
-    """Move entry ``index`` by ``offset`` places (clamped) and refresh; returns the problem."""
+    """Move entry ``index`` by ``offset`` places (clamped) and refresh; returns the problem.
+
+    As for :func:`remove_tool`: any error but a problem of the new stack moves the entry back.
+    """
     vol_obj = volume_object(obj)
     s = vol_obj.volumeevm
     if not 0 <= index < len(s.tools):
         raise VolumeEVMError(f"{vol_obj.name}: no tool entry {index} (the stack has "
                              f"{len(s.tools)})")
     target = max(0, min(len(s.tools) - 1, index + int(offset)))
-    with _exclusive():
-        s.tools.move(index, target)
-        s.tool_index = target
-    return refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
+    with _jobs.transaction():  # an unexpected error while refreshing moves the entry back
+        with _exclusive():
+            s.tools.move(index, target)
+            _jobs.on_undo(functools.partial(s.tools.move, target, index))
+            _jobs.assign(s, tool_index=target)
+        return refresh_quietly(vol_obj, bpy.context.evaluated_depsgraph_get())
 
 
 def apply_stack(obj):

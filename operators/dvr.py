@@ -22,7 +22,9 @@ script function :func:`render_dvr` run the same job):
    premultiplied, scene-linear): ``<name>`` holds the composite and ``<name> DVR`` the volume
    alone (the compositor set-up lays that one over the Render Layers, :mod:`.render`). Optional
    EXR (R, G, B, A, Z) and PNG (the scene's view transform applied, as F12 saves it), both
-   written atomically and never over an existing file unless ``overwrite``.
+   written atomically and never over an existing file unless ``overwrite``. All or nothing:
+   if any part of this step (or the operator's report after it) fails, the images get their
+   names, sizes and pixels back, new files are removed and replaced ones come back.
 
 Script use::
 
@@ -36,6 +38,9 @@ front of the volume can show a one-pixel fringe; motion blur and panoramic camer
 supported; a render border is ignored (the whole frame is rendered).
 """
 
+import functools
+import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -248,8 +253,9 @@ def put_image(name, rgba):
     """Put a top-row-first premultiplied float RGBA array into an Image datablock.
 
     An existing generated float image of that name is reused (resized if needed), so the
-    compositor's Image node keeps showing it; another image of that name is renamed away (or
-    removed when unused).
+    compositor's Image node keeps showing it; another image of that name is renamed away (and
+    removed when unused). In a :func:`._jobs.transaction` that fails, the images get their
+    names, sizes and pixels back.
 
     Returns
     -------
@@ -259,13 +265,14 @@ def put_image(name, rgba):
     h, w = rgba.shape[:2]
     image = bpy.data.images.get(name)
     if image is not None and image.is_float and image.source == "GENERATED":
+        _jobs.on_undo(functools.partial(_put_back_pixels, image, tuple(image.size),
+                                        _pixels(image), image.alpha_mode))
         if tuple(image.size) != (w, h):
             image.scale(w, h)  # in place: the compositor's Image node keeps pointing at it
-    elif image is not None:
-        if image.users == 0:
-            bpy.data.images.remove(image)
-        else:
-            image.name = f"{name} (old)"  # still used elsewhere: keep it under another name
+    elif image is not None:  # another kind of image: it makes way (removed if unused)
+        _jobs.on_undo(functools.partial(_give_name_back, image, name))
+        _jobs.on_success(functools.partial(_remove_unused_image, image))
+        image.name = f"{name} (old)"
         image = None
     if image is None:
         image = bpy.data.images.new(name, w, h, alpha=True, float_buffer=True)
@@ -273,6 +280,90 @@ def put_image(name, rgba):
     image.pixels.foreach_set(np.ascontiguousarray(np.flipud(rgba)).ravel())
     image.update()
     return image
+
+
+def _pixels(image):
+    pixels = np.empty(len(image.pixels), np.float32)
+    image.pixels.foreach_get(pixels)
+    return pixels
+
+
+def _put_back_pixels(image, size, pixels, alpha_mode):
+    """Undo :func:`put_image` on a reused image: its old size, pixels and alpha mode."""
+    if tuple(image.size) != size:
+        image.scale(*size)
+    image.pixels.foreach_set(pixels)
+    image.alpha_mode = alpha_mode
+    image.update()
+
+
+def _give_name_back(image, name):
+    """Undo :func:`put_image` making way: ``image`` gets its name back from the failed job's
+    image (which the transaction removes afterwards)."""
+    taken = bpy.data.images.get(name)
+    if taken is not None:
+        taken.name = f"{name} (failed)"
+    image.name = name
+
+
+def _remove_unused_image(image):
+    if image.users == 0:
+        bpy.data.images.remove(image)
+
+
+def _set_property(block, key, value):
+    """Set a custom property of a datablock; put back (or removed) if the transaction fails."""
+    if key in block:
+        _jobs.on_undo(functools.partial(block.__setitem__, key, block[key]))
+    else:
+        _jobs.on_undo(functools.partial(block.pop, key))
+    block[key] = value
+
+
+def _write_file(path, write, *, overwrite):
+    """Write a file with ``write()`` (atomic, never over a file unless ``overwrite``), undone
+    if the transaction fails: a new file is removed again, a replaced one comes back.
+
+    The replaced file is kept as a hard link (a copy where the file system has none) in a
+    hidden folder beside it until the job succeeded. Returns what ``write`` returns.
+    """
+    path = Path(path)
+    kept = None
+    if overwrite and path.exists():
+        try:
+            folder = Path(tempfile.mkdtemp(prefix=".volumeevm-old-", dir=path.parent))
+            kept = folder / path.name
+            try:
+                os.link(path, kept)
+            except OSError:  # no hard links on this file system
+                shutil.copy2(path, kept)
+        except OSError as error:
+            if kept is not None:
+                _drop_kept(kept)
+            raise VolumeEVMError(f"{path}: cannot keep the old file while the new one is "
+                                 f"written ({error.strerror or error})") from error
+    try:
+        written = write()
+    except BaseException:
+        if kept is not None:
+            _drop_kept(kept)
+        raise
+    if kept is None:
+        _jobs.on_undo(functools.partial(path.unlink, missing_ok=True))
+    else:
+        _jobs.on_undo(functools.partial(_restore_kept, kept, path))
+        _jobs.on_success(functools.partial(_drop_kept, kept))
+    return written
+
+
+def _restore_kept(kept, path):
+    os.replace(kept, path)
+    kept.parent.rmdir()
+
+
+def _drop_kept(kept):
+    kept.unlink(missing_ok=True)
+    kept.parent.rmdir()
 
 
 def write_png(image, path, scene, *, overwrite=False):
@@ -380,15 +471,18 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
         return DVRResult(rgba, depth, dvr_rgba, np.asarray(dvr_depth, np.float32), scene_pass,
                          visible=bool((dvr_rgba[..., 3] > 0).any()))
 
-    def commit(result):
+    def commit(result):  # all undone if it (or the operator's report) fails
         result.image = put_image(image_name, result.rgba)
         result.dvr_image = put_image(f"{image_name} DVR", result.dvr_rgba)
-        result.dvr_image[VIEW_KEY] = signature
+        _set_property(result.dvr_image, VIEW_KEY, signature)
         if exr_path:
-            result.exr_path = str(exr.write_exr(exr_path, result.rgba, result.depth,
-                                                overwrite=overwrite))
+            result.exr_path = str(_write_file(exr_path, functools.partial(
+                exr.write_exr, exr_path, result.rgba, result.depth, overwrite=overwrite),
+                overwrite=overwrite))
         if png_path:
-            result.png_path = str(write_png(result.image, png_path, scene, overwrite=overwrite))
+            result.png_path = str(_write_file(png_path, functools.partial(
+                write_png, result.image, png_path, scene, overwrite=overwrite),
+                overwrite=overwrite))
         return result
 
     return _jobs.Job(f"Render {vol_obj.name}", steps(), commit)

@@ -285,7 +285,7 @@ class VOLUMEEVM_OT_render_dvr(_jobs.JobOperator, bpy.types.Operator):
         screen = context.screen
         for area in (screen.areas if screen is not None else ()):
             if area.type == "IMAGE_EDITOR":
-                area.spaces.active.image = result.image
+                _jobs.assign(area.spaces.active, image=result.image)
 
 
 def _job_arguments(context, settings, volume_name=""):

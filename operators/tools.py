@@ -11,7 +11,8 @@ stack (``api.refresh_quietly``); an entry's fields re-evaluate through their upd
 (property changes do not reach the depsgraph handler). The tools
 are read from the evaluated depsgraph, each one is voxelized again only if its triangles or
 placement changed (a cache keyed by a digest of both), the ``EditStack`` recomputes from the
-first changed entry, and the surface mesh is rewritten in place. The surface stores a signature
+first changed entry, and the surface mesh is rewritten in place (all or nothing: if writing
+fails, its old geometry is put back). The surface stores a signature
 of the base and entries it shows; when nothing changed (e.g. the update was our own mesh
 write, or a property of the volume unrelated to the stack) nothing is written, so there is no
 feedback loop. A failure (tool moved wholly outside, open mesh, empty result) is recorded as
@@ -144,7 +145,12 @@ class _StackOperator:
         index = obj.volumeevm.tool_index if self.index < 0 else self.index
         return min(index, len(tools) - 1)
 
-    def _done(self, problem):
+    def _done(self, change):
+        """Run ``change`` (it returns the stack's problem or ""); report the problem or error."""
+        try:
+            problem = change()
+        except Exception as error:
+            return _jobs.report_failure(self, error, self.bl_label)
         if problem:
             self.report({"WARNING"}, problem)
         return {"FINISHED"}
@@ -161,7 +167,7 @@ class VOLUMEEVM_OT_tool_remove(_StackOperator, bpy.types.Operator):
 
     def execute(self, context):
         obj = active_volume(context)
-        return self._done(api.remove_tool(obj, self._index(obj)))
+        return self._done(lambda: api.remove_tool(obj, self._index(obj)))
 
 
 class _MoveOperator(_StackOperator):
@@ -172,7 +178,7 @@ class _MoveOperator(_StackOperator):
 
     def execute(self, context):
         obj = active_volume(context)
-        return self._done(api.move_tool(obj, self._index(obj), self.offset))
+        return self._done(lambda: api.move_tool(obj, self._index(obj), self.offset))
 
 
 class VOLUMEEVM_OT_tool_move_up(_MoveOperator, bpy.types.Operator):
