@@ -1,6 +1,5 @@
 """What every benchmark shares: best-of-N timing, the run's facts, JSON results written atomically."""
 
-import inspect
 import json
 import os
 import platform
@@ -12,7 +11,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from volumeevm_addon._files import write_atomically  # noqa: E402
+from volumeevm_addon import render_options, write_atomically  # noqa: E402
 
 
 def best_time(function, repeat, setup=None):
@@ -56,19 +55,15 @@ def write_json(path, data):
 
 
 def non_default(method, options):
-    """``options`` without the entries equal to the renderer's own defaults (so a swept setting
-    that is the default is recognised as it)."""
-    from volumeevm_addon._render import _renderers
-
-    params = inspect.signature(_renderers()[method]).parameters
-    return {k: v for k, v in options.items() if k not in params or params[k].default != v}
+    """``options`` without the entries equal to the method's own defaults
+    (:func:`volumeevm_addon.render_options`; so a swept setting that is the default is
+    recognised as it)."""
+    defaults = render_options(method)
+    return {k: v for k, v in options.items() if k not in defaults or defaults[k] != v}
 
 
 def accepts(method, options):
     """Whether this version of the renderer ``method`` takes every option in ``options`` (so a
     bench runs on renderers that do not have a quality setting yet, and says so by leaving it
     out)."""
-    from volumeevm_addon._render import _renderers
-
-    names = set(inspect.signature(_renderers()[method]).parameters) | {"level"}
-    return set(options) <= names
+    return set(options) <= set(render_options(method)) | {"level"}

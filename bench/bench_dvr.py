@@ -10,7 +10,7 @@ one panel per dataset; the summary gives, per dataset and method, the time to re
 
 Datasets (``DATASETS``): the real volumes of ``../shared/data`` (``brainsmall``: VolPack's own
 MRI example; ``ct_head``: CT 256×256×108) and volumes made in code by
-:mod:`volumeevm_addon._phantoms`, quantized to 8 bits so that every renderer, VolPack
+:mod:`volumeevm_addon.phantoms`, quantized to 8 bits so that every renderer, VolPack
 included, reads the same integers: Gaussian blobs (smooth, closed form), Marschner–Lobb with a
 narrow pulse (high frequency), a checkerboard (sharp edges), a thin spherical shell, band-limited
 noise whose region of interest cuts through material (the region-boundary policy), and the
@@ -70,13 +70,18 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench" / "peers"))
 
 from bench._common import accepts, non_default, run_facts, write_json  # noqa: E402
-from volumeevm_addon import VolumeEVM, _phantoms  # noqa: E402
-from volumeevm_addon._camera import Camera  # noqa: E402
-from volumeevm_addon._files import write_atomically  # noqa: E402
-from volumeevm_addon._metrics import image_errors  # noqa: E402
-from volumeevm_addon._render import METHODS, render  # noqa: E402
-from volumeevm_addon._transfer import TransferFunction  # noqa: E402
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, grid_to_world  # noqa: E402
+from volumeevm_addon import (  # noqa: E402
+    BLENDER_UNITS_PER_MM,
+    METHODS,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    grid_to_world,
+    phantoms,
+    render,
+    write_atomically,
+)
+from volumeevm_addon.metrics import image_errors  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 OURS = tuple(m for m in METHODS if m != "reference")
@@ -112,8 +117,8 @@ def _real(file, preset, data_range):
 def _blobs():
     shape = (64, 64, 64)
     centres = ((22, 24, 30), (42, 36, 26), (30, 44, 40))
-    vol = _phantoms.gaussian_blobs(shape, centres, (6.0, 5.0, 7.0), (1.0, 0.8, 0.9))
-    return _u8(vol), (1.0, 1.0, 1.0), _phantoms.extinction_tf(0.08 / 255.0, 255.0)
+    vol = phantoms.gaussian_blobs(shape, centres, (6.0, 5.0, 7.0), (1.0, 0.8, 0.9))
+    return _u8(vol), (1.0, 1.0, 1.0), phantoms.extinction_tf(0.08 / 255.0, 255.0)
 
 
 DATASETS = {
@@ -121,16 +126,16 @@ DATASETS = {
     #        the whole volume, image size, azimuth, elevation, perspective view too)
     "blobs": ("smooth, closed form", _blobs, None, 256, 30.0, 20.0, False),
     "ml41": ("high frequency (Marschner-Lobb, pulse)",
-             lambda: (_u8(_phantoms.marschner_lobb(41)), (1.0, 1.0, 1.0),
+             lambda: (_u8(phantoms.marschner_lobb(41)), (1.0, 1.0, 1.0),
                       _pulse(127.5, 25.5, 0.5)), None, 256, 30.0, 20.0, False),
     "checker": ("sharp edges (checkerboard)",
-                lambda: (_u8(_phantoms.checker((48, 48, 48), 8)), (1.0, 1.0, 1.0),
+                lambda: (_u8(phantoms.checker((48, 48, 48), 8)), (1.0, 1.0, 1.0),
                          _ramp(100.0, 160.0, 0.15)), None, 256, 30.0, 20.0, False),
     "shell": ("thin (spherical shell)",
-              lambda: (_u8(_phantoms.shell((64, 64, 64), 24.0, 1.0)), (1.0, 1.0, 1.0),
+              lambda: (_u8(phantoms.shell((64, 64, 64), 24.0, 1.0)), (1.0, 1.0, 1.0),
                        _ramp(20.0, 255.0, 0.9)), None, 256, 30.0, 20.0, False),
     "noise_cut": ("region boundary (noise, region cuts material)",
-                  lambda: (_u8(_phantoms.noise((80, 80, 80), 3.0, 7)), (1.0, 1.0, 1.0),
+                  lambda: (_u8(phantoms.noise((80, 80, 80), 3.0, 7)), (1.0, 1.0, 1.0),
                            _ramp(90.0, 200.0, 0.25)), 128, 256, 30.0, 20.0, False),
     "brainsmall": ("real: MRI (VolPack's example)",
                    lambda: _real("mr_brainsmall_volpack", "mri", (0, 202)), 20, 256, 30.0, 20.0,
@@ -138,7 +143,7 @@ DATASETS = {
     "ct_head": ("real: CT head", lambda: _real("ct_head_invesalius", "ct_bone", None), -300, 512,
                 215.0, 20.0, True),
     "timing256": ("256³ timing volume",
-                  lambda: (_u8(_phantoms.timing_volume(256)), (1.0, 1.0, 1.0),
+                  lambda: (_u8(phantoms.timing_volume(256)), (1.0, 1.0, 1.0),
                            _ramp(60.0, 200.0, 0.08)), None, 512, 30.0, 20.0, False),
 }
 QUICK = ("blobs", "ml41", "brainsmall")

@@ -45,12 +45,18 @@ sys.path.insert(0, str(REPO))
 from bench._common import run_facts, write_json  # noqa: E402
 import volumeevm_addon  # noqa: E402
 from bench.bench_dvr import cameras  # noqa: E402
-from volumeevm_addon import VolumeEVM, VolumeEVMError, read_volume  # noqa: E402
-from volumeevm_addon import _memory  # noqa: E402
-from volumeevm_addon._files import write_atomically  # noqa: E402
-from volumeevm_addon._render import METHODS, render  # noqa: E402
-from volumeevm_addon._transfer import TransferFunction  # noqa: E402
-from volumeevm_addon._volume import grid_to_world  # noqa: E402
+from volumeevm_addon import (  # noqa: E402
+    LIMIT_VARIABLE,
+    METHODS,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    check_memory,
+    grid_to_world,
+    read_volume,
+    render,
+    write_atomically,
+)
 
 DATA = REPO.parent / "shared" / "data"
 THRESHOLD = 300.0
@@ -64,7 +70,7 @@ class Estimates:
 
     def __init__(self):
         self.calls = []
-        original = _memory.check_memory
+        original = check_memory
         for info in pkgutil.walk_packages(volumeevm_addon.__path__, "volumeevm_addon."):
             importlib.import_module(info.name)
 
@@ -103,15 +109,15 @@ def measure(step, estimates, again=None):
     row = {"peak": peak, "estimate": needed, "estimate_of": what, "seconds": round(seconds, 2),
            "refused": refused, "refused_below_peak": None}
     if refused is None:
-        budget = os.environ.get(_memory.LIMIT_VARIABLE)
-        os.environ[_memory.LIMIT_VARIABLE] = str(int(BELOW_PEAK * peak))
+        budget = os.environ.get(LIMIT_VARIABLE)
+        os.environ[LIMIT_VARIABLE] = str(int(BELOW_PEAK * peak))
         try:
             (again or step)()
             row["refused_below_peak"] = False
         except VolumeEVMError:
             row["refused_below_peak"] = True
         finally:
-            os.environ[_memory.LIMIT_VARIABLE] = budget
+            os.environ[LIMIT_VARIABLE] = budget
         estimates.largest()
     return row, result
 
@@ -193,7 +199,7 @@ def main():
     parser.add_argument("--budget", default="8G", help="VOLUMEEVM_MEMORY_LIMIT for the run")
     parser.add_argument("--skip-512", action="store_true", help="only the CT head")
     args = parser.parse_args()
-    os.environ[_memory.LIMIT_VARIABLE] = args.budget
+    os.environ[LIMIT_VARIABLE] = args.budget
     facts = {**run_facts(), "budget": args.budget}
     estimates = Estimates()
     rows = []

@@ -4,7 +4,7 @@ The tests ``tests/test_stability_*.py`` run these sweeps at CI size with bounds;
 them larger (images ``--size``², finer angle steps) and writes what it measures, so a change of
 method can be judged on the full curves. Design: ``../shared/design/notes/dvr_evaluation.md``
 §3.2 (measures) and §7.8 (the tests). Every frame of every sweep is compared with the dense
-reference renderer's image of the same frame; the measures are :mod:`volumeevm_addon._metrics`.
+reference renderer's image of the same frame; the measures are :mod:`volumeevm_addon.metrics`.
 
 - S1 rotation about x from 0° to 90° (0.25° steps from 40° to 50°): per-frame RMSE, popping
   index and bias jump at 45°, largest temporal error, on Marschner–Lobb 41³ with a pulse.
@@ -41,15 +41,23 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench._common import accepts, run_facts, write_json  # noqa: E402
-from volumeevm_addon import VolumeEVM, _phantoms  # noqa: E402
-from volumeevm_addon._camera import Camera  # noqa: E402
-from volumeevm_addon._files import write_atomically  # noqa: E402
-from volumeevm_addon._metrics import (bias_jump, popping_index, rmse, spectral_peak,  # noqa: E402
-                                      temporal_errors)
-from volumeevm_addon._render import render  # noqa: E402
-from volumeevm_addon._transfer import TransferFunction  # noqa: E402
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU  # noqa: E402
-from volumeevm_addon._volume import grid_to_world  # noqa: E402
+from volumeevm_addon import (  # noqa: E402
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    grid_to_world,
+    phantoms,
+    render,
+    write_atomically,
+)
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU  # noqa: E402
+from volumeevm_addon.metrics import (  # noqa: E402
+    bias_jump,
+    popping_index,
+    rmse,
+    spectral_peak,
+    temporal_errors,
+)
 
 DATA = REPO.parent / "shared" / "data"
 # Each method at its default and at the settings meant to fix its failure modes.
@@ -139,7 +147,7 @@ def sweep_measures(images, angles, at):
 
 
 def ml():
-    return VolumeEVM.from_volume(_phantoms.marschner_lobb(41), -1.0)
+    return VolumeEVM.from_volume(phantoms.marschner_lobb(41), -1.0)
 
 
 # ----------------------------------------------------------------------------- the sweeps
@@ -228,7 +236,7 @@ def s5(args):
 
 def s6(args):
     shape = (48, 48, 48)
-    vevm = VolumeEVM.from_volume(_phantoms.thin_plate(shape, (0.0, 0.0, 1.0), 1.0), 0.01)
+    vevm = VolumeEVM.from_volume(phantoms.thin_plate(shape, (0.0, 0.0, 1.0), 1.0), 0.01)
     tf = TransferFunction([(0.0, 0.9, 0.7, 0.5, 0.0), (1.0, 0.9, 0.7, 0.5, 0.9)])
     angles = np.arange(0, 90.01, 5.0)
     cams = [orbit(vevm, (0.0, -np.sin(np.radians(a)), np.cos(np.radians(a))), (1, 0, 0),

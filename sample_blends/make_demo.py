@@ -86,7 +86,7 @@ def skull_transfer_function():
     """Bone-like classification in the skull's own density units (0 .. 5.4, region >= 2.9):
     transparent at the isovalue (so the region's voxel faces do not show) and ivory, denser
     towards the top of the range; opacity per mm (voxels are about 3.9 mm)."""
-    from volumeevm.volumeevm_addon._transfer import TransferFunction
+    from volumeevm.volumeevm_addon import TransferFunction
 
     return TransferFunction([
         (2.9, 0.80, 0.62, 0.50, 0.00),
@@ -151,7 +151,7 @@ def stage(scene, surface, size):
 def render_png(scene, path):
     """Render to ``path`` atomically (a temporary file in the same folder, then a rename)."""
 
-    from volumeevm.volumeevm_addon._files import write_atomically
+    from volumeevm.volumeevm_addon import write_atomically
 
     def render(temporary):
         scene.render.filepath = str(temporary)

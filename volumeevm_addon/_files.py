@@ -14,7 +14,7 @@ create (``O_EXCL``) and the temporary renamed onto the claimed, still empty, fil
 against racing saves, though for that instant a reader could see an empty file.
 
 Any ``OSError`` of the file system (disk full, permission denied, read-only file system, a
-path under a file) becomes a :class:`~volumeevm_addon._errors.VolumeEVMError` naming the path.
+path under a file) becomes a :class:`~volumeevm_addon.VolumeEVMError` naming the path.
 """
 
 import contextlib

@@ -3,7 +3,7 @@
 Before a step that allocates in proportion to the data (reading a volume, building a VolumeEVM,
 making a mesh, rendering) the caller estimates the step's peak from the sizes involved and calls
 :func:`check_memory`. When the estimate exceeds what the machine has free, the step is refused
-with a :class:`~volumeevm_addon._errors.VolumeEVMError` that says how much is needed, how much
+with a :class:`~volumeevm_addon.VolumeEVMError` that says how much is needed, how much
 is free and what to do, instead of failing half-way with a bare ``MemoryError`` (or the system
 swapping until it stalls).
 

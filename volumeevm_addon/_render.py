@@ -111,7 +111,8 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         by the factor (the ray casters keep their samples per voxel). The reference method
         ignores it: it is the full-resolution oracle.
     **options
-        Method-specific quality settings (the keywords of the method's renderer). An option
+        Method-specific quality settings (the keywords of the method's renderer;
+        :func:`render_options` lists each method's with its defaults). An option
         the method does not take raises ``TypeError``; a value of the wrong type (a number
         where a flag is expected, a fraction where an integer is) or out of range raises
         :class:`VolumeEVMError` naming it.
@@ -144,7 +145,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
     if depth_in is not None:
         depth_in = _numbers("depth_in", depth_in)
     renderer = _renderers()[method]
-    _check_option_types(method, renderer, options)
+    _check_option_types(method, options)
     h, w = camera.shape
     check_memory(h * w * _IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",
                  advice="lower the resolution or resolution_percentage")
@@ -278,6 +279,45 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
     return int(needed)
 
 
+def render_options(method):
+    """The options ``method`` takes as keywords of :func:`render`, with their defaults.
+
+    Each method's options are the keyword-only parameters of its renderer, less ``mode`` and
+    ``depth_in`` (which :func:`render` takes for every method); the defaults are the
+    renderer's own (each method's fastest settings). :func:`render` checks the options it is
+    given against this: an unknown name raises ``TypeError``, a value whose type does not
+    match the default's raises :class:`VolumeEVMError`.
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`METHODS`.
+
+    Returns
+    -------
+    dict of str to object
+        Option name to default value, in the renderer's order (a new dict on every call).
+
+    Raises
+    ------
+    VolumeEVMError
+        When ``method`` is not one of :data:`METHODS`.
+
+    Examples
+    --------
+    >>> from volumeevm_addon import render_options
+    >>> render_options("splat")["substeps"]
+    1
+    >>> sorted(render_options("raycast"))[:4]
+    ['block', 'chunk_rays', 'jitter', 'preintegrate']
+    """
+    if method not in METHODS:
+        raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
+    parameters = inspect.signature(_renderers()[method]).parameters.values()
+    return {p.name: p.default for p in parameters
+            if p.kind == p.KEYWORD_ONLY and p.name not in ("mode", "depth_in")}
+
+
 def _tables_to_build(method, vevm, camera, tf, grid_to_world, options):
     """Sets of grid tables the render would build (the renderer's ``tables_to_build``: one
     per principal axis for shear-warp and splatting, one for the ray casters; 0 when all are
@@ -308,19 +348,18 @@ def _covered_pixels(shape, grid_to_world, camera):
     return int((u1 - u0) * (v1 - v0))
 
 
-def _check_option_types(method, renderer, options):
-    """Refuse an option value of the wrong type for the renderer's keyword, judged by the
-    keyword's default: a flag (default True/False) must be a bool, a count (an int default) an
-    integer, a quantity (a float default) a finite real number; ``step_mm`` a number > 0. Ranges are
-    the renderer's to check. An option the renderer does not take raises ``TypeError``, as
-    calling it would."""
-    parameters = {name: p for name, p in inspect.signature(renderer).parameters.items()
-                  if p.kind == p.KEYWORD_ONLY and name not in ("mode", "depth_in")}
+def _check_option_types(method, options):
+    """Refuse an option value of the wrong type for the method's option, judged by the
+    option's default (:func:`render_options`): a flag (default True/False) must be a bool, a
+    count (an int default) an integer, a quantity (a float default) a finite real number;
+    ``step_mm`` a number > 0. Ranges are the renderer's to check. An option the method does not
+    take raises ``TypeError``, as calling its renderer would."""
+    defaults = render_options(method)
     for name, value in options.items():
-        if name not in parameters:
+        if name not in defaults:
             raise TypeError(f"{name}: not an option of method {method!r}; its options are "
-                            f"{', '.join(sorted(parameters))}")
-        default = parameters[name].default
+                            f"{', '.join(sorted(defaults))}")
+        default = defaults[name]
         if isinstance(default, bool):
             ok, kind = isinstance(value, (bool, np.bool_)), "True or False"
         elif isinstance(default, int):

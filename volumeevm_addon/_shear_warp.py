@@ -692,9 +692,7 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     --------
     A 2x2x2 mm block of 1 mm voxels seen from above; opacity 0.5 per mm over a 2 mm chord:
 
-    >>> from volumeevm_addon import VolumeEVM
-    >>> from volumeevm_addon._camera import Camera
-    >>> from volumeevm_addon._transfer import TransferFunction
+    >>> from volumeevm_addon import Camera, TransferFunction, VolumeEVM
     >>> BU = 0.001  # Blender units per mm
     >>> cam_matrix = np.eye(4)
     >>> cam_matrix[:3, 3] = (0.5 * BU, 0.5 * BU, 1.0)
