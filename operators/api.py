@@ -44,14 +44,16 @@ from ..volumeevm_addon import (
     BLENDER_UNITS_PER_MM,
     EVM,
     EditStack,
+    Polygons,
     ToolOperation,
     VolumeEVM,
     VolumeEVMError,
+    box_evm,
+    grid_to_world,
+    index_to_physical,
     read_volume,
+    voxelize_mesh_evm,
 )
-from ..volumeevm_addon._mesh import Polygons
-from ..volumeevm_addon._voxelize import box_evm, voxelize_mesh_evm
-from ..volumeevm_addon._volume import grid_to_world, index_to_physical
 from . import _jobs, _runtime, sidecar
 
 __all__ = ["import_volume", "build", "make_mesh", "volume_object", "get_vevm", "get_volume",

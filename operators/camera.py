@@ -5,8 +5,7 @@ No operator classes live here; renderers' operators call :func:`camera_from_blen
 
 import numpy as np
 
-from ..volumeevm_addon._camera import Camera
-from ..volumeevm_addon._errors import VolumeEVMError
+from ..volumeevm_addon import Camera, VolumeEVMError
 
 
 def camera_from_blender(scene, camera_object=None):

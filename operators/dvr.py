@@ -49,12 +49,17 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import VolumeEVMError
-from ..volumeevm_addon._camera import BACKGROUND_DEPTH
-from ..volumeevm_addon._files import atomic_target, write_atomically
-from ..volumeevm_addon._levels import LEVELS
-from ..volumeevm_addon._render import METHODS, MODES, render
-from ..volumeevm_addon._transfer import TransferFunction
+from ..volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    LEVELS,
+    METHODS,
+    MODES,
+    TransferFunction,
+    VolumeEVMError,
+    atomic_target,
+    render,
+    write_atomically,
+)
 from . import _jobs, api, exr
 from .camera import camera_from_blender
 

@@ -1,14 +1,13 @@
 """OpenEXR files for the DVR inside Blender: the core's writer and reader
-(:mod:`volumeevm_addon._images`, through the ``OpenEXR`` module), or, when that module is not
+(:func:`volumeevm_addon.write_exr`, through the ``OpenEXR`` module), or, when that module is not
 installed (Blender does not bundle it), the OpenImageIO module Blender bundles (exposed with
 ``bpy.utils.expose_bundled_modules()``, Blender 4.4+). Same arrays, same atomic writes.
 """
 
 import numpy as np
 
+from .. import volumeevm_addon as core
 from ..volumeevm_addon import VolumeEVMError
-from ..volumeevm_addon import _images
-from ..volumeevm_addon._files import write_atomically
 
 __all__ = ["write_exr", "read_exr"]
 
@@ -27,11 +26,11 @@ def _oiio():
 
 
 def write_exr(path, rgba, depth=None, *, overwrite=False):
-    """:func:`volumeevm_addon._images.write_exr`, through OpenImageIO without OpenEXR."""
-    if _images.openexr_module() is not None:
-        return _images.write_exr(path, rgba, depth, overwrite=overwrite)
-    channels = _images.exr_channels(rgba, depth)
-    return write_atomically(path, lambda temporary: _write_oiio(temporary, channels), overwrite=overwrite)
+    """:func:`volumeevm_addon.write_exr`, through OpenImageIO without OpenEXR."""
+    if core.openexr_module() is not None:
+        return core.write_exr(path, rgba, depth, overwrite=overwrite)
+    channels = core.exr_channels(rgba, depth)
+    return core.write_atomically(path, lambda temporary: _write_oiio(temporary, channels), overwrite=overwrite)
 
 
 def _write_oiio(path, channels):
@@ -54,9 +53,9 @@ def _write_oiio(path, channels):
 
 
 def read_exr(path):
-    """:func:`volumeevm_addon._images.read_exr`, through OpenImageIO without OpenEXR."""
-    if _images.openexr_module() is not None:
-        return _images.read_exr(path)
+    """:func:`volumeevm_addon.read_exr`, through OpenImageIO without OpenEXR."""
+    if core.openexr_module() is not None:
+        return core.read_exr(path)
     oiio = _oiio()
     channels = {}
     source = oiio.ImageInput.open(str(path))

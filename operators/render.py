@@ -30,8 +30,7 @@ import bpy
 import numpy as np
 from bpy.props import StringProperty
 
-from ..volumeevm_addon import VolumeEVMError
-from ..volumeevm_addon._transfer import PRESETS, TransferFunction
+from ..volumeevm_addon import PRESETS, TransferFunction, VolumeEVMError
 from . import _jobs, api, dvr
 from .build import active_volume
 

@@ -26,8 +26,7 @@ from pathlib import Path
 
 import bpy
 
-from ..volumeevm_addon import VolumeEVM, VolumeEVMError
-from ..volumeevm_addon._files import write_atomically
+from ..volumeevm_addon import VolumeEVM, VolumeEVMError, write_atomically
 from . import _runtime
 
 _session_dir = None

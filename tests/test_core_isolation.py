@@ -1,9 +1,12 @@
-"""The core never imports bpy or mathutils: it runs in plain Python."""
+"""The core never imports bpy or mathutils (it runs in plain Python), and nothing outside it
+imports its private modules (one public API)."""
 
 import ast
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 CORE = Path(__file__).resolve().parents[1] / "volumeevm_addon"
 
@@ -23,3 +26,99 @@ def test_importing_the_core_loads_no_blender_module():
     code = ("import sys, volumeevm_addon; "
             "assert not {'bpy', 'mathutils'} & set(sys.modules), 'blender module loaded'")
     subprocess.run([sys.executable, "-c", code], cwd=CORE.parent, check=True)
+
+
+# ------------------------------------------------------------------ one public API, enforced
+REPO = CORE.parent
+OUTSIDE_FOLDERS = ("operators", "ui", "bench", "sample_blends")
+"""Code outside the core: it may import only the core's public names (``volumeevm_addon``,
+``volumeevm_addon.readers``, ``.phantoms``, ``.metrics``), never a module named ``_...``."""
+
+
+def is_private(module):
+    """Whether the dotted ``module`` is a private module of ``volumeevm_addon`` or inside one
+    (a part after ``volumeevm_addon`` starting with ``_``, dunders aside)."""
+    parts = module.split(".")
+    if "volumeevm_addon" not in parts:
+        return False
+    inner = parts[parts.index("volumeevm_addon") + 1:]
+    return any(p.startswith("_") and not p.startswith("__") for p in inner)
+
+
+def private_imports(source, filename):
+    """``(line number, statement)`` of every import of a private module of ``volumeevm_addon`` in
+    ``source``: absolute or relative, under any parent package (``bl_ext...volumeevm``), as
+    ``import volumeevm_addon._x``, ``from volumeevm_addon._x import y`` or
+    ``from volumeevm_addon import _x``."""
+    found = []
+    for node in ast.walk(ast.parse(source, filename)):
+        if isinstance(node, ast.Import):
+            modules = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            modules = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+        else:
+            continue
+        if any(is_private(module) for module in modules):
+            found.append((node.lineno, " ".join(ast.get_source_segment(source, node).split())))
+    return found
+
+
+def readme_python_blocks():
+    """The README's ```python blocks: ``(first line number, code)``."""
+    lines = (REPO / "README.md").read_text().splitlines()
+    blocks, start = [], None
+    for number, line in enumerate(lines, 1):
+        if start is None and line.strip() == "```python":
+            start = number + 1
+        elif start is not None and line.strip() == "```":
+            blocks.append((start, "\n".join(lines[start - 1:number - 1])))
+            start = None
+    return blocks
+
+
+@pytest.mark.parametrize("source, private", [
+    ("from ..volumeevm_addon._camera import Camera", True),
+    ("from ..volumeevm_addon import _images", True),
+    ("from ..volumeevm_addon import VolumeEVMError, _images", True),
+    ("from volumeevm_addon._render import render", True),
+    ("import volumeevm_addon._memory", True),
+    ("from volumeevm.volumeevm_addon._files import write_atomically", True),
+    ("from bl_ext.user_default.volumeevm.volumeevm_addon._transfer import PRESETS", True),
+    ("from volumeevm_addon.readers._dicom import read_dicom", True),
+    ("from ..volumeevm_addon import Camera, render", False),
+    ("from volumeevm_addon.metrics import rmse", False),
+    ("from volumeevm_addon import phantoms", False),
+    ("import volumeevm_addon", False),
+    ("from . import _jobs", False),
+    ("from ._runtime import busy", False),
+])
+def test_private_import_scan_tells_private_from_public(source, private):
+    assert bool(private_imports(source, "<example>")) == private
+
+
+def test_nothing_outside_the_core_imports_a_private_module():
+    files = [REPO / "__init__.py"]
+    for folder in OUTSIDE_FOLDERS:
+        files += sorted((REPO / folder).rglob("*.py"))
+    assert len(files) > 20, files
+    offending = [f"{path.relative_to(REPO)}:{number}: {line}"
+                 for path in files
+                 for number, line in private_imports(path.read_text(), str(path))]
+    blocks = readme_python_blocks()
+    assert len(blocks) >= 4
+    for start, code in blocks:
+        offending += [f"README.md:{start + number - 1}: {line}"
+                      for number, line in private_imports(code, "README.md")]
+    assert not offending, ("private core modules imported outside the core (use the names "
+                           "exported by volumeevm_addon):\n" + "\n".join(offending))
+
+
+def test_every_public_name_is_exported():
+    import volumeevm_addon
+    from volumeevm_addon import _metrics, _phantoms, metrics, phantoms
+
+    assert all(hasattr(volumeevm_addon, name) for name in volumeevm_addon.__all__)
+    assert len(set(volumeevm_addon.__all__)) == len(volumeevm_addon.__all__)
+    for public, private in ((phantoms, _phantoms), (metrics, _metrics)):
+        assert public.__all__ == private.__all__
+        assert all(getattr(public, n) is getattr(private, n) for n in private.__all__)
