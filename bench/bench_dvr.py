@@ -38,7 +38,8 @@ gradients, the densities tables of other traversal orders: the per-transfer-func
 per-view preparation), the tables it built, and the peak of Python/NumPy allocations during
 that call (``tracemalloc``) against the VolumeEVM's and the dense volume's bytes. The machine
 has 2 cores shared with other work: compare ratios within one run, not absolute numbers.
-References are cached in ``bench/results/cache/`` keyed by the scene and ``_reference.py``.
+References are cached in ``bench/results/cache/`` keyed by the scene and
+``volumeevm_addon/rendering/_reference.py``.
 
 Outputs in ``--out``: ``speed_accuracy.csv`` (tidy, one row per run, with commit and
 versions), ``speed_accuracy.png`` (the chart), ``speed_accuracy.md`` (the time-to-ε tables,
@@ -262,7 +263,7 @@ def _sha(data):
 
 def reference(vevm, cam, tf, cache_dir, name):
     """The reference image of this VolumeEVM and view, from the cache or rendered and cached."""
-    oracle = _sha((REPO / "volumeevm_addon" / "_reference.py").read_bytes())
+    oracle = _sha((REPO / "volumeevm_addon" / "rendering" / "_reference.py").read_bytes())
     key_src = json.dumps({"camera": camera_record(cam), "tf": np.asarray(tf.points).tolist(),
                           "unit": tf.unit_length_mm, "shape": vevm.shape,
                           "spacing": vevm.spacing, "voxels": vevm.voxel_count,

@@ -105,7 +105,9 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     with zipfile.ZipFile(archive) as z:
         names = set(z.namelist())
     for needed in ("blender_manifest.toml", "__init__.py", "operators/api.py", "ui/panels.py",
-                   "volumeevm_addon/__init__.py", "volumeevm_addon/readers/__init__.py"):
+                   "volumeevm_addon/__init__.py", "volumeevm_addon/readers/__init__.py",
+                   "volumeevm_addon/model/_evm.py", "volumeevm_addon/rendering/_render.py",
+                   "volumeevm_addon/phantoms.py", "volumeevm_addon/metrics.py"):
         assert needed in names
     assert {f"wheels/{w.name}" for w in wheels} <= names
     for left_out in ("tests/", "bench/", "sample_blends/", ".venv/", ".git/", "requirements/",

@@ -77,7 +77,7 @@ def box_object(name, lo_bu, hi_bu):
 
 def world_of_voxel(core, vevm, index, vol_obj):
     """World position (BU) of voxel centre ``index`` of the volume."""
-    from_grid = core._volume.grid_to_world(vevm.spacing, vevm.origin, vevm.orientation,
+    from_grid = core.model._volume.grid_to_world(vevm.spacing, vevm.origin, vevm.orientation,
                                            np.array(vol_obj.matrix_world))
     return tuple((from_grid @ np.append(np.asarray(index, float), 1.0))[:3])
 
@@ -90,7 +90,7 @@ def expected_tool(core, vevm, vol_obj, tool_obj):
     mesh.vertices.foreach_get("co", co)
     faces = np.empty(len(mesh.polygons) * 3, np.int32)
     mesh.polygons.foreach_get("vertices", faces)  # the test tools are triangle meshes
-    world = core._volume.grid_to_world(vevm.spacing, vevm.origin, vevm.orientation,
+    world = core.model._volume.grid_to_world(vevm.spacing, vevm.origin, vevm.orientation,
                                        np.array(vol_obj.matrix_world))
     to_grid = np.linalg.inv(world) @ np.array(tool_obj.matrix_world)
     to_grid[3] = (0, 0, 0, 1)

@@ -1,9 +1,9 @@
-"""The depth rule every renderer shares (:mod:`volumeevm_addon._depth`): the output depth is
-that of the first sample whose opacity per unit length reaches ``VISIBLE_ALPHA`` (X-ray: whose
-attenuation does), so that it never comes from numerical dust. Tested per method: samples just
-below the threshold give no depth, just above they give the depth of the region's surface; and
-a camera perturbed by one ulp (the size of the difference between two BLAS kernels) neither
-moves the depth nor makes a pixel appear or vanish, on the real CT head."""
+"""The depth rule every renderer shares (:mod:`volumeevm_addon.rendering._depth`): the output
+depth is that of the first sample whose opacity per unit length reaches ``VISIBLE_ALPHA``
+(X-ray: whose attenuation does), so that it never comes from numerical dust. Tested per method:
+samples just below the threshold give no depth, just above they give the depth of the region's
+surface; and a camera perturbed by one ulp (the size of the difference between two BLAS
+kernels) neither moves the depth nor makes a pixel appear or vanish, on the real CT head."""
 
 import dataclasses
 import json
@@ -11,16 +11,17 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon._camera import BACKGROUND_DEPTH
-from volumeevm_addon._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH, attenuates, visible
-from volumeevm_addon._phantoms import box
-from volumeevm_addon._raycast import render_raycast, render_raycast_navigate
-from volumeevm_addon._shear_warp import render_shear_warp
-from volumeevm_addon._splat import render_splat
-from volumeevm_addon._transfer import TransferFunction, opacity_correction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon._volume import grid_to_world
-from volumeevm_addon._volumeevm import VolumeEVM
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon.model._volume import grid_to_world
+from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon.phantoms import box
+from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH
+from volumeevm_addon.rendering._depth import (VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH, attenuates,
+                                              visible)
+from volumeevm_addon.rendering._raycast import render_raycast, render_raycast_navigate
+from volumeevm_addon.rendering._shear_warp import render_shear_warp
+from volumeevm_addon.rendering._splat import render_splat
+from volumeevm_addon.rendering._transfer import TransferFunction, opacity_correction
 from render_helpers import MODES, camera, const_tf, reference
 
 METHODS = {

@@ -19,7 +19,8 @@ MODULES = sorted(
 
 
 def test_every_core_module_is_collected():
-    assert {"volumeevm_addon._evm", "volumeevm_addon._render", "volumeevm_addon.readers"} <= set(MODULES)
+    assert {"volumeevm_addon.model._evm", "volumeevm_addon.rendering._render",
+            "volumeevm_addon.readers"} <= set(MODULES)
 
 
 @pytest.mark.parametrize("name", MODULES)

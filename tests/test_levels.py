@@ -4,14 +4,14 @@ level's rule, and render(level=...) against the full level."""
 import numpy as np
 import pytest
 
-from volumeevm_addon._camera import Camera
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._levels import auto_factor, coarsen, level_factor
-from volumeevm_addon._metrics import rmse
-from volumeevm_addon._render import render
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon._volume import grid_to_world
-from volumeevm_addon._volumeevm import VolumeEVM
+from volumeevm_addon.metrics import rmse
+from volumeevm_addon.model._levels import auto_factor, coarsen, level_factor
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon.model._volume import grid_to_world
+from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon.rendering._camera import Camera
+from volumeevm_addon.rendering._render import render
 from render_helpers import camera, const_tf, look_at
 
 

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from volumeevm_addon import EVM
-from volumeevm_addon._mesh import mesh_volume_area
+from volumeevm_addon.model._mesh import mesh_volume_area
 
 
 def unit_faces(mask):

@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from volumeevm_addon import _phantoms as ph
+from volumeevm_addon import phantoms as ph
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._render import render
-from volumeevm_addon._volume import Volume, grid_to_world
-from volumeevm_addon._volumeevm import VolumeEVM
+from volumeevm_addon.model._volume import Volume, grid_to_world
+from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon.rendering._render import render
 from render_helpers import camera, const_tf
 
 

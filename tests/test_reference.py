@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._reference import Shading, render_reference
-from volumeevm_addon._transfer import TransferFunction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, index_to_physical
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, index_to_physical
+from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
+from volumeevm_addon.rendering._reference import Shading, render_reference
+from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import look_at
 
 BU = BLENDER_UNITS_PER_MM
@@ -271,7 +271,7 @@ def test_over_equals_under(shading):
 def test_skipping_empty_pieces_changes_nothing(mode, monkeypatch):
     """Pieces outside the VoI or where the transfer function is transparent are not sampled;
     sampling them anyway gives the bit-identical image."""
-    from volumeevm_addon import _reference
+    from volumeevm_addon.rendering import _reference
 
     dens, mask, g, sp, cam, tf = _random_scene(11)
     tf = TransferFunction([(0, 0.1, 0.2, 0.9, 0.0), (50, 0.9, 0.3, 0.1, 0.0),

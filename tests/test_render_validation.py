@@ -9,11 +9,11 @@ import pytest
 
 from volumeevm_addon import Camera, EVM, VolumeEVM, render, write_exr, write_png
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._images import openexr_module
 from volumeevm_addon._memory import format_bytes
-from volumeevm_addon._raycast import _Blocks, _DenseSampler
-from volumeevm_addon._render import METHODS, check_samples, render_memory
-from volumeevm_addon._volume import grid_to_world
+from volumeevm_addon.model._volume import grid_to_world
+from volumeevm_addon.rendering._images import openexr_module
+from volumeevm_addon.rendering._raycast import _Blocks, _DenseSampler
+from volumeevm_addon.rendering._render import METHODS, check_samples, render_memory
 from render_helpers import camera, const_tf
 
 

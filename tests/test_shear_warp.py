@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from volumeevm_addon import EVM, VolumeEVM
-from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._reference import render_reference
-from volumeevm_addon._render import render
-from volumeevm_addon import _shear_warp
-from volumeevm_addon._shear_warp import _LAYOUTS, _View, render_shear_warp
-from volumeevm_addon._transfer import TransferFunction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM, grid_to_world
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, grid_to_world
+from volumeevm_addon.rendering import _shear_warp
+from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
+from volumeevm_addon.rendering._reference import render_reference
+from volumeevm_addon.rendering._render import render
+from volumeevm_addon.rendering._shear_warp import _LAYOUTS, _View, render_shear_warp
+from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import MODES, look_at
 
 BU = BLENDER_UNITS_PER_MM

@@ -6,17 +6,18 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon._camera import BACKGROUND_DEPTH, Camera
+from volumeevm_addon import phantoms
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._evm import EVM
-from volumeevm_addon._metrics import bias_jump, popping_index, rmse, temporal_errors
-from volumeevm_addon import _phantoms, _splat
-from volumeevm_addon._splat import (_family_weights, _sheets, _slices_dense, _slices_evm,
-                                    render_splat)
-from volumeevm_addon._transfer import TransferFunction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon._volume import grid_to_world
-from volumeevm_addon._volumeevm import VolumeEVM
+from volumeevm_addon.metrics import bias_jump, popping_index, rmse, temporal_errors
+from volumeevm_addon.model._evm import EVM
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon.model._volume import grid_to_world
+from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon.rendering import _splat
+from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
+from volumeevm_addon.rendering._splat import (_family_weights, _sheets, _slices_dense,
+                                              _slices_evm, render_splat)
+from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import MODES, XRAY, camera, centre, const_tf, look_at, reference
 
 
@@ -143,7 +144,7 @@ def test_box_region_closed_form(kind, substeps):
     cam = camera(kind, g, v, (0.013, -0.011, 0.01), 0.014)
     tf = const_tf(0.2)
     rgba, depth = render_splat(v, cam, tf, g, termination=1.0, substeps=substeps)
-    chord = _phantoms.box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
+    chord = phantoms.box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
     expected = 1 - 0.8 ** chord
     assert (chord > 0).sum() > 200 and (chord == 0).sum() > 50
     np.testing.assert_allclose(rgba[..., 3], expected, rtol=0, atol=1e-5)
@@ -160,13 +161,13 @@ def test_box_closed_form_with_rays_along_cell_faces(direction):
     cell faces (the box's faces fall on pixel centres): the slab coverage still adds up to
     the exact chord (a ray on a face must reach the cells on both sides)."""
     lo, hi = (4, 5, 6), (16, 14, 13)
-    v = VolumeEVM.from_volume(_phantoms.box((20, 20, 20), lo, hi), 0.5)
+    v = VolumeEVM.from_volume(phantoms.box((20, 20, 20), lo, hi), 0.5)
     g = grid_to_world(v.spacing, v.origin)
     target = np.full(3, 9.5 * BU)
     cam = Camera.orthographic(look_at(target + 0.07 * np.array(direction) / np.linalg.norm(
         direction), target), 30 * BU, resolution_x=37, resolution_y=23, clip_start=1e-4)
     rgba, _ = render_splat(v, cam, const_tf(0.2), g)
-    chord = _phantoms.box_chords_mm(cam, g, lo, hi)
+    chord = phantoms.box_chords_mm(cam, g, lo, hi)
     assert (chord > 0).sum() > 100
     np.testing.assert_allclose(rgba[..., 3], 1 - 0.8 ** chord, rtol=0, atol=1e-5)
 
@@ -180,7 +181,7 @@ def test_single_voxel_closed_form():
     for kind in ("ORTHO", "PERSP"):
         cam = camera(kind, g, v, (0.006, -0.009, 0.007), 0.01, res=(25, 21))
         rgba, _ = render_splat(v, cam, const_tf(0.5), g)
-        chord = _phantoms.box_chords_mm(cam, g, (2, 1, 1), (3, 2, 2))
+        chord = phantoms.box_chords_mm(cam, g, (2, 1, 1), (3, 2, 2))
         assert (chord > 0).sum() > 10
         np.testing.assert_allclose(rgba[..., 3], 1 - 0.5 ** chord, atol=1e-5)
 
@@ -308,7 +309,7 @@ def test_opaque_plane_hides_what_is_behind(kind):
     rgba, depth = render_splat(v, cam, tf, g, depth_in=plane, termination=1.0)
     left, right = np.s_[:, : cam.shape[1] // 2], np.s_[:, cam.shape[1] // 2:]
     np.testing.assert_array_equal(rgba[left], free[left])
-    chord = _phantoms.box_chords_mm(cam, g, (0, 0, 5), (8, 8, 8))
+    chord = phantoms.box_chords_mm(cam, g, (0, 0, 5), (8, 8, 8))
     assert (chord[right] > 2.9).sum() > 100
     np.testing.assert_allclose(rgba[right][..., 3], 1 - 0.9 ** chord[right], atol=1e-5)
     np.testing.assert_allclose(depth, dfree, rtol=1e-6)
@@ -357,7 +358,7 @@ def test_rotation_through_45_degrees_does_not_pop():
     popping index 1.37 / 2.58; 1.05 / 1.16; 1.22, bias jump -0.0059 / -0.0148;
     -0.0013 / -0.0063, max temporal error 0.0070 / 0.044; 0.0021 / 0.0138; 0.0027,
     mean RMSE 0.0150 / 0.0227; 0.0083 / 0.0097."""
-    v = VolumeEVM.from_volume(_phantoms.marschner_lobb(41), -1.0)
+    v = VolumeEVM.from_volume(phantoms.marschner_lobb(41), -1.0)
     g = grid_to_world(v.spacing, v.origin)
     tf = TransferFunction([(0.4, 1, 1, 1, 0), (0.5, 1, 1, 1, 0.3), (0.6, 1, 1, 1, 0)])
     angles = np.arange(40, 50.01, 0.5)
@@ -389,7 +390,7 @@ def test_sub_slabs_keep_the_mean_from_popping_at_whole_voxel_pixel_spacing():
     substeps 1 (default) / 3 (linear along A): popping index 26.1 / 0.44, max temporal error
     0.023 / 0.0055, mean RMSE 0.032 / 0.017 (3 sub-slabs with the density constant along A:
     4.12, 0.0097, 0.020; ray casting's popping index over S1 at 96²: 2.4)."""
-    v = VolumeEVM.from_volume(_phantoms.marschner_lobb(41), -1.0)
+    v = VolumeEVM.from_volume(phantoms.marschner_lobb(41), -1.0)
     g = grid_to_world(v.spacing, v.origin)
     tf = TransferFunction([(0.45, 1, 1, 1, 0), (0.5, 1, 0.8, 0.6, 0.3), (0.55, 1, 1, 1, 0)])
     c = centre(v, g)
@@ -432,7 +433,7 @@ def test_blend_keeps_the_closed_form_and_exactness(ct):
     cam = camera("ORTHO", g, v, (0.012, -0.012, 0.004), 0.014)
     assert np.count_nonzero(_family_weights(cam.forward, 0.2)) == 2
     rgba, _ = render_splat(v, cam, const_tf(0.2), g, termination=1.0)
-    chord = _phantoms.box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
+    chord = phantoms.box_chords_mm(cam, g, (3, 2, 2), (9, 8, 7))
     assert (chord > 0).sum() > 200
     np.testing.assert_allclose(rgba[..., 3], 1 - 0.8 ** chord, rtol=0, atol=1e-5)
     v, g, tf = region(ct, 150, "ct_bone")

@@ -8,21 +8,20 @@
   reference's and no pixel the reference shows (alpha > 0.05) drops out.
 
 Every method renders every frame, and so does the reference; the measures are
-:mod:`volumeevm_addon._metrics`. Bounds are the measured values with modest headroom (stated at
+:mod:`volumeevm_addon.metrics`. Bounds are the measured values with modest headroom (stated at
 each). ``raycast_navigate`` renders the same image as ``raycast`` and is not repeated.
 """
 
 import numpy as np
 import pytest
 
-from volumeevm_addon import VolumeEVM
-from volumeevm_addon import _phantoms
-from volumeevm_addon._camera import Camera
-from volumeevm_addon._metrics import bias_jump, popping_index, rmse
-from volumeevm_addon._render import render
-from volumeevm_addon._transfer import TransferFunction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon._volume import grid_to_world
+from volumeevm_addon import VolumeEVM, phantoms
+from volumeevm_addon.metrics import bias_jump, popping_index, rmse
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon.model._volume import grid_to_world
+from volumeevm_addon.rendering._camera import Camera
+from volumeevm_addon.rendering._render import render
+from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import centre, look_at, reference
 
 RES = 48
@@ -73,7 +72,7 @@ S1_ANGLES = np.linspace(42.0, 48.0, 13)
 
 @pytest.fixture(scope="module")
 def ml():
-    return VolumeEVM.from_volume(_phantoms.marschner_lobb(41), -1.0)
+    return VolumeEVM.from_volume(phantoms.marschner_lobb(41), -1.0)
 
 
 @pytest.fixture(scope="module")
@@ -141,11 +140,11 @@ S6_ANGLES = np.linspace(0.0, 90.0, 7)
 
 def thin_objects():
     """A one-voxel plate perpendicular to x through the centre and a one-voxel spherical shell
-    of radius 12 voxels, 33^3, antialiased (:mod:`volumeevm_addon._phantoms`, values in
+    of radius 12 voxels, 33^3, antialiased (:mod:`volumeevm_addon.phantoms`, values in
     [0, 1])."""
     shape = (33, 33, 33)
-    return {"plate": VolumeEVM.from_volume(_phantoms.thin_plate(shape, (1.0, 0.0, 0.0)), -1.0),
-            "shell": VolumeEVM.from_volume(_phantoms.shell(shape, 12.0), -1.0)}
+    return {"plate": VolumeEVM.from_volume(phantoms.thin_plate(shape, (1.0, 0.0, 0.0)), -1.0),
+            "shell": VolumeEVM.from_volume(phantoms.shell(shape, 12.0), -1.0)}
 
 
 @pytest.fixture(scope="module")

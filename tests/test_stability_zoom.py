@@ -8,14 +8,14 @@ about the same."""
 import numpy as np
 import pytest
 
-from volumeevm_addon import _phantoms
-from volumeevm_addon._levels import auto_factor
-from volumeevm_addon._metrics import rmse, temporal_errors
-from volumeevm_addon._render import render
-from volumeevm_addon._transfer import TransferFunction
-from volumeevm_addon._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon._volume import grid_to_world
-from volumeevm_addon._volumeevm import VolumeEVM
+from volumeevm_addon import phantoms
+from volumeevm_addon.metrics import rmse, temporal_errors
+from volumeevm_addon.model._levels import auto_factor
+from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon.model._volume import grid_to_world
+from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon.rendering._render import render
+from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import camera, reference
 
 TF = TransferFunction([(0.0, 1.0, 0.8, 0.5, 0.0), (1.0, 1.0, 0.9, 0.7, 0.4)])
@@ -42,8 +42,8 @@ PAN_TE = {"ml": {"shear_warp": 0.019, "splat": 0.0032, "raycast": 0.0009},
 
 @pytest.fixture(scope="module", params=["ml", "checker"])
 def scene(request):
-    vol = (_phantoms.marschner_lobb(41) if request.param == "ml"
-           else _phantoms.checker((32, 32, 32), 4))
+    vol = (phantoms.marschner_lobb(41) if request.param == "ml"
+           else phantoms.checker((32, 32, 32), 4))
     v = VolumeEVM.from_volume(vol, 0.0)
     return request.param, v, grid_to_world(v.spacing, v.origin)
 

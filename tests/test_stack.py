@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from volumeevm_addon import EVM, VolumeEVM
-from volumeevm_addon._stack import EditStack, ToolOperation
+from volumeevm_addon.model._stack import EditStack, ToolOperation
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._transfer import PRESETS, TransferFunction, opacity_correction
+from volumeevm_addon.rendering._transfer import PRESETS, TransferFunction, opacity_correction
 
 POINTS = [
     (-100.0, 0.0, 0.0, 1.0, 0.0),

@@ -24,9 +24,9 @@ import pytest
 from numpy.lib import format as npy_format
 
 from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError
-from volumeevm_addon import _volumeevm
 from volumeevm_addon._files import write_atomically
-from volumeevm_addon._images import write_png
+from volumeevm_addon.model import _volumeevm
+from volumeevm_addon.rendering._images import write_png
 
 MEMBER_ORDER = ("format", "version", "meta", "vertices", "table")
 

@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError
-from volumeevm_addon._densities import TABLE_ORDERS
+from volumeevm_addon.model._densities import TABLE_ORDERS
 
 
 @pytest.fixture(scope="module")

@@ -3,28 +3,35 @@
 NumPy only; never imports ``bpy``, so it works in plain Python as well as inside Blender.
 
 Everything a script, the Blender side or a benchmark needs is importable from here; the
-modules whose names start with ``_`` are private and may move. Two public sub-modules are
-imported on demand, like ``skimage.data``: :mod:`volumeevm_addon.phantoms` (test volumes with
-closed-form images) and :mod:`volumeevm_addon.metrics` (image errors and stability measures).
+modules whose names start with ``_`` are private and may move. The layout, by concept:
+
+- ``model/``: the EVM and its sweeps, mesh and components; the VolumeEVM, its densities tables,
+  ``.vevm`` files, resolution levels and edit stack; the volume record.
+- ``rendering/``: camera, transfer functions, the depth rule, image files, the entry point
+  ``render`` and one module per method (shear-warp, splatting, ray casting, the reference).
+- ``readers/``: one module per file format behind ``read_volume``.
+- ``_voxelize.py`` (the CAD tools), ``_errors.py``, ``_memory.py``, ``_files.py``: shared by all.
+- ``phantoms`` and ``metrics``: public modules imported on demand, like ``skimage.data``: test
+  volumes with closed-form images, and image errors and stability measures.
 """
 
-from ._camera import BACKGROUND_DEPTH, Camera
-from ._depth import VISIBLE_ALPHA
 from ._errors import VolumeEVMError
-from ._evm import EVM
 from ._files import atomic_target, write_atomically
-from ._images import exr_channels, openexr_module, read_exr, write_exr, write_png
-from ._levels import LEVELS
 from ._memory import LIMIT_VARIABLE, available_memory, check_memory
-from ._mesh import Polygons
-from ._reference import MODES, Shading
-from ._render import MAX_SAMPLES, METHODS, render, render_options
-from ._stack import EditStack, ToolOperation
-from ._transfer import PRESETS, TransferFunction
-from ._volume import BLENDER_UNITS_PER_MM, Volume, grid_to_world, index_to_physical
-from ._volumeevm import VolumeEVM
 from ._voxelize import box_evm, check_closed_mesh, voxelize_mesh, voxelize_mesh_evm
+from .model._evm import EVM
+from .model._levels import LEVELS
+from .model._mesh import Polygons
+from .model._stack import EditStack, ToolOperation
+from .model._volume import BLENDER_UNITS_PER_MM, Volume, grid_to_world, index_to_physical
+from .model._volumeevm import VolumeEVM
 from .readers import SUPPORTED_EXTENSIONS, read_volume
+from .rendering._camera import BACKGROUND_DEPTH, Camera
+from .rendering._depth import VISIBLE_ALPHA
+from .rendering._images import exr_channels, openexr_module, read_exr, write_exr, write_png
+from .rendering._reference import MODES, Shading
+from .rendering._render import MAX_SAMPLES, METHODS, render, render_options
+from .rendering._transfer import PRESETS, TransferFunction
 
 __all__ = [
     "BACKGROUND_DEPTH",

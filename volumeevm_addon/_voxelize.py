@@ -550,7 +550,7 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     Parameters and errors are those of :func:`voxelize_mesh`; besides, ``shape`` must fit the
     EVM's coordinate range (at most 1048575 voxels along each axis).
     """
-    from ._evm import EVM, check_lattice_range
+    from .model._evm import EVM, check_lattice_range
 
     verts, tris = _as_mesh(vertices, faces)
     shape = _as_shape(shape)
@@ -578,7 +578,7 @@ def box_evm(lo, hi, shape):
     ``lo <= i < hi`` on every axis, so the voxels are ``ceil(lo) <= i < ceil(hi)``, clipped to
     the grid; their EVM is the box's 8 corners.
     """
-    from ._evm import EVM
+    from .model._evm import EVM
 
     low = np.clip(np.ceil(np.asarray(lo, np.float64)), 0, shape).astype(np.int64)
     high = np.clip(np.ceil(np.asarray(hi, np.float64)), 0, shape).astype(np.int64)

@@ -1,14 +1,15 @@
-"""Volume readers: every supported file format into one :class:`~volumeevm_addon._volume.Volume`.
+"""Volume readers: every supported file format into one :class:`~volumeevm_addon.Volume`.
 
 :func:`read_volume` picks the reader from the path (a folder or a list of files is a DICOM
 series, a file goes by its extension) and passes the keyword options on. Each reader lives in its
 own private module and imports its third-party library (pydicom, nibabel, pynrrd, tifffile) only
 when it runs, so importing this package needs NumPy alone.
 
-Whatever the format, the result follows the conventions of ``_volume.py``: array ``[x, y, z]``
-(C-contiguous, native byte order), spacing in mm, origin = centre of voxel ``(0, 0, 0)`` and
-orientation columns in LPS. Bad input raises :class:`~volumeevm_addon._errors.VolumeEVMError`
-with the file and the problem in the message, chained to the library's own error if any:
+Whatever the format, the result follows the conventions of ``model/_volume.py``: array
+``[x, y, z]`` (C-contiguous, native byte order), spacing in mm, origin = centre of voxel
+``(0, 0, 0)`` and orientation columns in LPS. Bad input raises
+:class:`~volumeevm_addon.VolumeEVMError` with the file and the problem in the message, chained
+to the library's own error if any:
 
 - the path is looked at before any reader runs: a ``bytes`` path, a missing file, a broken
   link, a path too long or not accessible, a FIFO, socket or device (which would be read
@@ -16,8 +17,8 @@ with the file and the problem in the message, chained to the library's own error
 - every reader checks its header before reading data: the data must be exactly as long as the
   header announces (uncompressed files by their length, compressed streams by inflating no
   further and by their checksums), and the peak memory of the read must fit
-  (:func:`~volumeevm_addon._memory.check_memory`), so a corrupt or hostile header costs neither
-  a huge allocation nor silently different voxels.
+  (:func:`~volumeevm_addon.check_memory`), so a corrupt or hostile header costs neither a huge
+  allocation nor silently different voxels.
 """
 
 import errno

@@ -3,8 +3,8 @@
 Every reader decodes its format into a NumPy array plus grid geometry and hands both to
 :func:`checked_volume`, which refuses what the core cannot use (wrong number of dimensions, an
 empty grid, a dtype that is not a real number, NaN or Inf densities, degenerate geometry) with a
-:class:`~volumeevm_addon._errors.VolumeEVMError` naming the file, and otherwise returns the
-:class:`~volumeevm_addon._volume.Volume` in the core's conventions (native byte order,
+:class:`~volumeevm_addon.VolumeEVMError` naming the file, and otherwise returns the
+:class:`~volumeevm_addon.Volume` in the core's conventions (native byte order,
 C-contiguous ``[x, y, z]`` array).
 
 Before that, the readers share one way to get at the bytes: :func:`require_regular_file` and
@@ -24,7 +24,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from .._volume import Volume
+from ..model._volume import Volume
 
 #: Bytes read per call when filling a buffer, so a decompressing stream never holds a second
 #: full-size copy of the data.

@@ -102,10 +102,10 @@ import weakref
 
 import numpy as np
 
+from .._errors import VolumeEVMError
+from ..model._densities import TABLE_ORDERS
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._densities import TABLE_ORDERS
-from ._errors import VolumeEVMError
 from ._raycast import camera_rays, check_common, check_shading, finish_mode
 from ._reference import _shade
 

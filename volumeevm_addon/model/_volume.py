@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._errors import VolumeEVMError
+from .._errors import VolumeEVMError
 
 BLENDER_UNITS_PER_MM = 0.001
 """The one unit mapping: 1 mm of patient space is 0.001 Blender units (1 BU = 1 m, Blender's

@@ -20,8 +20,8 @@ A file comes from outside, so :func:`read_vevm` trusts nothing in it:
    fit each other: equal for a stored member; for a deflated one, no larger than deflate's
    maximum expansion (a "zip bomb" declaring a huge array) and no smaller than the compressed
    data could hold (a stream that would inflate beyond its declared size). The arrays' total is
-   checked against the free memory (:func:`~._memory.check_memory`) before any is read. The ZIP
-   reader never inflates beyond the declared size and verifies each member's CRC.
+   checked against the free memory (:func:`~volumeevm_addon.check_memory`) before any is read. The
+   ZIP reader never inflates beyond the declared size and verifies each member's CRC.
 2. The metadata must have every key with the right type: shape 3 positive integers, spacing 3
    finite positive numbers, origin 3 finite numbers, orientation an orthonormal 3x3 matrix (the
    geometry by the same rules as for a new VolumeEVM), units a string, threshold and upper
@@ -33,7 +33,7 @@ A file comes from outside, so :func:`read_vevm` trusts nothing in it:
    checks are complete.) The region's voxel count must equal ``voxels`` and the table's length,
    and the densities must be finite.
 
-Every failure raises :class:`~._errors.VolumeEVMError` naming the file and what is wrong.
+Every failure raises :class:`~volumeevm_addon.VolumeEVMError` naming the file and what is wrong.
 """
 
 import ast
@@ -52,10 +52,10 @@ from pathlib import Path
 import numpy as np
 from numpy.lib import format as npy_format
 
+from .._errors import VolumeEVMError
+from .._memory import check_memory
 from . import _sweep
-from ._errors import VolumeEVMError
 from ._evm import EVM
-from ._memory import check_memory
 from ._volume import checked_geometry
 
 FORMAT = "volumeevm"

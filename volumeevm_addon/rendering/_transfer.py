@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._errors import VolumeEVMError
+from .._errors import VolumeEVMError
 
 __all__ = ["TransferFunction", "PRESETS", "opacity_correction"]
 

@@ -31,9 +31,9 @@ import numbers
 
 import numpy as np
 
-from ._errors import VolumeEVMError
+from .._errors import VolumeEVMError
+from .._memory import check_memory
 from ._evm import EVM
-from ._memory import check_memory
 
 __all__ = ["coarsen", "checked_factor", "auto_factor", "level_factor", "level_memory", "LEVELS"]
 
@@ -61,7 +61,7 @@ def coarsen(vevm, factor):
     ------
     VolumeEVMError
         For a factor that is not such an integer, or when the level would need more memory
-        than is available (:func:`._memory.check_memory`).
+        than is available (:func:`volumeevm_addon.check_memory`).
     """
     from ._volumeevm import VolumeEVM
 

@@ -7,8 +7,9 @@ the other principal axes are made from it when a view asks for them, and cached.
 
 Files: one ``.vevm`` file is a NumPy ``.npz`` archive of plain arrays (never pickled objects),
 with a format name and version, the geometry as JSON, and SHA-256 checksums of the vertices and
-the table. It is written atomically and never replaces a file unasked (:mod:`._files`); loading
-checks every member and the metadata before anything is built (:mod:`._vevm_file`).
+the table. It is written atomically and never replaces a file unasked
+(:mod:`volumeevm_addon._files`); loading checks every member and the metadata before anything is
+built (:mod:`._vevm_file`).
 """
 
 import json
@@ -18,11 +19,11 @@ import os
 
 import numpy as np
 
+from .._errors import VolumeEVMError
+from .._files import write_atomically
+from .._memory import available_memory, check_memory
 from ._densities import TABLE_ORDERS, TableIndex
-from ._errors import VolumeEVMError
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
-from ._files import write_atomically
-from ._memory import available_memory, check_memory
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
 from ._volume import Volume, checked_densities, checked_geometry, index_to_physical
 
@@ -106,7 +107,7 @@ class VolumeEVM:
         VolumeEVMError
             For any input above that is not as described, naming ``source`` and the parameter;
             for an empty region; and when the build would need more memory than is available
-            (:func:`._memory.check_memory`).
+            (:func:`volumeevm_addon.check_memory`).
 
         Notes
         -----
@@ -356,7 +357,7 @@ class VolumeEVM:
         }
 
     def save(self, path, *, overwrite=False):
-        """Write one ``.vevm`` file atomically (:func:`._files.write_atomically`).
+        """Write one ``.vevm`` file atomically (:func:`volumeevm_addon._files.write_atomically`).
 
         Raises
         ------

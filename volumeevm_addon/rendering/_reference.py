@@ -70,9 +70,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._errors import VolumeEVMError
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera  # noqa: F401  (Camera: doctest)
-from ._errors import VolumeEVMError
 from ._transfer import TransferFunction  # noqa: F401  (doctest)
 
 __all__ = ["render_reference", "Shading", "MODES", "BOUNDARIES"]

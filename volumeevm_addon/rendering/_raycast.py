@@ -85,9 +85,9 @@ import weakref
 
 import numpy as np
 
+from .._errors import VolumeEVMError
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._errors import VolumeEVMError
 from ._reference import MODES, Shading, _shade
 
 __all__ = ["render_raycast", "render_raycast_navigate"]
@@ -973,7 +973,7 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
     tf : TransferFunction
         Post-interpolation classification (unused, may be None, for ``mode="xray"``).
     grid_to_world : (4, 4) ndarray
-        Voxel-centre index space to Blender world (:func:`._volume.grid_to_world`).
+        Voxel-centre index space to Blender world (:func:`volumeevm_addon.grid_to_world`).
     mode : {"over", "under", "xray", "mip"}
         As in :func:`._reference.render_reference`.
     depth_in : (H, W) ndarray, optional

@@ -18,13 +18,14 @@ Pipeline
    (``"under"``): the densities table ``vevm.table(c)`` read forwards or backwards.
 2. **Intermediate image.** Its pixel ``(p, q)`` is the ray through the point ``(p, q)`` (plus an
    integer origin) of a reference plane ``c = c_ref`` in index space; its two axes are the
-   in-slice axes of the table order (:data:`._densities.TABLE_ORDERS`). The ray meets slice
-   ``s`` at in-slice index coordinates ``x = α_s p + β_s`` (and likewise ``y``). Orthographic:
-   ``α_s = 1`` and ``β_s = (s - c_ref) d_a / d_c`` (the shear): the slice is *translated*, so
-   the four bilinear weights ``(1-f)(1-g), (1-f)g, f(1-g), fg`` with ``f = frac(β_s)`` are the
-   same for the whole slice (VolPack ``vp_renderA.c``) and resampling is four shifted views of
-   the slice's box (the default, unshaded pre-classification with one sample per slice: two
-   1-D interpolations of shifted views, columns then rows, ``a + f·(b - a)``). Perspective: ``α_s = (s - E_c)/(c_ref - E_c)`` with the eye ``E``, a
+   in-slice axes of the table order (:data:`volumeevm_addon.model._densities.TABLE_ORDERS`). The
+   ray meets slice ``s`` at in-slice index coordinates ``x = α_s p + β_s`` (and likewise ``y``).
+   Orthographic: ``α_s = 1`` and ``β_s = (s - c_ref) d_a / d_c`` (the shear): the slice is
+   *translated*, so the four bilinear weights ``(1-f)(1-g), (1-f)g, f(1-g), fg`` with
+   ``f = frac(β_s)`` are the same for the whole slice (VolPack ``vp_renderA.c``) and resampling
+   is four shifted views of the slice's box (the default, unshaded pre-classification with one
+   sample per slice: two 1-D interpolations of shifted views, columns then rows,
+   ``a + f·(b - a)``). Perspective: ``α_s = (s - E_c)/(c_ref - E_c)`` with the eye ``E``, a
    per-slice uniform scale about the eye (Lacroute & Levoy 1994, §4; Schulze et al. 2001);
    the reference plane is the region's far end, so ``α_s <= 1`` (slices are magnified, never
    minified) and the bilinear weights are separable: one 2-tap weight vector per row and one
@@ -123,10 +124,10 @@ import weakref
 
 import numpy as np
 
+from .._errors import VolumeEVMError
+from ..model._densities import TABLE_ORDERS
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._densities import TABLE_ORDERS
-from ._errors import VolumeEVMError
 from ._raycast import check_common, check_shading
 from ._reference import MODES
 
@@ -630,7 +631,7 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     tf : TransferFunction
         Classification; unused (may be None) for ``mode="xray"``.
     grid_to_world : (4, 4) ndarray
-        Voxel-centre index space to world (Blender units), :func:`._volume.grid_to_world`.
+        Voxel-centre index space to world (Blender units), :func:`volumeevm_addon.grid_to_world`.
     mode : {"over", "under", "xray", "mip"}
         As in :func:`._reference.render_reference`.
     depth_in : (H, W) ndarray, optional
@@ -686,7 +687,7 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
 
     See Also
     --------
-    volumeevm_addon._reference.render_reference : the accuracy oracle (same conventions).
+    volumeevm_addon.rendering._reference.render_reference : the accuracy oracle (same conventions).
 
     Examples
     --------

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._errors import VolumeEVMError
+from .._errors import VolumeEVMError
 
 __all__ = ["Camera", "BACKGROUND_DEPTH"]
 

@@ -1,8 +1,8 @@
 """Image files of DVR results: OpenEXR (R, G, B, A, Z) and PNG previews, written atomically.
 
 Arrays are ``(H, W)`` or ``(H, W, 4)`` with row 0 at the **top** (the renderers' order; Blender
-images are bottom row first). Files are written atomically (:mod:`._files`); an existing file is
-replaced only when ``overwrite=True``.
+images are bottom row first). Files are written atomically (:mod:`volumeevm_addon._files`); an
+existing file is replaced only when ``overwrite=True``.
 
 EXR goes through the ``OpenEXR`` module (PyPI ``OpenEXR`` >= 3.3), imported when first needed.
 PNG needs nothing beyond NumPy and the standard library.
@@ -13,8 +13,8 @@ import zlib
 
 import numpy as np
 
-from ._errors import VolumeEVMError
-from ._files import write_atomically
+from .._errors import VolumeEVMError
+from .._files import write_atomically
 
 __all__ = ["write_exr", "read_exr", "write_png", "exr_channels", "openexr_module"]
 

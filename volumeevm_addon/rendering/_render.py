@@ -10,14 +10,15 @@ never read; interpolation at the region's surface uses only the region's voxels 
 renormalised). Rendering a VolumeEVM therefore equals rendering the dense volume with
 everything outside the region transparent, which is the exactness contract every method keeps.
 
-Resolution levels (:mod:`._levels`): ``level="auto"`` renders a volume much finer than the
-image's pixels from a coarser VolumeEVM (cached on the VolumeEVM); the exactness contract holds
-for the level rendered, and the default ``level="full"`` renders the VolumeEVM itself.
+Resolution levels (:mod:`volumeevm_addon.model._levels`): ``level="auto"`` renders a volume much
+finer than the image's pixels from a coarser VolumeEVM (cached on the VolumeEVM); the exactness
+contract holds for the level rendered, and the default ``level="full"`` renders the VolumeEVM
+itself.
 
 Before anything is allocated, :func:`render` checks its inputs (every error a
 :class:`VolumeEVMError` naming the parameter), bounds the work (:data:`MAX_SAMPLES`) and checks
 the memory the render needs (:func:`render_memory`) against what is available
-(:func:`._memory.check_memory`).
+(:func:`volumeevm_addon.check_memory`).
 """
 
 import inspect
@@ -25,12 +26,12 @@ import numbers
 
 import numpy as np
 
+from .._errors import VolumeEVMError
+from .._memory import check_memory
+from ..model._levels import level_factor
+from ..model._volume import grid_to_world
 from ._camera import Camera
-from ._errors import VolumeEVMError
-from ._levels import level_factor
-from ._memory import check_memory
 from ._reference import MODES
-from ._volume import grid_to_world
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
 
@@ -107,9 +108,9 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Resolution level: ``"full"`` (default) renders ``vevm`` itself; an integer ``f >= 2``
         renders ``vevm.level(f)``, ``f`` times coarser voxels; ``"auto"`` picks the coarsest
         power of two whose voxels are still no wider than a pixel where the volume is nearest
-        the camera (:func:`._levels.auto_factor`). A coarser level scales a given ``step_mm``
-        by the factor (the ray casters keep their samples per voxel). The reference method
-        ignores it: it is the full-resolution oracle.
+        the camera (:func:`volumeevm_addon.model._levels.auto_factor`). A coarser level scales a
+        given ``step_mm`` by the factor (the ray casters keep their samples per voxel). The
+        reference method ignores it: it is the full-resolution oracle.
     **options
         Method-specific quality settings (the keywords of the method's renderer;
         :func:`render_options` lists each method's with its defaults). An option
@@ -131,7 +132,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         more than :data:`MAX_SAMPLES` samples (the message says which ``step_mm`` or
         ``substeps`` would do); and when the image or the render's estimated peak memory
         (:func:`render_memory`) exceeds the memory available
-        (:func:`._memory.available_memory`; the message suggests a coarser level, a smaller
+        (:func:`volumeevm_addon.available_memory`; the message suggests a coarser level, a smaller
         image or another method).
     """
     if method not in METHODS:
@@ -188,7 +189,7 @@ def check_samples(method, vevm, camera, grid_to_world, options):
         The VolumeEVM rendered (the level, when a coarser one is rendered).
     camera : Camera
     grid_to_world : (4, 4) ndarray
-        Voxel-centre indices to world (:func:`._volume.grid_to_world`).
+        Voxel-centre indices to world (:func:`volumeevm_addon.grid_to_world`).
     options : dict
         The method's options (``step_mm`` or ``substeps`` are read).
 
@@ -247,7 +248,7 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
     tf : TransferFunction
         The render's transfer function (shear-warp caches its classes per function).
     grid_to_world : (4, 4) ndarray
-        Voxel-centre indices to world (:func:`._volume.grid_to_world`): the view decides the
+        Voxel-centre indices to world (:func:`volumeevm_addon.grid_to_world`): the view decides the
         principal axes whose tables shear-warp and splatting build.
     options : dict
         The renderer's keywords, ``mode`` included (``shading``, ``intermediate_scale`` and

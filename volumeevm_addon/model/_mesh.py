@@ -19,7 +19,7 @@ faces of both sheets share that vertex. Nothing is duplicated or split apart to 
 mesh is the exact boundary of the voxel region, and Blender shows such edges and vertices as
 non-manifold (Select > Select All by Trait > Non Manifold).
 
-Memory is checked (:func:`._memory.check_memory`) before each stage allocates, from the sizes
+Memory is checked (:func:`volumeevm_addon.check_memory`) before each stage allocates, from the sizes
 known by then: each axis's rectangles from its count of face runs, then the polygon mesh from
 the count of rectangles. The bytes per run and per rectangle are tracemalloc peaks measured on
 real and synthetic regions (CT head at two thresholds, noise, checkerboard, ball; see
@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._memory import check_memory
 from . import _sweep
-from ._memory import check_memory
 
 # Cyclic axis orders "ABC" with e_B x e_C = +e_A, so (B, C) counter-clockwise faces +A.
 _CYCLIC = ("xyz", "yzx", "zxy")

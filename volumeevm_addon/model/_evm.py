@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._errors import VolumeEVMError
+from .._memory import check_memory
 from . import _sweep
-from ._errors import VolumeEVMError
-from ._memory import check_memory
 
 ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six lexicographic axis orders "ABC": A slowest."""

@@ -1,0 +1,15 @@
+"""The model: a voxel region as an Extreme Vertices Model, and the VolumeEVM built on it.
+
+One module per concept (private; the public names are imported from ``volumeevm_addon``):
+
+- ``_evm.py``: the Extreme Vertices Model of a voxel region (:class:`~volumeevm_addon.EVM`).
+- ``_sweep.py``: plane sweeps over sorted extreme vertices, for all planes at once with NumPy.
+- ``_mesh.py``: the boundary of an EVM as a closed, outward polygon mesh with merged faces.
+- ``_components.py``: face-connected components of an EVM, one EVM each.
+- ``_densities.py``: voxel -> index in a densities table, computed from the EVM alone.
+- ``_volumeevm.py``: the EVM of a region of interest plus the densities of its voxels.
+- ``_vevm_file.py``: reading and checking a ``.vevm`` file before anything is built.
+- ``_levels.py``: coarser resolution levels of a VolumeEVM (no more than a view needs).
+- ``_stack.py``: the non-destructive stack of tool operations on a VolumeEVM.
+- ``_volume.py``: the volume record every reader returns, and where its grid sits.
+"""

@@ -1,0 +1,21 @@
+"""Direct volume rendering of a VolumeEVM: camera, transfer functions, the methods, images.
+
+Private modules; the public names (:func:`~volumeevm_addon.render`, ``Camera``,
+``TransferFunction``, ``METHODS``, ...) are imported from ``volumeevm_addon``. One module per
+method; ``_render.py`` is the entry point that checks the inputs and dispatches to them:
+
+- ``_render.py``: :func:`~volumeevm_addon.render`, whatever the method (checks, memory, levels).
+- ``_shear_warp.py``: shear-warp (Lacroute & Levoy), parallel and perspective.
+- ``_splat.py``: sheet-buffer splatting (Westover), post-classified.
+- ``_raycast.py``: ray casting with the EVM as space-leaping structure, and its navigation mode.
+- ``_reference.py``: the dense float64 reference ray caster, the accuracy oracle of every method.
+- ``_camera.py``: a plain camera record that reproduces Blender's projection exactly.
+- ``_transfer.py``: transfer functions, piecewise-linear colour and opacity in the data's units.
+- ``_depth.py``: what "visible" means for the output depth, one threshold for every method.
+- ``_images.py``: image files of the results: OpenEXR (R, G, B, A, Z) and PNG previews.
+
+To add a method: write its ``render_<method>`` (and ``tables_to_build``) in a module of its own
+here, with the signature of the others, then name it in ``_render.py``: ``METHODS``,
+``_renderers()``, ``_tables_to_build()`` and the memory model (``_GRID_BYTES`` and the tables
+beside it, measured with ``bench/bench_memory.py``).
+"""
