@@ -3,6 +3,7 @@
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -48,8 +49,14 @@ def run_facts():
 
 
 def write_json(path, data):
-    """Write ``data`` as indented JSON, atomically (NumPy values become lists or numbers)."""
+    """Write ``data`` as indented JSON, atomically (NumPy values become lists or numbers).
+
+    A list of numbers (a curve, a matrix row, a shape) stays on one line, so that a result
+    file reads (and diffs) by entry rather than by number. Only a list that ``json.dumps`` spread
+    over lines is joined: a string never holds a newline, so its text is never touched."""
     text = json.dumps(data, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    text = re.sub(r"\[\n[-+.\deE,\s]*\]",
+                  lambda m: "[" + " ".join(m.group()[1:-1].split()) + "]", text)
     write_atomically(path, lambda temporary: temporary.write_text(text), overwrite=True)
     print(f"wrote {path}")
 

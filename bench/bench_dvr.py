@@ -43,7 +43,8 @@ References are cached in ``bench/results/cache/`` keyed by the scene and
 
 Outputs in ``--out``: ``speed_accuracy.csv`` (tidy, one row per run, with commit and
 versions), ``speed_accuracy.png`` (the chart), ``speed_accuracy.md`` (the time-to-ε tables,
-preparation and memory, the targets stated plainly), ``bench_dvr.json`` (everything) and
+preparation and memory, the targets stated plainly), ``bench_dvr.json`` (the run's facts,
+the datasets, scenes and preparation, the targets; the runs themselves are in the CSV) and
 ``dvr_<dataset>_<view>.png`` (each method's default image beside the reference).
 
 Usage: ``python bench/bench_dvr.py [--out bench/results] [--repeat 3]
@@ -554,8 +555,36 @@ def write_csv(path, rows, facts):
                      overwrite=True)
 
 
+def read_csv(path):
+    """The rows of a ``speed_accuracy.csv`` written by :func:`write_csv`, with the frame time
+    and the error as numbers (the columns the time-to-ε tables and the chart read)."""
+    with open(path, newline="") as file:
+        rows = list(csv.DictReader(file))
+    for r in rows:
+        r["frame_s"] = float(r["frame_s"])
+        r["rmse"] = float(r["rmse"])
+    return rows
+
+
 def _ms(seconds):
     return f"{seconds * 1000:.0f} ms" if seconds < 10 else f"{seconds:.1f} s"
+
+
+def time_table(by):
+    """The Markdown lines of one time-to-ε table: per method (``by``: method → rows of one
+    dataset and view), the fastest setting reaching each ε and the lowest error reached.
+    Used by the summary and by ``bench/readme_tables.py``."""
+    lines = ["| method | " + " | ".join(f"RMSE ≤ {e}" for e in EPSILONS)
+             + " | lowest RMSE (time) |", "|---" * (len(EPSILONS) + 2) + "|"]
+    for method, points in by.items():
+        cells = []
+        for eps in EPSILONS:
+            p = time_to_reach(points, eps)
+            cells.append(f"{_ms(p['frame_s'])} ({p['setting']})" if p else "—")
+        low = min(points, key=lambda r: r["rmse"])
+        lines.append(f"| {method} | " + " | ".join(cells)
+                     + f" | {low['rmse']:.4f} ({_ms(low['frame_s'])}) |")
+    return lines
 
 
 def summary(rows, info, checks, facts):
@@ -572,17 +601,7 @@ def summary(rows, info, checks, facts):
              "(and that setting); — = no setting does.", ""]
     for (dataset, view), by in sorted(groups(rows).items()):
         lines += [f"## {dataset} ({view}): {info[dataset]['panel']}", "",
-                  "| method | " + " | ".join(f"RMSE ≤ {e}" for e in EPSILONS)
-                  + " | lowest RMSE (time) |", "|---" * (len(EPSILONS) + 2) + "|"]
-        for method, points in by.items():
-            cells = []
-            for eps in EPSILONS:
-                p = time_to_reach(points, eps)
-                cells.append(f"{_ms(p['frame_s'])} ({p['setting']})" if p else "—")
-            low = min(points, key=lambda r: r["rmse"])
-            lines.append(f"| {method} | " + " | ".join(cells)
-                         + f" | {low['rmse']:.4f} ({_ms(low['frame_s'])}) |")
-        lines.append("")
+                  *time_table(by), ""]
     lines += ["## Preparation and memory (first call on a fresh VolumeEVM, orthographic view)", "",
               "| dataset | VolumeEVM build | VolumeEVM / dense bytes | method | first call "
               "| densities tables after it | peak allocations |", "|---|---|---|---|---|---|---|"]
@@ -683,7 +702,7 @@ def main():
         "timing": f"median of {args.repeat} timed runs after one warm-up",
         "error": "RMSE etc. of premultiplied RGBA; ours vs the reference of the VolumeEVM, "
                  "peers vs the reference of the whole volume; peers' 8-bit images /255",
-        "targets": TARGETS, "target_results": checks, "datasets": info, "rows": rows})
+        "targets": TARGETS, "target_results": checks, "datasets": info})
 
 
 if __name__ == "__main__":

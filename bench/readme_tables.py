@@ -1,0 +1,139 @@
+"""The README's benchmark tables, generated from ``bench/results/`` (never copied by hand).
+
+Each table sits in README.md between marker comments that say what goes there::
+
+    <!-- bench:evm_core -->                       ... <!-- /bench:evm_core -->
+    <!-- bench:speed_accuracy:ct_head:ortho -->   ... <!-- /bench:speed_accuracy:ct_head:ortho -->
+
+``bench:evm_core`` is built from ``bench_evm.json``; ``bench:speed_accuracy:<dataset>:<view>``
+is the time-to-ε table of that dataset and view, built from ``speed_accuracy.csv`` (the runs)
+and ``bench_dvr.json`` (the scene and the run's facts) by the same code as
+``speed_accuracy.md``. Each block names the commit and the machine of its results. ``make bench``
+runs this script last; ``--check`` rewrites nothing and exits with 1 when the README differs
+from what the results give (``tests/test_readme_tables.py``), so the README cannot drift.
+
+Usage: ``python bench/readme_tables.py [--check] [--readme README.md] [--results bench/results]``
+"""
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.bench_dvr import groups, read_csv, time_table  # noqa: E402
+from volumeevm_addon import write_atomically  # noqa: E402
+
+BLOCK = re.compile(r"(<!-- bench:(?P<name>[\w:]+) -->\n)(?P<body>.*?)(<!-- /bench:(?P=name) -->)",
+                   re.DOTALL)
+VIEWS = {"ortho": "orthographic", "persp": "perspective"}
+
+
+def _facts(result, timing):
+    """The line naming where a result comes from: commit, machine, timing."""
+    changed = len(result["modified_files_at_start"])
+    return (f"Measured at commit {result['commit'][:7]}"
+            + (f" with {changed} files changed" if changed else "")
+            + f" on {result['machine']} ({result['date_utc'][:10]}; {timing}).")
+
+
+def _times(ratio):
+    """A speed ratio as the README words it: "1.1× faster", or "1.0×" when not faster."""
+    text = f"{ratio:.1f}×"
+    return f"{text} faster" if float(f"{ratio:.1f}") > 1.0 else text
+
+
+def _target(measured, target, at_least, where=""):
+    """The target column: the bound and whether the measured value meets it."""
+    met = measured >= target if at_least else measured <= target
+    return (f"{'≥' if at_least else '≤'} {target:g}{'×' if at_least else ''}{where} — "
+            + ("met" if met else "**not met**"))
+
+
+def evm_core(results):
+    """The EVM core table (``bench_evm.json``): one column per threshold."""
+    result = json.loads((results / "bench_evm.json").read_text())
+    rows, targets, measured = result["rows"], result["targets"], result["measured"]
+    speed = "extract_mesh_speedup_vs_marching_cubes"
+
+    def line(label, cells, target=""):
+        return "|" + "|".join(f" {c} " if c else " " for c in (label, *cells, target)) + "|"
+
+    head = [f"{r['case']} ({r['threshold_hu']:g} HU)".replace("-", "−") for r in rows]
+    return [
+        _facts(result, result["timing"]), "",
+        line("", head, "target"),
+        "|---" * (len(rows) + 2) + "|",
+        line("voxels / extreme vertices",
+             [f"{r['voxels']:,} / {r['extreme_vertices']:,}" for r in rows]),
+        line("EVM extraction + closed mesh vs scikit-image `marching_cubes`",
+             [_times(r[speed]) for r in rows], _target(measured[speed], targets[speed], True)),
+        line("mesh polygons per unit voxel face",
+             [f"{r['mesh_faces_per_unit_face']:.3f}" for r in rows],
+             _target(measured["mesh_faces_per_unit_face_bone"],
+                     targets["mesh_faces_per_unit_face_bone"], False, " (bone)")),
+        line("cut by a box / a sphere: sweep vs dense Boolean + re-extraction",
+             [f"{r['cut_box_speedup_vs_dense']:.1f}× / {_times(r['cut_sphere_speedup_vs_dense'])}"
+              for r in rows]),
+        line("VolumeEVM bytes vs the dense array", [f"{r['bytes_vs_dense']:.3f}" for r in rows],
+             _target(measured["bytes_vs_dense_bone"], targets["bytes_vs_dense_bone"], False,
+                     " (bone)")),
+    ]
+
+
+def speed_accuracy(results, dataset, view):
+    """The time-to-ε table of one dataset and view (``speed_accuracy.csv``), with its scene."""
+    result = json.loads((results / "bench_dvr.json").read_text())
+    info = result["datasets"][dataset]
+    by = groups(read_csv(results / "speed_accuracy.csv"))[(dataset, view)]
+    shape = "×".join(str(n) for n in info["shape"])
+    width, height = info["views"][view]["size"]
+    size = f"{width}²" if width == height else f"{width}×{height}"
+    return [f"**{dataset}** — {info['panel']}, {shape} → {size}, {VIEWS.get(view, view)}. "
+            + _facts(result, result["timing"]), "", *time_table(by)]
+
+
+def block(name, results):
+    """The Markdown lines of the block ``name`` (the marker's name)."""
+    kind, *args = name.split(":")
+    makers = {"evm_core": evm_core, "speed_accuracy": speed_accuracy}
+    if kind not in makers:
+        raise SystemExit(f"README.md: unknown benchmark block <!-- bench:{name} -->")
+    return makers[kind](results, *args)
+
+
+def render_readme(text, results):
+    """``text`` with every benchmark block replaced by what ``results`` give."""
+    return BLOCK.sub(lambda m: m.group(1) + "\n".join(block(m.group("name"), results)) + "\n"
+                     + m.group(4), text)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--readme", type=Path, default=REPO / "README.md")
+    parser.add_argument("--results", type=Path, default=REPO / "bench" / "results")
+    parser.add_argument("--check", action="store_true",
+                        help="change nothing; exit 1 if the README differs from the results")
+    args = parser.parse_args(argv)
+    text = args.readme.read_text()
+    if not BLOCK.search(text):
+        raise SystemExit(f"{args.readme}: no <!-- bench:... --> block to fill")
+    new = render_readme(text, args.results)
+    if args.check:
+        if new != text:
+            print(f"{args.readme}: benchmark tables differ from {args.results}; "
+                  "run python bench/readme_tables.py", file=sys.stderr)
+            return 1
+        return 0
+    if new != text:
+        write_atomically(args.readme, lambda temporary: temporary.write_text(new), overwrite=True)
+        print(f"wrote {args.readme}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
