@@ -11,7 +11,6 @@ import pytest
 
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
-from render_helpers import look_at
 
 
 # ---------------------------------------------------------------------------- core rules
@@ -51,7 +50,7 @@ def test_viewplane_fit_rules():
 
 @pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
 def test_rays_pass_through_pixel_centres(kind):
-    m = look_at((0.3, -2.0, 0.7), (0.1, 0.2, 0.0))
+    m = Camera.look_at((0.3, -2.0, 0.7), (0.1, 0.2, 0.0)).matrix_world
     kw = dict(shift_x=0.1, shift_y=-0.05, resolution_x=24, resolution_y=15,
               pixel_aspect_x=1.5, clip_start=0.01)
     cam = (Camera.orthographic(m, 1.3, **kw) if kind == "ORTHO"
@@ -79,7 +78,7 @@ def test_row_zero_is_top():
 
 
 def test_scale_of_matrix_world_is_ignored():
-    m = look_at((1.0, -3.0, 2.0), (0.0, 0.0, 0.0))
+    m = Camera.look_at((1.0, -3.0, 2.0), (0.0, 0.0, 0.0)).matrix_world
     s = m.copy()
     s[:3, :3] *= (2.0, 0.5, 3.0)
     a = Camera.perspective(m, 50.0, resolution_x=8, resolution_y=6)
@@ -87,9 +86,42 @@ def test_scale_of_matrix_world_is_ignored():
     np.testing.assert_allclose(a.rays()[1], b.rays()[1], rtol=1e-14)
 
 
+def test_look_at_builds_a_right_handed_frame():
+    """The camera looks from eye to target with +Y towards ``up``; a view along ``up`` takes
+    world +Y as up; the frame is orthonormal and right-handed (X x Y = Z = -forward)."""
+    cam = Camera.look_at((1.0, -2.0, 3.0), (1.0, 5.0, 3.0), kind="PERSP", lens_mm=35.0)
+    assert cam.projection == "PERSP" and cam.lens_mm == 35.0
+    assert cam.forward.tolist() == [0.0, 1.0, 0.0] and cam.up.tolist() == [0.0, 0.0, 1.0]
+    assert cam.right.tolist() == [1.0, 0.0, 0.0] and cam.position.tolist() == [1.0, -2.0, 3.0]
+    down = Camera.look_at((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), ortho_scale=2.0)
+    assert down.is_ortho and down.ortho_scale == 2.0
+    assert down.up.tolist() == [0.0, 1.0, 0.0] and down.right.tolist() == [1.0, 0.0, 0.0]
+    rng = np.random.default_rng(3)
+    for eye, target, up in rng.normal(size=(20, 3, 3)):
+        m = Camera.look_at(eye, target, up).matrix_world
+        np.testing.assert_allclose(m[:3, :3].T @ m[:3, :3], np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(np.cross(m[:3, 0], m[:3, 1]), m[:3, 2], atol=1e-12)
+        forward = (target - eye) / np.linalg.norm(target - eye)
+        np.testing.assert_allclose(-m[:3, 2], forward, atol=1e-12)
+        assert m[:3, 1] @ up > 0  # image up leans towards `up`
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(eye=(1.0, 2.0, 3.0), target=(1.0, 2.0, 3.0)), "target: must differ from eye"),
+    (dict(eye=(0.0, -1.0, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)),
+     "up: no image-up direction"),
+    (dict(eye=(1.0, 2.0), target=(0.0, 0.0, 0.0)), "eye: expected 3 finite numbers"),
+    (dict(eye=(0.0, 0.0, 1.0), target=(0.0, np.nan, 0.0)), "target: expected 3 finite"),
+    (dict(eye=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0), kind="FISHEYE"), "kind: 'ORTHO'"),
+])
+def test_look_at_rejects_bad_input(kwargs, match):
+    with pytest.raises(VolumeEVMError, match=match):
+        Camera.look_at(**kwargs)
+
+
 def test_projection_matrix_matches_project():
     rng = np.random.default_rng(1)
-    m = look_at((2.0, -3.0, 1.0), (0.0, 0.2, 0.1))
+    m = Camera.look_at((2.0, -3.0, 1.0), (0.0, 0.2, 0.1)).matrix_world
     for cam in (Camera.perspective(m, 40.0, shift_x=0.2, resolution_x=30, resolution_y=20,
                                    pixel_aspect_y=1.3),
                 Camera.orthographic(m, 2.5, shift_y=0.2, resolution_x=30, resolution_y=20)):
@@ -199,7 +231,8 @@ def test_project_matches_blender(scene, case):
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = rx, ry, pct
     r.pixel_aspect_x, r.pixel_aspect_y = ax, ay
-    obj.matrix_world = Matrix(look_at((1.5, -4.0, 2.0), (0.2, 0.1, 0.3)).tolist())
+    obj.matrix_world = Matrix(
+        Camera.look_at((1.5, -4.0, 2.0), (0.2, 0.1, 0.3)).matrix_world.tolist())
     obj.scale = (1.0, 2.0, 0.5)  # Blender ignores camera scale; so must we
     bpy.context.view_layer.update()
 
@@ -305,7 +338,8 @@ def test_silhouette_and_depth_match_a_cycles_render(scene, case, tmp_path):
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = rx, ry, pct
     r.pixel_aspect_x, r.pixel_aspect_y = ax, ay
-    scene.camera.matrix_world = Matrix(look_at((2.0, -3.0, 1.5), (0.1, 0.0, 0.05)).tolist())
+    scene.camera.matrix_world = Matrix(
+        Camera.look_at((2.0, -3.0, 1.5), (0.1, 0.0, 0.05)).matrix_world.tolist())
 
     # A box of 3 x 5 x 4 voxels of 0.2 BU, rotated and moved: the mesh and the grid agree.
     shape = np.array([3, 5, 4])

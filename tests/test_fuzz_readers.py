@@ -36,7 +36,7 @@ import typing
 
 import numpy as np
 import pytest
-from test_readers import REPO, patch_nifti, write_den, write_nrrd
+from reader_helpers import REPO, patch_nifti, write_den, write_nrrd
 
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.readers import read_volume

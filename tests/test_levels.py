@@ -12,7 +12,7 @@ from volumeevm_addon.model._volume import grid_to_world
 from volumeevm_addon.model._volumeevm import VolumeEVM
 from volumeevm_addon.rendering._camera import Camera
 from volumeevm_addon.rendering._render import render
-from render_helpers import camera, const_tf, look_at
+from render_helpers import camera, const_tf
 
 
 def blocks(array, f):
@@ -96,8 +96,8 @@ def test_auto_factor_rule():
     g = grid_to_world((0.5, 0.5, 1.0), (0.0, 0.0, 0.0))  # largest edge 1 mm
     shape = (200, 200, 100)
     for pixel_mm, want in ((0.9, 1), (1.0, 1), (2.5, 2), (4.0, 4), (7.9, 4), (9.0, 8)):
-        cam = Camera.orthographic(look_at((0, -1, 0), (0, 0, 0)), 100 * pixel_mm * BU,
-                                  resolution_x=100, resolution_y=80)
+        cam = Camera.look_at((0, -1, 0), (0, 0, 0), ortho_scale=100 * pixel_mm * BU,
+                             resolution_x=100, resolution_y=80)
         assert auto_factor(shape, g, cam) == want, pixel_mm
     # Never coarser than the grid's largest side.
     cam = Camera.orthographic(np.eye(4), 10.0, resolution_x=4, resolution_y=4)
@@ -105,11 +105,11 @@ def test_auto_factor_rule():
     # Perspective, 50 mm lens on a 36 mm sensor, 100 px wide: pixel 0.0072 * depth. The box
     # (x from -0.25 to 199.75 mm) nearest the camera at 0.6 BU along +x: depth 0.40025 BU,
     # pixel 2.88 mm: level 2.
-    cam = Camera.perspective(look_at((0.6, 0.05, 0.05), (0.0, 0.05, 0.05)), 50.0,
-                             resolution_x=100, resolution_y=100, clip_start=1e-3)
+    cam = Camera.look_at((0.6, 0.05, 0.05), (0.0, 0.05, 0.05), kind="PERSP", lens_mm=50.0,
+                         resolution_x=100, resolution_y=100, clip_start=1e-3)
     assert auto_factor(shape, g, cam) == 2
-    cam = Camera.perspective(look_at((1.4, 0.05, 0.05), (0.0, 0.05, 0.05)), 50.0,
-                             resolution_x=100, resolution_y=100, clip_start=1e-3)
+    cam = Camera.look_at((1.4, 0.05, 0.05), (0.0, 0.05, 0.05), kind="PERSP", lens_mm=50.0,
+                         resolution_x=100, resolution_y=100, clip_start=1e-3)
     assert auto_factor(shape, g, cam) == 8  # depth 1.2 BU: pixel 8.6 mm
 
 

@@ -15,7 +15,7 @@ from volumeevm_addon.phantoms import box_chords_mm
 from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon.rendering._raycast import _Blocks, render_raycast, render_raycast_navigate
 from volumeevm_addon.rendering._transfer import TransferFunction
-from render_helpers import MODES, XRAY, camera, centre, const_tf, look_at, reference
+from render_helpers import MODES, XRAY, camera, centre, const_tf, reference
 
 
 @pytest.fixture(scope="module")
@@ -357,8 +357,8 @@ def test_empty_and_single_voxel_regions():
 def test_camera_that_sees_nothing_and_odd_sizes(ct):
     v, g, tf = skin(ct)
     c = centre(v, g)
-    m = look_at(c + (0.3, 0, 0), c + (0.6, 0, 0))  # looking away
-    cam = Camera.perspective(m, 50.0, resolution_x=7, resolution_y=5)
+    cam = Camera.look_at(c + (0.3, 0, 0), c + (0.6, 0, 0), kind="PERSP",  # looking away
+                         resolution_x=7, resolution_y=5)
     rgba, depth = render_raycast(v, cam, tf, g)
     assert rgba.shape == (5, 7, 4) and rgba.max() == 0 and np.all(depth == BACKGROUND_DEPTH)
     cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(13, 1))
@@ -369,8 +369,8 @@ def test_camera_that_sees_nothing_and_odd_sizes(ct):
 def test_camera_inside_the_volume(ct):
     v, g, tf = skin(ct)
     c = centre(v, g)
-    cam = Camera.perspective(look_at(c, c + (0.05, 0.1, 0.0)), 20.0, resolution_x=24,
-                             resolution_y=20, clip_start=1e-3)
+    cam = Camera.look_at(c, c + (0.05, 0.1, 0.0), kind="PERSP", lens_mm=20.0, resolution_x=24,
+                         resolution_y=20, clip_start=1e-3)
     rgba, depth = render_raycast(v, cam, tf, g, step_mm=1.0)
     rr, dr = reference(v, cam, tf, g)
     assert not np.isnan(rgba).any() and rr[..., 3].mean() > 0.3

@@ -5,7 +5,6 @@ file and the problem."""
 import copy
 import errno
 import gzip
-import io
 import json
 import os
 import re
@@ -13,7 +12,6 @@ import shutil
 import subprocess
 import sys
 import tokenize
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,10 +19,9 @@ import pytest
 
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.readers import SUPPORTED_EXTENSIONS, read_volume
+from reader_helpers import REPO, patch_nifti, write_den, write_nrrd
 
 pytestmark = pytest.mark.filterwarnings("error")
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -62,14 +59,6 @@ def raises(path, match):
     """``pytest.raises(VolumeEVMError, match=...)`` that also checks the message names ``path``."""
     return pytest.raises(VolumeEVMError, match=f"(?s)^{re.escape(str(path))}.*{match}")
 
-
-def write_nrrd(path, array, header, **kwargs):
-    """pynrrd's writer, silencing its own ``datetime.utcnow`` deprecation (Python 3.12+)."""
-    import nrrd
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "datetime.datetime.utcnow", DeprecationWarning)
-        nrrd.write(str(path), array, header, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -763,18 +752,6 @@ def test_tiff_bad_inputs(tmp_path):
 # VolPack .den
 
 
-def write_den(path, array, byte_order):
-    """A VolPack .den file of ``uint8`` ``array`` (``[x, y, z]``) with brainsmall's header."""
-    map_len = np.array(array.shape)
-    orig_len = np.array([256, 256, 109])
-    fields = np.concatenate([[1], np.zeros(3), orig_len - 1, orig_len, np.zeros(3), orig_len - 1,
-                             orig_len, np.zeros(3), map_len - 1, map_len, [3]])
-    header = fields.astype(f"{byte_order}i2").tobytes()
-    header += np.array([array.size], f"{byte_order}i4").tobytes()
-    assert len(header) == 62
-    path.write_bytes(header + array.T.tobytes())
-
-
 @pytest.mark.parametrize("byte_order", ["<", ">"])
 def test_den_brainsmall(tmp_path, data_dir, byte_order):
     array, _ = load(data_dir, "mr_brainsmall_volpack")
@@ -823,16 +800,6 @@ def test_den_bad_files(tmp_path, data_dir):
 # Bad input of every class (issue 9): path-level cases, silent wrong data, third-party errors,
 # huge headers and the memory check; .npy, raw, NIfTI, NRRD and .den (DICOM and TIFF have
 # tests/test_readers_dicom_tiff_errors.py).
-
-
-def patch_nifti(data, **fields):
-    """A NIfTI-1 file's bytes with header ``fields`` set, nothing repaired (as on disk)."""
-    import nibabel as nib
-
-    header = nib.Nifti1Header.from_fileobj(io.BytesIO(data[:348]), check=False)
-    for name, value in fields.items():
-        header[name] = value
-    return header.binaryblock + data[348:]
 
 
 def nifti_bytes(array):

@@ -11,7 +11,6 @@ from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, index_to_physica
 from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon.rendering._reference import Shading, render_reference
 from volumeevm_addon.rendering._transfer import TransferFunction
-from render_helpers import look_at
 
 BU = BLENDER_UNITS_PER_MM
 
@@ -96,7 +95,7 @@ def test_homogeneous_box_oblique(kind):
     g = grid_matrix(sp, origin=(-3.0, -2.0, -3.5), rot=rotation((1, 2, 3), 0.7),
                     obj_translation=(0.01, 0.0, 0.02))
     centre = g[:3, 3] + g[:3, :3] @ ((np.array(shape) - 1) / 2)
-    cam_m = look_at(centre + (0.02, -0.025, 0.015), centre)
+    cam_m = Camera.look_at(centre + (0.02, -0.025, 0.015), centre).matrix_world
     if kind == "ORTHO":
         cam = Camera.orthographic(cam_m, 0.016, resolution_x=36, resolution_y=30, shift_x=0.05,
                                   clip_start=0.001)
@@ -137,8 +136,8 @@ def _gaussian_xray_error(refine):
     dens = amp * np.exp(-r2 / sigma**2)
     g = grid_matrix(sp, rot=rotation((0.2, 1.0, 0.4), 0.5))
     centre = g[:3, 3] + g[:3, :3] @ centre_idx
-    cam = Camera.orthographic(look_at(centre + np.array([0.3, -1.0, 0.6]) * 0.03, centre),
-                              0.018, resolution_x=32, resolution_y=32, clip_start=0.001)
+    cam = Camera.look_at(centre + np.array([0.3, -1.0, 0.6]) * 0.03, centre, ortho_scale=0.018,
+                         resolution_x=32, resolution_y=32, clip_start=0.001)
     rgba, _ = render_reference(dens, None, g, sp, cam, None, mode="xray",
                                step_mm=0.1 / refine, xray_scale=scale)
     o, d = cam.rays()
@@ -221,8 +220,8 @@ def _random_scene(seed=0, shape=(9, 8, 7), sp=(0.9, 1.1, 1.6)):
     mask = rng.random(shape) < 0.7
     g = grid_matrix(sp, rot=rotation((1, -1, 2), 0.4))
     centre = g[:3, 3] + g[:3, :3] @ ((np.array(shape) - 1) / 2)
-    cam = Camera.perspective(look_at(centre + (0.012, -0.03, 0.02), centre), 60.0,
-                             resolution_x=28, resolution_y=24, clip_start=0.001)
+    cam = Camera.look_at(centre + (0.012, -0.03, 0.02), centre, kind="PERSP", lens_mm=60.0,
+                         resolution_x=28, resolution_y=24, clip_start=0.001)
     tf = TransferFunction([(0, 0.1, 0.2, 0.9, 0.0), (40, 0.9, 0.3, 0.1, 0.2),
                            (100, 1.0, 1.0, 0.8, 0.6)])
     return dens, mask, g, np.array(sp), cam, tf
@@ -238,7 +237,7 @@ def test_shading_of_a_linear_ramp(kind):
     rot = rotation((1, 1, 0.3), 0.6)
     g = grid_matrix(sp, rot=rot)
     centre = g[:3, 3] + g[:3, :3] @ ((np.array(shape) - 1) / 2)
-    cam_m = look_at(centre + np.array([0.2, -1.0, 0.5]) * 0.03, centre)
+    cam_m = Camera.look_at(centre + np.array([0.2, -1.0, 0.5]) * 0.03, centre).matrix_world
     cam = (Camera.orthographic(cam_m, 0.012, resolution_x=12, resolution_y=10, clip_start=1e-3)
            if kind == "ORTHO" else
            Camera.perspective(cam_m, 120.0, resolution_x=12, resolution_y=10, clip_start=1e-3))
@@ -297,7 +296,8 @@ def test_symmetric_view_gives_a_mirrored_image(kind):
     mask = mask & mask[::-1]
     g = grid_matrix(sp)
     centre = g[:3, 3] + g[:3, :3] @ ((np.array(shape) - 1) / 2)
-    m = look_at(centre + (0.0, -0.03, 0.01), centre)  # in the symmetry plane x = centre
+    # In the symmetry plane x = centre.
+    m = Camera.look_at(centre + (0.0, -0.03, 0.01), centre).matrix_world
     cam = (Camera.orthographic(m, 0.012, resolution_x=20, resolution_y=16, clip_start=1e-3)
            if kind == "ORTHO" else
            Camera.perspective(m, 80.0, resolution_x=20, resolution_y=16, clip_start=1e-3))
@@ -418,8 +418,8 @@ def test_camera_inside_the_volume():
     shape, sp = (10, 10, 10), (1.0, 1.0, 1.0)
     g = grid_matrix(sp)
     centre = g[:3, 3] + g[:3, :3] @ np.array([4.2, 4.6, 4.4])
-    cam = Camera.perspective(look_at(centre, centre + (1.0, 0.3, 0.2)), 20.0,
-                             resolution_x=16, resolution_y=16, clip_start=0.5 * BU)
+    cam = Camera.look_at(centre, centre + (1.0, 0.3, 0.2), kind="PERSP", lens_mm=20.0,
+                         resolution_x=16, resolution_y=16, clip_start=0.5 * BU)
     rgba, depth = render_reference(np.zeros(shape), None, g, sp, cam, constant_tf(0.1),
                                    step_mm=0.5)
     o, d = cam.rays()
@@ -518,8 +518,8 @@ def test_ct_head_sanity(data_dir):
     sp = np.array(meta["spacing_mm"]) * (8, 8, 4)
     g = grid_matrix(sp)
     centre = g[:3, 3] + g[:3, :3] @ ((np.array(vol.shape) - 1) / 2)
-    cam = Camera.orthographic(look_at(centre + (0.0, -0.5, 0.0), centre), 0.3,
-                              resolution_x=40, resolution_y=40)
+    cam = Camera.look_at(centre + (0.0, -0.5, 0.0), centre, ortho_scale=0.3, resolution_x=40,
+                         resolution_y=40)
     tf = TransferFunction.preset("ct_bone")
     mask = vol > -300
     full, _ = render_reference(vol, None, g, sp, cam, tf, step_mm=1.0)

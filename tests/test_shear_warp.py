@@ -13,11 +13,10 @@ from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, grid_to_world
 from volumeevm_addon.rendering import _shear_warp
 from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
-from volumeevm_addon.rendering._reference import render_reference
 from volumeevm_addon.rendering._render import render
 from volumeevm_addon.rendering._shear_warp import _LAYOUTS, _View, render_shear_warp
 from volumeevm_addon.rendering._transfer import TransferFunction
-from render_helpers import MODES, look_at
+from render_helpers import MODES, reference
 
 BU = BLENDER_UNITS_PER_MM
 
@@ -32,17 +31,14 @@ def orbit_camera(g, shape, spacing, direction, kind, res=(48, 40), distance=1.5,
     centre = centre_of(g, shape)
     size = np.linalg.norm(np.asarray(shape) * spacing) * BU
     d = np.asarray(direction, dtype=np.float64)
-    m = look_at(centre + d / np.linalg.norm(d) * size * distance, centre)
-    if kind == "ORTHO":
-        return Camera.orthographic(m, size * zoom, resolution_x=res[0], resolution_y=res[1],
-                                   clip_start=0.001)
-    return Camera.perspective(m, lens, resolution_x=res[0], resolution_y=res[1],
-                              clip_start=0.001)
+    return Camera.look_at(centre + d / np.linalg.norm(d) * size * distance, centre, kind=kind,
+                          ortho_scale=size * zoom, lens_mm=lens, resolution_x=res[0],
+                          resolution_y=res[1], clip_start=0.001)
 
 
-def reference(vevm, g, cam, tf, mode, **kw):
-    return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), g, vevm.spacing, cam,
-                            tf, mode=mode, step_mm=min(vevm.spacing) / 4, **kw)
+def fine_reference(vevm, cam, tf, g, **kw):
+    """The reference render with steps of a quarter of the smallest voxel side."""
+    return reference(vevm, cam, tf, g, step_mm=min(vevm.spacing) / 4, **kw)
 
 
 def xray_options(mode, scale):
@@ -183,7 +179,7 @@ def test_box_oblique_opacity_correction(kind, direction, quality):
     # Perspective: the warp blends neighbouring rays of slightly different chords (~5e-6).
     atol = 3e-6 if kind == "ORTHO" else 2e-5
     np.testing.assert_allclose(rgba[..., 3][inner], 1 - 0.8 ** chord[inner], atol=atol)
-    ref, _ = reference(vevm, g, cam, tf, "over")
+    ref, _ = fine_reference(vevm, cam, tf, g, mode="over")
     assert np.abs(rgba - ref).mean() < 0.012
 
 
@@ -209,7 +205,7 @@ def test_gaussian_blob_against_reference(mode, kind):
     cam = orbit_camera(g, vevm.shape, vevm.spacing, (0.5, -1.0, 0.35), kind)
     opts = xray_options(mode, 0.01)
     rgba, depth = render_shear_warp(vevm, cam, BLOB_TF, g, mode=mode, termination=1.0, **opts)
-    ref, ref_depth = reference(vevm, g, cam, BLOB_TF, mode, **opts)
+    ref, ref_depth = fine_reference(vevm, cam, BLOB_TF, g, mode=mode, **opts)
     assert ref[..., 3].max() > 0.2
     assert np.abs(rgba - ref).mean() < BLOB_MAE[mode]
     assert np.isfinite(rgba).all() and np.isfinite(depth).all()
@@ -257,7 +253,7 @@ def test_brain_against_reference(brain_half, mode, kind, direction):
     cam = orbit_camera(g, vevm.shape, vevm.spacing, direction, kind, res=(52, 44))
     opts = xray_options(mode, 0.002)
     rgba, depth = render_shear_warp(vevm, cam, MRI, g, mode=mode, termination=1.0, **opts)
-    ref, ref_depth = reference(vevm, g, cam, MRI, mode, **opts)
+    ref, ref_depth = fine_reference(vevm, cam, MRI, g, mode=mode, **opts)
     assert ref[..., 3].mean() > 0.01
     assert np.abs(rgba - ref).mean() < BRAIN_MAE[mode]
     if mode != "mip":
@@ -275,7 +271,7 @@ def test_intermediate_scale_zoomed_in(kind):
     g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
     cam = orbit_camera(g, vevm.shape, vevm.spacing, (0.5, -1.0, 0.35), kind, res=(64, 48),
                        zoom=0.4, lens=100.0)
-    ref, _ = reference(vevm, g, cam, BLOB_TF, "over")
+    ref, _ = fine_reference(vevm, cam, BLOB_TF, g, mode="over")
     errors = []
     for scale in (0.5, 1.0, 2.0):
         rgba, depth = render_shear_warp(vevm, cam, BLOB_TF, g, termination=1.0,
@@ -300,7 +296,7 @@ def test_quality_settings_against_reference(brain_half, kind):
     fine = {"slices_per_voxel": 2, "classification": "post"}
     for mode, shading in (("over", None), ("over", True), ("xray", None), ("mip", None)):
         opts = dict(shading=shading, **xray_options(mode, 0.002))
-        ref, _ = reference(vevm, g, cam, MRI, mode, **opts)
+        ref, _ = fine_reference(vevm, cam, MRI, g, mode=mode, **opts)
         opts.update(mode=mode, termination=1.0)
         rgba, depth = render_shear_warp(vevm, cam, MRI, g, **fine, **opts)
         dense, dense_depth = render_shear_warp(vevm, cam, MRI, g, skip_empty=False, **fine,
@@ -336,7 +332,7 @@ def test_marschner_lobb_quality_settings():
     th = np.radians(30.0)
     cam = orbit_camera(g, vevm.shape, vevm.spacing, (np.sin(th), 0.0, np.cos(th)), "ORTHO",
                        res=(64, 64), distance=1.0, zoom=1.02)
-    ref, _ = reference(vevm, g, cam, PULSE, "over")
+    ref, _ = fine_reference(vevm, cam, PULSE, g, mode="over")
     errors = [np.sqrt(np.mean((render_shear_warp(vevm, cam, PULSE, g, **q)[0] - ref) ** 2))
               for q in ({}, {"classification": "post"},
                         {"classification": "post", "slices_per_voxel": 4},
@@ -368,7 +364,7 @@ def test_shading_against_reference(brain_half, kind):
     plain, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
     dense, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0, skip_empty=False,
                                  shading={"ambient": 0.3, "diffuse": 0.7})
-    ref, _ = reference(vevm, g, cam, MRI, "over", shading=True)
+    ref, _ = fine_reference(vevm, cam, MRI, g, mode="over", shading=True)
     assert np.abs(plain - ref).mean() > 0.015
     assert np.abs(shaded - ref).mean() < 0.01
     assert np.abs(shaded - dense).max() <= 1e-6
@@ -386,7 +382,7 @@ def test_principal_axis_switch_at_45_degrees(brain_half):
         cam = orbit_camera(g, vevm.shape, vevm.spacing, (np.sin(th), -np.cos(th), 0.25), "ORTHO",
                            res=(64, 48))
         rgba, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
-        ref, _ = reference(vevm, g, cam, MRI, "over")
+        ref, _ = fine_reference(vevm, cam, MRI, g, mode="over")
         assert np.abs(rgba - ref).mean() < 0.009
         frames.append(rgba)
         axes.append(_View.principal_axis(vevm, cam, g))
@@ -519,9 +515,9 @@ def aligned_camera(g, shape, spacing, axis, sign):
     forward[axis] = sign
     up = np.zeros(3)
     up[others[1]] = 1.0
-    m = look_at(centre - forward * 0.5, centre, up=up)
     scale = max(w * spacing[others[0]], h * spacing[others[1]]) * BU
-    cam = Camera.orthographic(m, scale, resolution_x=w, resolution_y=h, clip_start=0.001)
+    cam = Camera.look_at(centre - forward * 0.5, centre, up=up, ortho_scale=scale,
+                         resolution_x=w, resolution_y=h, clip_start=0.001)
     o, _ = index_rays(cam, g)
     cols = np.rint(o[..., others]).astype(int)
     assert np.abs(o[..., others] - cols).max() < 1e-6
@@ -611,7 +607,7 @@ def test_depth_in_slanted_against_reference(brain_half):
     cols = np.arange(cam.shape[1])
     depth_in = np.broadcast_to(centre_depth + (cols - cols.mean()) * 0.0015, cam.shape).copy()
     rgba, _ = render_shear_warp(vevm, cam, MRI, g, depth_in=depth_in, termination=1.0)
-    ref, _ = reference(vevm, g, cam, MRI, "over", depth_in=depth_in)
+    ref, _ = fine_reference(vevm, cam, MRI, g, mode="over", depth_in=depth_in)
     unclipped, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
     assert np.abs(unclipped - ref).mean() > 0.02
     assert np.abs(rgba - ref).mean() < 0.008
@@ -627,17 +623,17 @@ def test_perspective_eye_inside_or_beside(brain_half, where):
     centre = centre_of(g, brain_half.shape)
     if where.startswith("inside"):
         vevm = brain_half
-        m = look_at(centre + (0.01, -0.005, 0.0), centre + (0.03, 0.03, 0.01))
+        eye, target = centre + (0.01, -0.005, 0.0), centre + (0.03, 0.03, 0.01)
     else:  # a 12 x 12 x 40 voxel column seen from beside its lower part
         vevm = brain_half.clip((26, 26, 1), (38, 38, 41))
-        m = look_at(centre + (-0.029, 0.001, -0.037), centre + (0.001, 0.001, 0.001))
-    if where == "inside_ortho":  # the near clip plane cuts the volume
-        cam = Camera.orthographic(m, 0.08, resolution_x=48, resolution_y=40, clip_start=0.001)
-    else:
-        lens = {"inside": 30.0, "inside_wide": 10.0}.get(where, 12.0)
-        cam = Camera.perspective(m, lens, resolution_x=48, resolution_y=40, clip_start=0.001)
+        eye, target = centre + (-0.029, 0.001, -0.037), centre + (0.001, 0.001, 0.001)
+    # inside_ortho: the near clip plane cuts the volume
+    lens = {"inside": 30.0, "inside_wide": 10.0}.get(where, 12.0)
+    cam = Camera.look_at(eye, target, kind="ORTHO" if where == "inside_ortho" else "PERSP",
+                         ortho_scale=0.08, lens_mm=lens, resolution_x=48, resolution_y=40,
+                         clip_start=0.001)
     rgba, _ = render_shear_warp(vevm, cam, MRI, g, termination=1.0)
-    ref, _ = reference(vevm, g, cam, MRI, "over")
+    ref, _ = fine_reference(vevm, cam, MRI, g, mode="over")
     assert ref[..., 3].mean() > 0.1
     # measured 0.016, 0.023, 0.020 and 0.0075; one pass along the forward axis gives 0.089 for
     # the wide view, and choosing the axis from the eye-to-centre vector alone 0.025 beside the
@@ -688,13 +684,10 @@ def test_camera_that_sees_nothing(brain_half, kind):
     centre = centre_of(g, vevm.shape)
     size = np.linalg.norm(np.asarray(vevm.shape) * vevm.spacing) * BU
     eye = centre + np.array([0.0, -2.0 * size, 0.0])
-    away = look_at(eye, eye + np.array([0.0, -1.0, 0.0]))  # the volume is behind the camera
-    beside = look_at(eye, eye + np.array([1.0, 0.0, 0.0]))  # it is outside the field of view
-    for m in (away, beside):
-        if kind == "ORTHO":
-            cam = Camera.orthographic(m, size * 0.3, resolution_x=20, resolution_y=16)
-        else:
-            cam = Camera.perspective(m, 80.0, resolution_x=20, resolution_y=16)
+    # away: the volume is behind the camera; beside: it is outside the field of view
+    for look in ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0)):
+        cam = Camera.look_at(eye, eye + np.array(look), kind=kind, ortho_scale=size * 0.3,
+                             lens_mm=80.0, resolution_x=20, resolution_y=16)
         for mode in MODES:
             rgba, depth = render_shear_warp(vevm, cam, MRI, g, mode=mode)
             assert np.all(rgba == 0) and np.all(depth == BACKGROUND_DEPTH)

@@ -18,7 +18,7 @@ from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon.rendering._splat import (_family_weights, _sheets, _slices_dense,
                                               _slices_evm, render_splat)
 from volumeevm_addon.rendering._transfer import TransferFunction
-from render_helpers import MODES, XRAY, camera, centre, const_tf, look_at, reference
+from render_helpers import MODES, XRAY, camera, centre, const_tf, reference
 
 
 @pytest.fixture(scope="module")
@@ -164,8 +164,9 @@ def test_box_closed_form_with_rays_along_cell_faces(direction):
     v = VolumeEVM.from_volume(phantoms.box((20, 20, 20), lo, hi), 0.5)
     g = grid_to_world(v.spacing, v.origin)
     target = np.full(3, 9.5 * BU)
-    cam = Camera.orthographic(look_at(target + 0.07 * np.array(direction) / np.linalg.norm(
-        direction), target), 30 * BU, resolution_x=37, resolution_y=23, clip_start=1e-4)
+    eye = target + 0.07 * np.array(direction) / np.linalg.norm(direction)
+    cam = Camera.look_at(eye, target, ortho_scale=30 * BU, resolution_x=37, resolution_y=23,
+                         clip_start=1e-4)
     rgba, _ = render_splat(v, cam, const_tf(0.2), g)
     chord = phantoms.box_chords_mm(cam, g, lo, hi)
     assert (chord > 0).sum() > 100
@@ -396,9 +397,9 @@ def test_sub_slabs_keep_the_mean_from_popping_at_whole_voxel_pixel_spacing():
     c = centre(v, g)
     extent = float(np.linalg.norm(np.array(v.shape) * v.spacing)) * BU
     angles = np.arange(47.5, 50.51, 0.5)
-    cams = [Camera.orthographic(look_at(c + extent * np.array([0.0, -np.cos(t), np.sin(t)]), c,
-                                        (1.0, 0.0, 0.0)), 1.02 * extent, resolution_x=48,
-                                resolution_y=48, clip_start=1e-4) for t in np.radians(angles)]
+    cams = [Camera.look_at(c + extent * np.array([0.0, -np.cos(t), np.sin(t)]), c, (1.0, 0.0, 0.0),
+                           ortho_scale=1.02 * extent, resolution_x=48, resolution_y=48,
+                           clip_start=1e-4) for t in np.radians(angles)]
     ref = np.array([reference(v, cam, tf, g)[0] for cam in cams])
     one = np.array([render_splat(v, cam, tf, g, substeps=1)[0] for cam in cams])
     sub = np.array([render_splat(v, cam, tf, g, substeps=3)[0] for cam in cams])
@@ -455,8 +456,8 @@ def test_empty_region_and_camera_that_sees_nothing(ct):
     assert np.all(depth == BACKGROUND_DEPTH) and depth.dtype == np.float32
     v, g, tf = region(ct, -300, "ct_skin")
     c = centre(v, g)
-    cam = Camera.perspective(look_at(c + (0.3, 0, 0), c + (0.6, 0, 0)), 50.0, resolution_x=7,
-                             resolution_y=5)
+    cam = Camera.look_at(c + (0.3, 0, 0), c + (0.6, 0, 0), kind="PERSP", resolution_x=7,
+                         resolution_y=5)
     rgba, depth = render_splat(v, cam, tf, g)
     assert rgba.shape == (5, 7, 4) and rgba.max() == 0 and np.all(depth == BACKGROUND_DEPTH)
     cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(13, 1))
@@ -469,8 +470,8 @@ def test_camera_inside_the_volume(ct):
     ``max_footprint_px``: defined output, close to the reference on average."""
     v, g, tf = region(ct, -300, "ct_skin")
     c = centre(v, g)
-    cam = Camera.perspective(look_at(c, c + (0.05, 0.1, 0.0)), 20.0, resolution_x=24,
-                             resolution_y=20, clip_start=1e-3)
+    cam = Camera.look_at(c, c + (0.05, 0.1, 0.0), kind="PERSP", lens_mm=20.0, resolution_x=24,
+                         resolution_y=20, clip_start=1e-3)
     rgba, depth = render_splat(v, cam, tf, g)
     rr, _ = reference(v, cam, tf, g)
     assert np.isfinite(rgba).all() and rr[..., 3].mean() > 0.3

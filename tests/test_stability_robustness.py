@@ -24,7 +24,7 @@ from volumeevm_addon.rendering._camera import Camera
 from volumeevm_addon.rendering._reference import render_reference
 from volumeevm_addon.rendering._render import METHODS, render
 from volumeevm_addon.rendering._transfer import TransferFunction
-from render_helpers import MODES, const_tf, look_at
+from render_helpers import MODES, const_tf
 
 RENDERERS = tuple(m for m in METHODS if m != "reference")
 XRAY = {"xray_scale": 0.1, "xray_offset": 0.0}  # phantoms hold densities in [0, 1]
@@ -40,12 +40,9 @@ def aimed_camera(target_mm, direction, kind, res=(48, 48), scale_mm=40.0, distan
     ``direction``, looking at it."""
     target = np.asarray(target_mm, dtype=np.float64) * BU
     d = np.asarray(direction, dtype=np.float64)
-    m = look_at(target + d / np.linalg.norm(d) * distance_mm * BU, target)
-    if kind == "ORTHO":
-        return Camera.orthographic(m, scale_mm * BU, resolution_x=res[0], resolution_y=res[1],
-                                   clip_start=1e-4)
-    return Camera.perspective(m, 50.0, resolution_x=res[0], resolution_y=res[1],
-                              clip_start=1e-4)
+    return Camera.look_at(target + d / np.linalg.norm(d) * distance_mm * BU, target, kind=kind,
+                          ortho_scale=scale_mm * BU, resolution_x=res[0], resolution_y=res[1],
+                          clip_start=1e-4)
 
 
 def rmse(a, b):

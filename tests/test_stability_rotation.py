@@ -22,7 +22,7 @@ from volumeevm_addon.model._volume import grid_to_world
 from volumeevm_addon.rendering._camera import Camera
 from volumeevm_addon.rendering._render import render
 from volumeevm_addon.rendering._transfer import TransferFunction
-from render_helpers import centre, look_at, reference
+from render_helpers import centre, reference
 
 RES = 48
 # Shear-warp's default (VolPack's one sample per slice, pre-classified) and the setting that
@@ -39,9 +39,8 @@ def orbit(vevm, g, direction, up):
     c = centre(vevm, g)
     size = float(np.linalg.norm(np.array(vevm.shape) * vevm.spacing)) * BU
     d = np.asarray(direction, dtype=np.float64)
-    m = look_at(c + d / np.linalg.norm(d) * size, c, up)
-    return Camera.orthographic(m, 1.02 * size, resolution_x=RES, resolution_y=RES,
-                               clip_start=1e-4)
+    return Camera.look_at(c + d / np.linalg.norm(d) * size, c, up, ortho_scale=1.02 * size,
+                          resolution_x=RES, resolution_y=RES, clip_start=1e-4)
 
 
 def sweep(vevm, tf, directions, up):

@@ -72,6 +72,25 @@ def _positive_int(name, value):
     return v
 
 
+def _cross(a, b):
+    """Cross product of two (3,) float64 vectors, element by element (no BLAS)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
+def _length(v):
+    """Euclidean length of a (3,) vector, summed in a fixed order (no BLAS)."""
+    return float(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+
+
+def _unit(v, problem):
+    """``v`` scaled to unit length, or a :class:`VolumeEVMError` saying ``problem`` if it is 0."""
+    length = _length(v)
+    if length == 0:
+        raise VolumeEVMError(problem)
+    return v / length
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """Blender's camera projection as a frozen record (build with :meth:`orthographic` or
@@ -192,6 +211,67 @@ class Camera:
                    resolution_x=resolution_x, resolution_y=resolution_y,
                    resolution_percentage=resolution_percentage,
                    pixel_aspect_x=pixel_aspect_x, pixel_aspect_y=pixel_aspect_y)
+
+    @classmethod
+    def look_at(cls, eye, target, up=(0.0, 0.0, 1.0), *, kind="ORTHO", ortho_scale=6.0,
+                lens_mm=50.0, **options):
+        """A camera at ``eye`` looking at ``target``, its image ``+Y`` as close to ``up`` as
+        possible.
+
+        The camera-to-world matrix is computed element by element in float64 (no BLAS), so the
+        same arguments give the same bits on every CPU.
+
+        Parameters
+        ----------
+        eye, target : (3,) array_like
+            Camera position and the point it looks at (world, Blender units); must differ.
+        up : (3,) array_like, optional
+            World direction that appears up in the image. When the view runs along ``up``,
+            world ``+Y`` is used instead.
+        kind : {"ORTHO", "PERSP"}, optional
+            Orthographic or perspective projection.
+        ortho_scale : float, optional
+            Orthographic: width of the fitted image dimension (Blender units).
+        lens_mm : float, optional
+            Perspective: focal length (mm).
+        **options
+            Any other keyword of :meth:`orthographic` or :meth:`perspective`
+            (``resolution_x``, ``clip_start``, ``sensor_fit``, ...).
+
+        Returns
+        -------
+        Camera
+
+        Examples
+        --------
+        >>> cam = Camera.look_at((0.0, -2.0, 0.0), (0.0, 0.0, 0.0), resolution_x=4,
+        ...                      resolution_y=4)
+        >>> cam.forward.tolist(), cam.up.tolist(), cam.position.tolist()
+        ([0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, -2.0, 0.0])
+        """
+        if kind not in ("ORTHO", "PERSP"):
+            raise VolumeEVMError(f"kind: 'ORTHO' or 'PERSP', got {kind!r}")
+        vectors = []
+        for name, value in (("eye", eye), ("target", target), ("up", up)):
+            try:
+                v = np.array(value, dtype=np.float64)
+            except (TypeError, ValueError) as error:
+                raise VolumeEVMError(f"{name}: expected 3 numbers, got {value!r}") from error
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise VolumeEVMError(f"{name}: expected 3 finite numbers, got {value!r}")
+            vectors.append(v)
+        eye, target, up = vectors
+        f = _unit(target - eye, f"target: must differ from eye, both are {target.tolist()}")
+        r = _cross(f, up)
+        if _length(r) < 1e-9:  # looking along `up`
+            r = _cross(f, np.array([0.0, 1.0, 0.0]))
+        r = _unit(r, f"up: no image-up direction for a view along {f.tolist()}")
+        u = _cross(r, f)
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
+        if kind == "ORTHO":
+            return cls("ORTHO", m, ortho_scale=ortho_scale, **options)
+        return cls("PERSP", m, lens_mm=lens_mm, **options)
 
     # ------------------------------------------------------------------ geometry
     @property
