@@ -90,17 +90,6 @@ def pulse(width, alpha=0.3, centre=0.5):
                              (1.0, 1, 1, 1, 0)])
 
 
-def look_at(eye, target, up):
-    """Camera-to-world matrix at ``eye`` looking at ``target`` (Blender: looks down -Z)."""
-    f = np.asarray(target, float) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, np.cross(r, f), -f, eye
-    return m
-
-
 def orbit(vevm, direction, up, size, zoom=None):
     """Orthographic ``size``² camera looking at the grid's centre from ``direction``, framing
     the grid (or at ``zoom`` pixels per voxel)."""
@@ -109,8 +98,8 @@ def orbit(vevm, direction, up, size, zoom=None):
     extent = float(np.linalg.norm(np.array(vevm.shape) * vevm.spacing)) * BU
     scale = 1.02 * extent if zoom is None else size * min(vevm.spacing) * BU / zoom
     d = np.asarray(direction, float) / np.linalg.norm(direction)
-    m = look_at(c + d * extent, c, np.asarray(up, float))
-    return Camera.orthographic(m, scale, resolution_x=size, resolution_y=size, clip_start=1e-4)
+    return Camera.look_at(c + d * extent, c, up, ortho_scale=scale, resolution_x=size,
+                          resolution_y=size, clip_start=1e-4)
 
 
 def frames(vevm, tf, cams):
