@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon import EVM, VolumeEVM
+from volumeevm_addon import VolumeEVM
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, grid_to_world
 from volumeevm_addon.rendering import _shear_warp
@@ -644,15 +644,6 @@ def test_perspective_eye_inside_or_beside(brain_half, where):
 
 
 # ---------------------------------------------------------------------------- degenerate input
-def test_empty_region():
-    vevm = VolumeEVM(EVM(), np.zeros(0), shape=(3, 4, 5))
-    g = grid_to_world(vevm.spacing, (0.0, 0.0, 0.0))
-    cam = orbit_camera(g, vevm.shape, vevm.spacing, (0.3, 1.0, -0.4), "PERSP", res=(9, 7))
-    for mode in MODES:
-        rgba, depth = render_shear_warp(vevm, cam, MRI, g, mode=mode)
-        assert np.all(rgba == 0) and np.all(depth == BACKGROUND_DEPTH)
-
-
 def test_single_voxel_and_odd_sizes():
     array = np.zeros((5, 6, 7))
     array[2, 3, 4] = 5.0

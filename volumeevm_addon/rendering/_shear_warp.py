@@ -432,8 +432,9 @@ class _View:
             ok = d[:, axis] * self.step > 1e-12
             if rays is not None:
                 ok &= rays
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t = (self.c_ref - o[:, axis]) / d[:, axis]
+            # Rays that never cross the slices (parallel, or going away) get t = 0, so that no
+            # inf or NaN is made for them; they are masked out below.
+            t = np.where(ok, (self.c_ref - o[:, axis]) / np.where(ok, d[:, axis], 1.0), 0.0)
             pq = np.stack([o[:, a] + t * d[:, a], o[:, b] + t * d[:, b]], axis=1) * scale
             pq[~ok] = 0.0
             self.pq = pq  # (H*W, 2) intermediate coordinates before the origin shift
