@@ -702,24 +702,17 @@ def _mesh_geometry(mesh):
 
 
 def _refill_mesh(mesh, co, polys):
-    """Replace the geometry of ``mesh`` in place, all or nothing.
-
-    If filling fails half way, the old geometry is put back before the error goes on; in a
-    :func:`._jobs.transaction` it is also put back if a later step fails.
-    """
+    """Replace the geometry of ``mesh`` in place; in a :func:`._jobs.transaction` that fails
+    (filling half way, or a later step) the old geometry is put back."""
     old = _mesh_geometry(mesh)
 
     def restore():
         mesh.clear_geometry()
         fill_mesh(mesh, *old)
 
-    mesh.clear_geometry()
-    try:
-        fill_mesh(mesh, co, polys)
-    except BaseException:
-        restore()
-        raise
     _jobs.on_undo(restore)
+    mesh.clear_geometry()
+    fill_mesh(mesh, co, polys)
 
 
 def _write_surface(context, vol_obj, result, signature, timing, *, create):

@@ -271,7 +271,7 @@ def put_image(name, rgba):
     image = bpy.data.images.get(name)
     if image is not None and image.is_float and image.source == "GENERATED":
         _jobs.on_undo(functools.partial(_put_back_pixels, image, tuple(image.size),
-                                        _pixels(image), image.alpha_mode))
+                                        _pixels(image)))
         if tuple(image.size) != (w, h):
             image.scale(w, h)  # in place: the compositor's Image node keeps pointing at it
     elif image is not None:  # another kind of image: it makes way (removed if unused)
@@ -281,7 +281,7 @@ def put_image(name, rgba):
         image = None
     if image is None:
         image = bpy.data.images.new(name, w, h, alpha=True, float_buffer=True)
-    image.alpha_mode = "PREMUL"
+    _jobs.assign(image, alpha_mode="PREMUL")
     image.pixels.foreach_set(np.ascontiguousarray(np.flipud(rgba)).ravel())
     image.update()
     return image
@@ -293,12 +293,11 @@ def _pixels(image):
     return pixels
 
 
-def _put_back_pixels(image, size, pixels, alpha_mode):
-    """Undo :func:`put_image` on a reused image: its old size, pixels and alpha mode."""
+def _put_back_pixels(image, size, pixels):
+    """Undo :func:`put_image` on a reused image: its old size and pixels."""
     if tuple(image.size) != size:
         image.scale(*size)
     image.pixels.foreach_set(pixels)
-    image.alpha_mode = alpha_mode
     image.update()
 
 

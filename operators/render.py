@@ -344,8 +344,7 @@ class VOLUMEEVM_OT_render_dvr_animation(bpy.types.Operator):
             finally:
                 wm.progress_end()
         except _jobs.REPORTED_ERRORS as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+            return _jobs.report_failure(self, error)
         empty = [frame for frame, result in results if not result.visible]
         if empty:
             self.report({"WARNING"}, f"nothing of the volume seen in frames {empty}")
@@ -419,8 +418,7 @@ class VOLUMEEVM_OT_load_tf_preset(bpy.types.Operator):
             load_preset(settings, self.preset or settings.preset,
                         render_volume(context, settings))
         except VolumeEVMError as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+            return _jobs.report_failure(self, error)
         return {"FINISHED"}
 
 
