@@ -27,7 +27,6 @@ import shutil
 import struct
 import warnings
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,14 +36,13 @@ from volumeevm_addon.readers import read_volume
 
 from reader_files import write_series, write_tiff
 
-REPO = Path(__file__).resolve().parents[1]
 SEED = 20261124
 
 
 @pytest.fixture(scope="module")
-def hu():
+def hu(data_dir):
     """A 16 x 12 x 5 crop of the real CT head in HU (int16)."""
-    array = np.load(REPO.parent / "shared" / "data" / "ct_head_invesalius.npy")
+    array = np.load(data_dir / "ct_head_invesalius.npy")
     return np.ascontiguousarray(array[100:116, 60:72, 50:55])
 
 

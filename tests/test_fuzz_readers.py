@@ -36,7 +36,7 @@ import typing
 
 import numpy as np
 import pytest
-from reader_helpers import REPO, patch_nifti, write_den, write_nrrd
+from reader_files import patch_nifti, write_den, write_nrrd
 
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.readers import read_volume
@@ -57,9 +57,9 @@ NRRD_VALUE_FIELDS = ("space directions", "space origin", "spacings")
 
 
 @pytest.fixture(scope="module")
-def crop():
+def crop(data_dir):
     """A 24 x 16 x 6 crop of the real CT head (int16 HU): skull, brain and air."""
-    array = np.load(REPO.parent / "shared" / "data" / "ct_head_invesalius.npy")
+    array = np.load(data_dir / "ct_head_invesalius.npy")
     return np.ascontiguousarray(array[100:124, 60:76, 50:56])
 
 

@@ -19,7 +19,7 @@ import pytest
 
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon.readers import SUPPORTED_EXTENSIONS, read_volume
-from reader_helpers import REPO, patch_nifti, write_den, write_nrrd
+from reader_files import REPO, patch_nifti, write_den, write_nrrd
 
 pytestmark = pytest.mark.filterwarnings("error")
 
@@ -35,9 +35,9 @@ def load(data_dir, name):
 
 
 @pytest.fixture(scope="module")
-def ct_crop():
+def ct_crop(data_dir):
     """A non-cubic crop (64 x 48 x 12) of the real CT head in HU, int16: skull and air."""
-    array = np.load(REPO.parent / "shared" / "data" / "ct_head_invesalius.npy")
+    array = np.load(data_dir / "ct_head_invesalius.npy")
     return np.ascontiguousarray(array[96:160, 40:88, 50:62])
 
 

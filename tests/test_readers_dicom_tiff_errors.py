@@ -12,7 +12,6 @@ import re
 import struct
 import tracemalloc
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,13 +22,11 @@ from volumeevm_addon.readers import _dicom, _tiff, read_volume
 
 from reader_files import ORIGIN, SPACING, write_series, write_tiff
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def ct_crop():
+def ct_crop(data_dir):
     """A 24 x 16 x 6 crop of the real CT head in HU (int16): skull, brain and air."""
-    array = np.load(REPO.parent / "shared" / "data" / "ct_head_invesalius.npy")
+    array = np.load(data_dir / "ct_head_invesalius.npy")
     return np.ascontiguousarray(array[100:124, 60:76, 50:56])
 
 

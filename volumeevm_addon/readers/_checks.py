@@ -237,11 +237,6 @@ def check_read_memory(path, shape, dtype, *, copies, extra=0):
     extra : int, optional
         Further bytes at the peak.
 
-    Returns
-    -------
-    int
-        The data's size in bytes (``prod(shape) * itemsize``).
-
     Raises
     ------
     VolumeEVMError
@@ -256,7 +251,6 @@ def check_read_memory(path, shape, dtype, *, copies, extra=0):
         source=str(path),
         advice="crop or downsample the volume in another tool, or free memory",
     )
-    return nbytes
 
 
 def check_ndim(shape, path):

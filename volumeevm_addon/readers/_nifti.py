@@ -77,7 +77,8 @@ def read_nifti(path):
         what = "gzip-compressed NIfTI data" if compressed else "NIfTI voxel data"
         header, header_bytes = _read_header(nib, stream, path, what)
         shape, dtype, offset = _layout(header, header_bytes, path)
-        nbytes = math.prod(shape) * dtype.itemsize
+        count = math.prod(shape)
+        nbytes = count * dtype.itemsize
         size = None if compressed else os.fstat(raw.fileno()).st_size
         if size is not None and size != offset + nbytes:
             raise VolumeEVMError(
@@ -87,7 +88,6 @@ def read_nifti(path):
             )
         slope, inter = _scaling(header, path)
         scaled = slope is not None and (slope, inter) != (1.0, 0.0)
-        count = math.prod(shape)
         # The buffer and its C-ordered copy; when scaled, later the C-ordered copy and two
         # float64 arrays at once (the product and the sum nibabel's scaling makes).
         check_read_memory(path, shape, dtype, copies=1,
