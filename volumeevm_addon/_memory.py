@@ -39,8 +39,8 @@ def memory_limit():
     text = os.environ.get(LIMIT_VARIABLE, "").strip()
     if not text:
         return None
-    number, suffix = text.rstrip("KMGTkmgtBb"), text[len(text.rstrip("KMGTkmgtBb")):]
-    suffix = suffix.upper().rstrip("B")
+    number = text.rstrip("KMGTkmgtBb")
+    suffix = text[len(number):].upper().rstrip("B")
     try:
         value = float(number) * _SUFFIXES[suffix]
     except (ValueError, KeyError):

@@ -253,7 +253,7 @@ def _npy_header(member, name, path):
     if dtype.hasobject:
         raise _unreadable(path, f"member '{name}' holds Python objects (dtype {dtype}), which are "
                                 f"never unpickled")
-    if dtype.kind not in kinds or dtype.itemsize == 0 or dtype.fields is not None:
+    if dtype.kind not in kinds or dtype.itemsize == 0:
         raise _unreadable(path, f"member '{name}' has dtype {dtype}, expected "
                                 f"{_KIND_WORDS[kinds]}")
     if len(shape) != ndim or any(n < 0 for n in shape) or (name == "vertices" and shape[1] != 3):

@@ -130,15 +130,13 @@ class VolumeEVM:
                 selected &= plane <= upper
             return selected
 
-        counts = []  # the region's voxels per x-slice
         totals = {"voxels": 0, "boxes": 0}
 
         def slices():
             previous = np.zeros(shape[1:], bool)
             for plane in array:
                 selected = inside(plane)
-                counts.append(int(np.count_nonzero(selected)))
-                totals["voxels"] += counts[-1]
+                totals["voxels"] += int(np.count_nonzero(selected))
                 totals["boxes"] += _new_boxes(selected, previous)
                 yield selected
                 previous = selected
@@ -168,9 +166,10 @@ class VolumeEVM:
         del keys  # the per-plane keys go before the table comes
         table = np.empty(totals["voxels"], array.dtype)
         start = 0
-        for plane, n in zip(array, counts):
-            table[start:start + n] = plane[inside(plane)]
-            start += n
+        for plane in array:
+            values = plane[inside(plane)]
+            table[start:start + len(values)] = values
+            start += len(values)
         return cls(evm, table, shape=shape, spacing=spacing, origin=origin,
                    orientation=orientation, units=units, threshold=threshold, upper=upper)
 
