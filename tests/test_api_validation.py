@@ -277,3 +277,14 @@ def test_voxel_mask_and_dense_grid_check_memory(monkeypatch):
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
     assert np.array_equal(vevm.evm.to_mask(vevm.shape), expected)
     assert np.array_equal(vevm.to_dense(), np.where(expected, np.arange(64**3).reshape(64, 64, 64) % 7, 0))
+
+
+def test_other_axis_tables_check_memory(monkeypatch):
+    array = np.arange(64**3).reshape(64, 64, 64) % 7
+    vevm = VolumeEVM.from_array(array, 5)
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "256K")
+    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense grid needs about"):
+        vevm.table(2)
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
+    expected = np.transpose(array, (2, 0, 1))[np.transpose(array >= 5, (2, 0, 1))]
+    assert np.array_equal(vevm.table(2), expected)

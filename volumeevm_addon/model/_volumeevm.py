@@ -202,9 +202,7 @@ class VolumeEVM:
             raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
         if axis not in self._tables:
             axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
-            mask = self.evm.to_mask(self.shape)
-            dense = np.zeros(self.shape, self._tables[0].dtype)
-            dense[mask] = self._tables[0]
+            dense, mask = self._scatter(0)
             self._tables[axis] = np.transpose(dense, axes)[np.transpose(mask, axes)]
         return self._tables[axis]
 
@@ -226,13 +224,21 @@ class VolumeEVM:
 
     def to_dense(self, background=0):
         """The full grid: the region's densities, ``background`` everywhere else."""
+        return self._scatter(background)[0]
+
+    def _scatter(self, background):
+        """The dense grid (``background`` outside the region) and the region's voxel mask.
+
+        Its memory is checked first: the grid and the mask are as large as the whole volume.
+        """
         table = self._tables[0]
         check_memory(math.prod(self.shape) * (table.dtype.itemsize + 2), "making the dense grid",
                      source=f"VolumeEVM grid {self.shape}",
                      advice="work on the VolumeEVM itself, or clip it to the part you need")
+        mask = self.evm.to_mask(self.shape)
         dense = np.full(self.shape, background, dtype=table.dtype)
-        dense[self.evm.to_mask(self.shape)] = table
-        return dense
+        dense[mask] = table
+        return dense, mask
 
     # ------------------------------------------------------------------ editing
     def cut(self, tool):
