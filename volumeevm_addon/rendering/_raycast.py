@@ -550,22 +550,31 @@ def tables_to_build(vevm, options, *, navigate):
         return 0
     mode = options.get("mode", "over")
     shaded = mode in ("over", "under") and options.get("shading") not in (None, False)
-    keys = [] if navigate else [("sampler", shaded)]
-    if options.get("skip_empty", True):
-        spacing = np.asarray(vevm.spacing, dtype=np.float64)
-        step_mm = options.get("step_mm")
-        step_mm = float(spacing.min()) / 2 if step_mm is None else float(step_mm)
-        preintegrate = bool(options.get("preintegrate", False)) and mode in ("over", "under")
-        keys.append(("blocks", options.get("block", 8), _reach(spacing, step_mm, preintegrate)))
+    spacing = np.asarray(vevm.spacing, dtype=np.float64)
+    step_mm = options.get("step_mm")
+    step_mm = float(spacing.min()) / 2 if step_mm is None else float(step_mm)
+    preintegrate = bool(options.get("preintegrate", False)) and mode in ("over", "under")
+    keys = _cache_keys(spacing, navigate, shaded, options.get("skip_empty", True),
+                       options.get("block", 8), step_mm, preintegrate)
     entry = _CACHE.get(vevm, {})
-    return int(not all(key in entry for key in keys))
+    return int(not all(key in entry for key in keys if key is not None))
 
 
-def _blocks(vevm, size, reach):
+def _cache_keys(spacing, navigate, shaded, skip_empty, block, step_mm, preintegrate):
+    """The :data:`_CACHE` keys of the tables a render reads, ``(sampler, blocks)``: the dense
+    sampling tables (None when ``navigate``) and the space-leaping blocks (None without
+    ``skip_empty``). One function for the render and :func:`tables_to_build`, so that the
+    memory check sees the same cache the render uses."""
+    sampler = None if navigate else ("sampler", shaded)
+    blocks = ("blocks", block, _reach(spacing, step_mm, preintegrate)) if skip_empty else None
+    return sampler, blocks
+
+
+def _cached(vevm, key, make):
+    """The table cached on ``vevm`` under ``key``, made by ``make()`` on first use."""
     entry = _CACHE.setdefault(vevm, {})
-    key = ("blocks", size, reach)
     if key not in entry:
-        entry[key] = _Blocks(vevm, size, reach)
+        entry[key] = make()
     return entry[key]
 
 
@@ -712,8 +721,10 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     visible = None
     lut = None if mode == "xray" else _lut(tf, step_mm)
     pre = _preintegration(vevm, tf, step_mm) if preintegrate else None
+    sampler_key, blocks_key = _cache_keys(spacing, navigate, shading is not None, skip_empty,
+                                          block, step_mm, pre is not None)
     if skip_empty:
-        blocks = _blocks(vevm, block, _reach(spacing, step_mm, pre is not None))
+        blocks = _cached(vevm, blocks_key, lambda: _Blocks(vevm, block, blocks_key[2]))
         margin = 0.0 if lut is None else lut[3] if pre is None else max(lut[3], pre[3])
         visible = blocks.visible(mode, tf, margin, xray_scale, xray_offset)
         # Start and stop at the region's bounding box (cells lo .. hi - 1) grown by one voxel,
@@ -728,11 +739,7 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     if navigate:
         sampler = _NavigationSampler(vevm, shading is not None)
     else:
-        entry = _CACHE.setdefault(vevm, {})
-        key = ("sampler", shading is not None)
-        if key not in entry:
-            entry[key] = _DenseSampler(vevm, shading is not None)
-        sampler = entry[key]
+        sampler = _cached(vevm, sampler_key, lambda: _DenseSampler(vevm, shading is not None))
     inv_t = np.linalg.inv(g)[:3, :3].T if shading is not None else None
 
     out_acc = np.zeros((len(rays), 4), np.float32)
