@@ -7,7 +7,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from volumeevm_addon import Camera, EVM, VolumeEVM, render, write_exr, write_png
+from volumeevm_addon import EVM, Camera, TransferFunction, VolumeEVM, render, write_exr, write_png
 from volumeevm_addon._errors import VolumeEVMError
 from volumeevm_addon._memory import format_bytes
 from volumeevm_addon.model._volume import grid_to_world
@@ -318,3 +318,21 @@ def test_empty_exr_is_refused(tmp_path):
     with pytest.raises(VolumeEVMError, match=r"^depth: expected shape \(3, 4\), got \(0, 4\)"):
         write_exr(tmp_path / "x.exr", np.zeros((3, 4, 4)), np.zeros((0, 4)))
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("method", ["raycast", "splat", "shear_warp"])
+def test_renderers_called_directly_check_depth_in(method):
+    """The renderers share the depth_in check with render(): bad values are VolumeEVMErrors."""
+    from volumeevm_addon.rendering import _raycast, _shear_warp, _splat
+
+    vevm = VolumeEVM.from_array(np.pad(np.ones((4, 4, 4)), 2), 0.5)
+    cam = Camera.look_at((4.0, -20.0, 4.0), (4.0, 4.0, 4.0), ortho_scale=12.0,
+                         resolution_x=6, resolution_y=5)
+    renderer = {"raycast": _raycast.render_raycast, "splat": _splat.render_splat,
+                "shear_warp": _shear_warp.render_shear_warp}[method]
+    tf = TransferFunction.preset("ct_bone")
+    for bad, match in (("far", "expected an array of numbers, got str"),
+                       (np.ones((4, 4)), r"shape \(4, 4\) differs from the image's \(5, 6\)"),
+                       (np.full((5, 6), np.nan), "30 NaN values; use 1e10 for no geometry")):
+        with pytest.raises(VolumeEVMError, match=f"^depth_in: {match}"):
+            renderer(vevm, cam, tf, np.eye(4), depth_in=bad)

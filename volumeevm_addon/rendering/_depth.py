@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 
+from .._errors import VolumeEVMError
 from ._transfer import opacity_correction
 
 __all__ = ["VISIBLE_ALPHA", "VISIBLE_OPTICAL_DEPTH", "visible", "attenuates"]
@@ -93,3 +94,29 @@ def attenuates(tau, step_mm):
     tau = np.asarray(tau)
     threshold = np.multiply(step_mm, VISIBLE_OPTICAL_DEPTH, dtype=np.float64).astype(tau.dtype)
     return (tau > 0) & (tau >= threshold)
+
+
+def checked_depth_in(depth_in, shape):
+    """``depth_in`` (the scene's axial depth per pixel, where rays stop) as float64, checked.
+
+    Every renderer takes it; ``None`` (no geometry) stays ``None``.
+
+    Raises
+    ------
+    VolumeEVMError
+        If it is not an array of numbers, its shape is not the image's ``shape``, or it holds
+        NaN (1e10 marks pixels without geometry).
+    """
+    if depth_in is None:
+        return None
+    try:
+        depth_in = np.asarray(depth_in, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise VolumeEVMError(f"depth_in: expected an array of numbers, got "
+                             f"{type(depth_in).__name__}") from error
+    if depth_in.shape != tuple(shape):
+        raise VolumeEVMError(f"depth_in: shape {depth_in.shape} differs from the image's {tuple(shape)}")
+    if np.isnan(depth_in).any():
+        raise VolumeEVMError(
+            f"depth_in: {int(np.isnan(depth_in).sum())} NaN values; use 1e10 for no geometry")
+    return depth_in

@@ -127,14 +127,7 @@ def check_common(vevm, camera, tf, grid_to_world, mode, depth_in, termination, x
         raise VolumeEVMError("grid_to_world: expected a finite affine 4x4 matrix")
     if abs(np.linalg.det(g[:3, :3])) < 1e-300 or np.linalg.cond(g[:3, :3]) > 1e12:
         raise VolumeEVMError("grid_to_world: the 3x3 part is singular")
-    if depth_in is not None:
-        depth_in = np.asarray(depth_in, dtype=np.float64)
-        if depth_in.shape != tuple(camera.shape):
-            raise VolumeEVMError(
-                f"depth_in: shape {depth_in.shape} differs from the image's {camera.shape}")
-        if np.isnan(depth_in).any():
-            raise VolumeEVMError(
-                f"depth_in: {int(np.isnan(depth_in).sum())} NaN values; use 1e10 for no geometry")
+    depth_in = _depth.checked_depth_in(depth_in, camera.shape)
     try:
         termination = float(termination)
     except (TypeError, ValueError):

@@ -151,14 +151,7 @@ def _check_inputs(densities, mask, grid_to_world, spacing, camera, tf, mode, ste
         step = float(step_mm)
         if not np.isfinite(step) or step <= 0:
             raise VolumeEVMError(f"step_mm: must be a finite number > 0, got {step_mm!r}")
-    if depth_in is not None:
-        depth_in = np.asarray(depth_in, dtype=np.float64)
-        if depth_in.shape != camera.shape:
-            raise VolumeEVMError(
-                f"depth_in: shape {depth_in.shape} differs from the image's {camera.shape}")
-        if np.isnan(depth_in).any():
-            raise VolumeEVMError(
-                f"depth_in: {int(np.isnan(depth_in).sum())} NaN values; use 1e10 for no geometry")
+    depth_in = _depth.checked_depth_in(depth_in, camera.shape)
     if shading is True:
         shading = Shading()
     elif shading is False:

@@ -31,6 +31,7 @@ from .._memory import check_memory
 from ..model._levels import level_factor
 from ..model._volume import grid_to_world
 from ._camera import Camera
+from ._depth import checked_depth_in
 from ._reference import MODES
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
@@ -143,10 +144,9 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
     if not all(hasattr(vevm, a) for a in ("evm", "shape", "spacing", "origin", "orientation")):
         raise VolumeEVMError(f"vevm: expected a VolumeEVM, got {type(vevm).__name__}")
-    if depth_in is not None:
-        depth_in = _numbers("depth_in", depth_in)
     renderer = _renderers()[method]
     _check_option_types(method, options)
+    depth_in = checked_depth_in(depth_in, camera.shape)
     h, w = camera.shape
     check_memory(h * w * _IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",
                  advice="lower the resolution or resolution_percentage")
