@@ -2,9 +2,8 @@
 
 import numpy as np
 
-from volumeevm_addon.rendering._camera import Camera
+from volumeevm_addon import Camera, TransferFunction
 from volumeevm_addon.rendering._reference import render_reference
-from volumeevm_addon.rendering._transfer import TransferFunction
 
 MODES = ("over", "under", "xray", "mip")
 XRAY = {"xray_scale": 2e-4, "xray_offset": -1024.0}  # CT: attenuation from -1024 HU up

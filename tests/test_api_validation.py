@@ -9,10 +9,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError
-from volumeevm_addon._voxelize import voxelize_mesh, voxelize_mesh_evm
+from volumeevm_addon import (EVM, Volume, VolumeEVM, VolumeEVMError, voxelize_mesh,
+                             voxelize_mesh_evm)
 from volumeevm_addon.model import _volumeevm
-from volumeevm_addon.model._volume import Volume
 
 ONES = np.ones((3, 3, 3), np.int16)
 ROTATION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

@@ -35,13 +35,13 @@ def skull(ext):
 
 def opaque_tf(ext):
     """Opacity 1 per mm at every density: any ray through a region voxel is opaque."""
-    from volumeevm.volumeevm_addon.rendering._transfer import TransferFunction
+    from volumeevm.volumeevm_addon import TransferFunction
 
     return TransferFunction([(0.0, 1.0, 1.0, 1.0, 1.0), (10.0, 1.0, 1.0, 1.0, 1.0)])
 
 
 def bone_tf():
-    from volumeevm.volumeevm_addon.rendering._transfer import TransferFunction
+    from volumeevm.volumeevm_addon import TransferFunction
 
     return TransferFunction([(2.0, 0.9, 0.8, 0.7, 0.0), (3.0, 0.95, 0.85, 0.7, 0.15),
                              (5.5, 1.0, 1.0, 1.0, 0.6)])
@@ -183,7 +183,7 @@ def test_volume_in_front_veils_a_plane_behind_it(ext, dvr, skull):
     seen = result.dvr_rgba[..., 3] > 0.01
     assert 0.05 < seen.mean() < 0.9
     # The plane lies behind the whole volume: the DVR is the same as with no scene at all.
-    from volumeevm.volumeevm_addon.rendering._render import render
+    from volumeevm.volumeevm_addon import render
 
     cam = ext.operators.camera.camera_from_blender(scene)
     alone, alone_depth = render(ext.operators.api.get_vevm(skull), cam, bone_tf(),
@@ -236,7 +236,7 @@ def test_operator_end_to_end(ext, dvr, skull, tmp_path):
     tf = ext.operators.render.transfer_function(s)
     options = dvr.method_options("raycast", 1.0, skull.volumeevm.spacing)
     expected = dvr.render_dvr(skull, tf, method="raycast", image_name="check", options=options)
-    from volumeevm.volumeevm_addon.rendering._render import render
+    from volumeevm.volumeevm_addon import render
 
     cam = ext.operators.camera.camera_from_blender(scene)
     core, core_depth = render(ext.operators.api.get_vevm(skull), cam, tf, method="raycast",
@@ -299,7 +299,7 @@ def test_transfer_function_from_the_ramp(ext, skull):
     s.volume = skull
     s.preset = "mri"
     tf = ext.operators.render.transfer_function(s)
-    from volumeevm.volumeevm_addon.rendering._transfer import TransferFunction
+    from volumeevm.volumeevm_addon import TransferFunction
 
     hi = skull.volumeevm.value_max
     want = TransferFunction.preset("mri", data_range=(skull.volumeevm.value_min, hi))
@@ -480,7 +480,7 @@ def test_the_tool_stack_result_is_rendered(ext, dvr, skull):
     assert result.voxel_count < api.get_vevm(skull).voxel_count
     box.hide_render = True  # the tool itself stays out of the picture here
     cut = dvr.render_dvr(skull, bone_tf())
-    from volumeevm.volumeevm_addon.rendering._render import render
+    from volumeevm.volumeevm_addon import render
 
     cam = ext.operators.camera.camera_from_blender(scene)
     want, _ = render(result, cam, bone_tf(), method="raycast",

@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
+from volumeevm_addon import BACKGROUND_DEPTH, Camera, VolumeEVMError
 
 
 # ---------------------------------------------------------------------------- core rules
@@ -328,8 +327,8 @@ def test_silhouette_and_depth_match_a_cycles_render(scene, case, tmp_path):
     aspect and axial depth as Blender renders them."""
     from mathutils import Matrix
 
+    from volumeevm_addon import TransferFunction
     from volumeevm_addon.rendering._reference import render_reference
-    from volumeevm_addon.rendering._transfer import TransferFunction
 
     kind, fit, shift, rx, ry, pct, ax, ay = case
     cam = scene.camera.data

@@ -121,3 +121,27 @@ def test_every_public_name_is_exported():
     assert len(set(volumeevm_addon.__all__)) == len(volumeevm_addon.__all__)
     for public in (phantoms, metrics):  # the modules themselves: one way to import each name
         assert all(getattr(public, n).__module__ == public.__name__ for n in public.__all__)
+
+
+def public_names_taken_privately(source, filename):
+    """``(line number, name)`` of every name ``source`` imports from a private core module
+    although ``volumeevm_addon`` or ``volumeevm_addon.readers`` exports it."""
+    import volumeevm_addon
+    from volumeevm_addon import readers
+
+    public = set(volumeevm_addon.__all__) | set(readers.__all__)
+    return [(node.lineno, alias.name)
+            for node in ast.walk(ast.parse(source, filename))
+            if isinstance(node, ast.ImportFrom) and node.module and is_private(node.module)
+            for alias in node.names if alias.name in public]
+
+
+def test_tests_take_public_names_from_the_public_api():
+    """Tests may look inside a private module for what is not public (white-box tests of a
+    renderer's internals), but a name the API exports comes from the API, as users get it."""
+    files = sorted((REPO / "tests").glob("*.py"))
+    assert len(files) > 30
+    offending = [f"{path.relative_to(REPO)}:{number}: {name}"
+                 for path in files
+                 for number, name in public_names_taken_privately(path.read_text(), str(path))]
+    assert not offending, "public names imported from private modules:\n" + "\n".join(offending)

@@ -31,7 +31,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
 
 from reader_files import write_series, write_tiff

@@ -38,7 +38,7 @@ import numpy as np
 import pytest
 from reader_files import patch_nifti, write_den, write_nrrd
 
-from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
 
 SEED = 20261124

@@ -4,14 +4,10 @@ level's rule, and render(level=...) against the full level."""
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, Camera, VolumeEVM, VolumeEVMError,
+                             grid_to_world, render)
 from volumeevm_addon.metrics import rmse
 from volumeevm_addon.model._levels import auto_factor, coarsen, level_factor
-from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon.model._volume import grid_to_world
-from volumeevm_addon.model._volumeevm import VolumeEVM
-from volumeevm_addon.rendering._camera import Camera
-from volumeevm_addon.rendering._render import render
 from render_helpers import camera, const_tf
 
 

@@ -6,11 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from volumeevm_addon import phantoms as ph
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.model._volume import Volume, grid_to_world
-from volumeevm_addon.model._volumeevm import VolumeEVM
-from volumeevm_addon.rendering._render import render
+from volumeevm_addon import (Volume, VolumeEVM, VolumeEVMError, grid_to_world, phantoms as ph,
+                             render)
 from render_helpers import camera, const_tf
 
 

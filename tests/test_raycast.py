@@ -6,15 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.model._evm import EVM
-from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon.model._volume import grid_to_world
-from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM as BU, Camera, EVM,
+                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world)
 from volumeevm_addon.phantoms import box_chords_mm
-from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon.rendering._raycast import _Blocks, render_raycast, render_raycast_navigate
-from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import MODES, XRAY, camera, const_tf, reference
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import SUPPORTED_EXTENSIONS, read_volume
 from reader_files import REPO, patch_nifti, write_den, write_nrrd
 

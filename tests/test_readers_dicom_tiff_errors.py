@@ -16,8 +16,7 @@ import warnings
 import numpy as np
 import pytest
 
-from volumeevm_addon import _memory
-from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon import VolumeEVMError, _memory
 from volumeevm_addon.readers import _dicom, _tiff, read_volume
 
 from reader_files import ORIGIN, SPACING, write_series, write_tiff

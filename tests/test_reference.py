@@ -6,11 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, index_to_physical
-from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
-from volumeevm_addon.rendering._reference import Shading, render_reference
-from volumeevm_addon.rendering._transfer import TransferFunction
+from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, Shading,
+                             TransferFunction, VolumeEVMError, index_to_physical)
+from volumeevm_addon.rendering._reference import render_reference
 
 BU = BLENDER_UNITS_PER_MM
 

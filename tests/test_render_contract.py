@@ -13,15 +13,12 @@ import numpy as np
 import pytest
 from render_helpers import MODES, XRAY, camera, centre, const_tf, reference
 
-from volumeevm_addon.model._evm import EVM
-from volumeevm_addon.model._volume import grid_to_world
-from volumeevm_addon.model._volumeevm import VolumeEVM
+from volumeevm_addon import (BACKGROUND_DEPTH, Camera, EVM, TransferFunction, VolumeEVM,
+                             grid_to_world)
 from volumeevm_addon.phantoms import box_chords_mm
-from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
 from volumeevm_addon.rendering._raycast import render_raycast, render_raycast_navigate
 from volumeevm_addon.rendering._shear_warp import render_shear_warp
 from volumeevm_addon.rendering._splat import render_splat
-from volumeevm_addon.rendering._transfer import TransferFunction
 
 RENDER = {"raycast": render_raycast, "raycast_navigate": render_raycast_navigate,
           "splat": render_splat, "shear_warp": render_shear_warp}

@@ -7,13 +7,11 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from volumeevm_addon import EVM, Camera, TransferFunction, VolumeEVM, render, write_exr, write_png
-from volumeevm_addon._errors import VolumeEVMError
+from volumeevm_addon import (Camera, EVM, METHODS, TransferFunction, VolumeEVM, VolumeEVMError,
+                             grid_to_world, openexr_module, render, write_exr, write_png)
 from volumeevm_addon._memory import format_bytes
-from volumeevm_addon.model._volume import grid_to_world
-from volumeevm_addon.rendering._images import openexr_module
 from volumeevm_addon.rendering._raycast import _Blocks, _DenseSampler
-from volumeevm_addon.rendering._render import METHODS, check_samples, render_memory
+from volumeevm_addon.rendering._render import check_samples, render_memory
 from render_helpers import camera, const_tf
 
 

@@ -8,14 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon import VolumeEVM
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM, grid_to_world
+from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, TransferFunction,
+                             VolumeEVM, VolumeEVMError, grid_to_world, render)
 from volumeevm_addon.rendering import _shear_warp
-from volumeevm_addon.rendering._camera import BACKGROUND_DEPTH, Camera
-from volumeevm_addon.rendering._render import render
 from volumeevm_addon.rendering._shear_warp import _LAYOUTS, _View, render_shear_warp
-from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import MODES, reference
 
 BU = BLENDER_UNITS_PER_MM

@@ -15,15 +15,9 @@ Bounds are measured values with modest headroom; the comment by each says what w
 import numpy as np
 import pytest
 
-from volumeevm_addon import phantoms as ph
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon.model._volume import grid_to_world
-from volumeevm_addon.model._volumeevm import VolumeEVM
-from volumeevm_addon.rendering._camera import Camera
+from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, Camera, METHODS, TransferFunction,
+                             VolumeEVM, VolumeEVMError, grid_to_world, phantoms as ph, render)
 from volumeevm_addon.rendering._reference import render_reference
-from volumeevm_addon.rendering._render import METHODS, render
-from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import MODES, const_tf
 
 RENDERERS = tuple(m for m in METHODS if m != "reference")

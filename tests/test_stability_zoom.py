@@ -8,14 +8,10 @@ about the same."""
 import numpy as np
 import pytest
 
-from volumeevm_addon import phantoms
+from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, TransferFunction, VolumeEVM,
+                             grid_to_world, phantoms, render)
 from volumeevm_addon.metrics import rmse, temporal_errors
 from volumeevm_addon.model._levels import auto_factor
-from volumeevm_addon.model._volume import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon.model._volume import grid_to_world
-from volumeevm_addon.model._volumeevm import VolumeEVM
-from volumeevm_addon.rendering._render import render
-from volumeevm_addon.rendering._transfer import TransferFunction
 from render_helpers import camera, reference
 
 TF = TransferFunction([(0.0, 1.0, 0.8, 0.5, 0.0), (1.0, 1.0, 0.9, 0.7, 0.4)])

@@ -3,8 +3,7 @@
 import numpy as np
 import pytest
 
-from volumeevm_addon import EVM, VolumeEVM
-from volumeevm_addon.model._stack import EditStack, ToolOperation
+from volumeevm_addon import EVM, EditStack, ToolOperation, VolumeEVM
 
 
 @pytest.fixture(scope="module")

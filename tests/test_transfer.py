@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon.rendering._transfer import PRESETS, TransferFunction, opacity_correction
+from volumeevm_addon import PRESETS, TransferFunction, VolumeEVMError
+from volumeevm_addon.rendering._transfer import opacity_correction
 
 POINTS = [
     (-100.0, 0.0, 0.0, 1.0, 0.0),
@@ -103,7 +103,7 @@ def test_table_and_quantize():
     # the straight table is computed once per (lo, hi, n) and cached
     assert tf.straight_table(n=401) is tf.straight_table(n=401)
     assert not tf.straight_table(n=401).flags.writeable
-    other = tf.table(-1000, 1000, 64)
+    other = tf.table(lo=-1000, hi=1000, n=64)
     np.testing.assert_allclose(other, tf.classify(np.linspace(-1000, 1000, 64), 1.0), rtol=1e-6)
 
 
@@ -122,13 +122,14 @@ def test_preintegrated_table_against_fine_integration():
                            (0.32, 1, 1, 1, 0.95), (0.5, 0.1, 0.2, 1, 0.0), (1.0, 1, 1, 1, 0.2)],
                           unit_length_mm=2.0)
     n = 101
-    tab = tf.preintegrated_table(0.0, 1.0, n, step_mm=1.5, dtype=np.float64)
+    tab = tf.preintegrated_table(lo=0.0, hi=1.0, n=n, step_mm=1.5, dtype=np.float64)
     assert tab.shape == (n, n, 4) and not tab.flags.writeable
-    assert tf.preintegrated_table(0.0, 1.0, n, step_mm=1.5, dtype=np.float64) is tab
+    assert tf.preintegrated_table(lo=0.0, hi=1.0, n=n, step_mm=1.5, dtype=np.float64) is tab
     # Constant density: the point classification; a rising and a falling segment differ in
     # colour (what lies in front hides what lies behind) but not in opacity.
     np.testing.assert_allclose(tab[np.arange(n), np.arange(n)],
-                               tf.table(0.0, 1.0, n, step_mm=1.5, dtype=np.float64), atol=1e-15)
+                               tf.table(lo=0.0, hi=1.0, n=n, step_mm=1.5, dtype=np.float64),
+                               atol=1e-15)
     np.testing.assert_allclose(tab[..., 3], tab[..., 3].T, atol=1e-12)
     assert np.abs(tab[..., :3] - tab[..., :3].transpose(1, 0, 2)).max() > 0.1
     h = 1.0 / (n - 1)
@@ -195,7 +196,7 @@ def test_other_invalid_input():
     with pytest.raises(VolumeEVMError, match="NaN densities"):
         tf.quantize([np.nan])
     with pytest.raises(VolumeEVMError, match="lo < hi"):
-        tf.table(5, 5)
+        tf.table(lo=5, hi=5)
     with pytest.raises(VolumeEVMError, match="at least 2 rows"):
         tf.table(n=1)
     with pytest.raises(VolumeEVMError, match="give both"):

@@ -20,10 +20,8 @@ from vevm_helpers import (assert_same, crafted_npy, ct_crop, deflate_zeros, memb
                           raw_entries, raw_zip, refused, region_change, sha, synthetic,
                           write_vevm_members)
 
-from volumeevm_addon import VolumeEVM, VolumeEVMError
-from volumeevm_addon._files import write_atomically
+from volumeevm_addon import VolumeEVM, VolumeEVMError, write_atomically, write_png
 from volumeevm_addon.model import _volumeevm
-from volumeevm_addon.rendering._images import write_png
 
 
 # ---------------------------------------------------------------------- fixtures

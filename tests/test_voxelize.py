@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 from conftest import DATA
 
-from volumeevm_addon import _voxelize
-from volumeevm_addon._errors import VolumeEVMError
-from volumeevm_addon._voxelize import MeshCheck, check_closed_mesh, voxelize_mesh
+from volumeevm_addon import (EVM, MeshCheck, VolumeEVMError, _voxelize, box_evm, check_closed_mesh,
+                             voxelize_mesh, voxelize_mesh_evm)
 
 CLOSED_MESHES = [
     "mesh_tool_fandisk",
@@ -622,9 +621,6 @@ def test_small_mesh_between_centres_is_empty():
 @pytest.mark.parametrize("name", ["mesh_tool_nut", "mesh_tool_fandisk"])
 def test_evm_on_the_tool_box_equals_the_whole_grid(name):
     """A tool in a bigger grid, partly outside it: same voxels as voxelizing the whole grid."""
-    from volumeevm_addon import EVM
-    from volumeevm_addon._voxelize import voxelize_mesh_evm
-
     vertices, faces = load_mesh(name)
     matrix, shape = fit_to_grid(vertices, 30, rotation((1, 2, 3), 0.7))
     matrix[:3, 3] += (17.25, -9.5, 6.0)  # sticks out of the grid at y < 0
@@ -639,9 +635,6 @@ def test_evm_on_the_tool_box_equals_the_whole_grid(name):
 
 
 def test_box_evm_follows_the_tie_rule_of_a_box_mesh():
-    from volumeevm_addon import EVM
-    from volumeevm_addon._voxelize import box_evm
-
     for lo, hi in [((1.0, 2.0, 0.5), (6.0, 4.0, 3.5)), ((-3.2, 1.7, 2.0), (4.9, 9.0, 2.6)),
                    ((0.4, 0.4, 0.4), (0.6, 0.6, 0.6))]:
         vertices, faces = box(lo, hi)

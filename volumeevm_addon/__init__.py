@@ -18,7 +18,7 @@ modules whose names start with ``_`` are private and may move. The layout, by co
 from ._errors import VolumeEVMError
 from ._files import atomic_target, write_atomically
 from ._memory import LIMIT_VARIABLE, available_memory, check_memory
-from ._voxelize import box_evm, check_closed_mesh, voxelize_mesh, voxelize_mesh_evm
+from ._voxelize import MeshCheck, box_evm, check_closed_mesh, voxelize_mesh, voxelize_mesh_evm
 from .model._evm import EVM
 from .model._levels import LEVELS
 from .model._mesh import Polygons
@@ -43,6 +43,7 @@ __all__ = [
     "LIMIT_VARIABLE",
     "MAX_SAMPLES",
     "METHODS",
+    "MeshCheck",
     "MODES",
     "PRESETS",
     "Polygons",
