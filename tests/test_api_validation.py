@@ -230,6 +230,7 @@ def test_the_refusal_comes_while_the_vertices_are_extracted(monkeypatch):
 
 def _estimate_and_peak(monkeypatch, array, threshold):
     """The estimate from_array checks, and its measured peak (tracemalloc traces NumPy)."""
+    VolumeEVM.from_array(array, threshold)  # loads the compiled kernels: a one-time cost, not the data's
     seen = []
     monkeypatch.setattr(_volumeevm, "check_memory", lambda needed, *args, **kwargs: seen.append(needed))
     tracemalloc.start()

@@ -168,7 +168,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _operators_camera():
-    """``operators/camera.py`` imported as part of the extension package rooted at the repo, as
+    """``blender/camera.py`` imported as part of the extension package rooted at the repo, as
     Blender does (it imports the core with ``from ..volumeevm_addon``): through the shared
     test helper when it is there, else as a bare package (no registration code run)."""
     try:
@@ -181,7 +181,7 @@ def _operators_camera():
             sys.modules[name] = pkg
     else:
         name = addon().__name__
-    module = importlib.import_module(f"{name}.operators.camera")
+    module = importlib.import_module(f"{name}.blender.camera")
     return module.camera_from_blender, module.VolumeEVMError
 
 

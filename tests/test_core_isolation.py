@@ -30,7 +30,7 @@ def test_importing_the_core_loads_no_blender_module():
 
 # ------------------------------------------------------------------ one public API, enforced
 REPO = CORE.parent
-OUTSIDE_FOLDERS = ("operators", "ui", "bench", "sample_blends")
+OUTSIDE_FOLDERS = ("blender", "operators", "ui", "bench", "sample_blends")
 """Code outside the core: it may import only the core's public names (``volumeevm_addon``,
 ``volumeevm_addon.readers``, ``.phantoms``, ``.metrics``), never a module named ``_...``."""
 

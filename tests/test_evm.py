@@ -7,7 +7,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy import ndimage
 
-from volumeevm_addon import EVM, VolumeEVMError
+from volumeevm_addon import EVM, VolumeEVMError, set_kernel_threads
+from volumeevm_addon.model import _evm
 
 VOLUMES = ["ct_head_invesalius", "ct_skull_cgal", "seg_liver_cgal", "mr_t1_itk_kmeans",
            "mr_brainsmall_volpack", "micro_nuclei3d_stardist"]
@@ -61,6 +62,26 @@ def test_vertices_follow_the_parity_rule_and_are_sorted(data_dir):
     assert np.array_equal(evm.vertices, brute_vertices(mask))
     keys = evm.vertices.astype(np.int64) @ np.array([1 << 40, 1 << 20, 1])
     assert (np.diff(keys) > 0).all()
+
+
+@settings(max_examples=100, deadline=None)
+@given(masks, st.integers(1, 60), st.sampled_from([1, 2]))
+def test_extraction_is_the_parity_rule_in_any_blocks_on_any_threads(pair, block_voxels, threads):
+    """The compiled extraction (blocks of x-slices on a pool of threads) against the definition,
+    for masks of any memory layout and dtype; the keys in every other axis order are sorted."""
+    mask, other = pair
+    previous = set_kernel_threads(threads)
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(_evm, "_BLOCK_VOXELS", block_voxels)
+            variants = (mask, np.asfortranarray(mask), mask[::-1, :, ::-1], mask.astype(np.int16) * other)
+            for variant in variants:
+                evm = EVM.from_mask(variant)
+                assert np.array_equal(evm.vertices, brute_vertices(variant != 0))
+                for order in _evm.ORDERS:
+                    assert np.array_equal(evm.keys(order), np.sort(evm.keys(order)))
+    finally:
+        set_kernel_threads(previous)
 
 
 def test_reference_numbers_of_brainsmall(data_dir):

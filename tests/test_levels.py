@@ -70,9 +70,9 @@ def test_constant_region_stays_constant_and_thin_structures_survive():
 
 def test_levels_are_cached_and_built_on_demand(ragged):
     v = VolumeEVM(ragged.evm, ragged.table(), shape=ragged.shape)
-    assert v._levels == {}
+    assert v.cache.keys() == []
     assert v.level(2) is v.level(2)
-    assert list(v._levels) == [2]
+    assert v.cache.keys() == [("level", 2)]
 
 
 def test_bad_levels_raise():

@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from volumeevm_addon import EVM
+from volumeevm_addon import EVM, set_kernel_threads
+from volumeevm_addon.model import _mesh
 from volumeevm_addon.model._mesh import mesh_volume_area
 
 
@@ -67,3 +68,41 @@ def test_polygons_iterate_as_loops():
     loops = list(polygons)
     assert len(loops) == 6 and sum(len(loop) for loop in loops) == 24
     assert sorted(len(loop) for loop in loops) == [4] * 6
+
+
+def mesh_arrays(mask):
+    vertices, polygons = EVM.from_mask(mask).mesh()
+    return vertices, polygons.indices, polygons.starts, polygons.sizes
+
+
+def test_mesh_is_the_same_on_one_thread_and_on_two(data_dir):
+    """Blocks of planes and of polygons run in parallel: the result never depends on the thread
+    count (the CT head at bone cuts into several blocks of each kind)."""
+    mask = np.load(data_dir / "ct_head_invesalius.npy") >= 300
+    previous = set_kernel_threads(1)
+    try:
+        one = mesh_arrays(mask)
+        set_kernel_threads(2)
+        two = mesh_arrays(mask)
+    finally:
+        set_kernel_threads(previous)
+    for a, b in zip(one, two):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.tuples(st.integers(1, 7), st.integers(1, 7), st.integers(1, 7)).flatmap(lambda s: arrays(bool, s)),
+       st.integers(1, 20), st.integers(1, 20))
+def test_mesh_does_not_depend_on_how_the_work_is_cut(mask, block_vertices, block_rectangles):
+    """Tiny blocks (a plane or a few rectangles each, on two threads) give the same arrays."""
+    whole = mesh_arrays(mask)
+    previous = set_kernel_threads(2)
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(_mesh, "_BLOCK_VERTICES", block_vertices)
+            patch.setattr(_mesh, "_BLOCK_RECTANGLES", block_rectangles)
+            cut = mesh_arrays(mask)
+    finally:
+        set_kernel_threads(previous)
+    for a, b in zip(whole, cut):
+        assert a.dtype == b.dtype and np.array_equal(a, b)

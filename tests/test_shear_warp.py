@@ -11,7 +11,7 @@ import pytest
 from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, TransferFunction,
                              VolumeEVM, VolumeEVMError, grid_to_world, render)
 from volumeevm_addon.rendering import _shear_warp
-from volumeevm_addon.rendering._shear_warp import _LAYOUTS, _View, render_shear_warp
+from volumeevm_addon.rendering._shear_warp import _View, _region_layout, render_shear_warp
 from render_helpers import MODES, reference
 
 BU = BLENDER_UNITS_PER_MM
@@ -396,11 +396,15 @@ def test_axis_cache_is_reused(brain_half):
     first = orbit_camera(g, vevm.shape, vevm.spacing, (0.3, -1.0, 0.2), "ORTHO", res=(16, 12))
     moved = orbit_camera(g, vevm.shape, vevm.spacing, (-0.2, -1.0, 0.4), "PERSP", res=(16, 12))
     render_shear_warp(vevm, first, MRI, g)
-    layout = _LAYOUTS[vevm][1]
+    layout = _region_layout(vevm, 1)  # the one the render kept in vevm.cache
+
+    def kept(part):
+        return [key[2:] for key in vevm.cache.keys() if key[:2] == ("shear_warp", part)]
+
     render_shear_warp(vevm, moved, MRI, g)
     render_shear_warp(vevm, moved, CT_BONE, g)
-    assert list(_LAYOUTS[vevm]) == [1] and _LAYOUTS[vevm][1] is layout
-    assert len(layout.classes) == 2
+    assert kept("layout") == [(1,)] and _region_layout(vevm, 1) is layout
+    assert len(kept("classes")) == 2
 
 
 @pytest.mark.parametrize("f, g", [(0.0, 0.0), (0.3, 0.7), (0.5, 0.49), (0.999, 0.5)])

@@ -10,7 +10,7 @@ import pytest
 from conftest import DATA
 
 from volumeevm_addon import (EVM, MeshCheck, VolumeEVMError, _voxelize, box_evm, check_closed_mesh,
-                             voxelize_mesh, voxelize_mesh_evm)
+                             grid_to_world, tool_to_grid, voxelize_mesh, voxelize_mesh_evm)
 
 CLOSED_MESHES = [
     "mesh_tool_fandisk",
@@ -640,3 +640,37 @@ def test_box_evm_follows_the_tie_rule_of_a_box_mesh():
         vertices, faces = box(lo, hi)
         expected = EVM.from_mask(voxelize_mesh(vertices, faces, (8, 8, 8), np.eye(4)))
         assert box_evm(lo, hi, (8, 8, 8)) == expected
+
+
+def test_tool_to_grid_undoes_the_volumes_placement():
+    """A tool placed in the world lands in the volume's index space: the inverse of the
+    volume's grid_to_world after the tool's placement, affine exactly."""
+    orientation = rotation((0, 0, 1), 0.3)
+    volume = np.eye(4)
+    volume[:3, :3] = rotation((1, 1, 0), 0.4) * 1.5
+    volume[:3, 3] = (0.1, -0.2, 0.05)
+    tool = np.eye(4)
+    tool[:3, :3], tool[:3, 3] = rotation((1, 2, 3), 0.7), (0.02, 0.01, -0.03)
+    spacing, origin = (0.9, 0.8, 1.5), (-30.0, -20.0, 50.0)
+    to_grid = tool_to_grid(tool, spacing, origin, orientation, matrix_world=volume)
+    assert to_grid.dtype == np.float64
+    assert to_grid[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+    world = grid_to_world(spacing, origin, orientation, volume)
+    points = np.array([[0.0, 0.0, 0.0, 1.0], [0.01, -0.02, 0.005, 1.0]])
+    np.testing.assert_allclose(world @ (to_grid @ points.T), tool @ points.T, atol=1e-12)
+    # A tool 4 mm along x of a 2 mm grid at the origin: 2 voxels along x.
+    moved = np.eye(4)
+    moved[0, 3] = 0.004
+    np.testing.assert_allclose(tool_to_grid(moved, (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))[:3, 3],
+                               (2.0, 0.0, 0.0), atol=1e-12)
+
+
+@pytest.mark.parametrize("tool, volume, match", [
+    (np.eye(3), None, r"tool_matrix: a finite 4x4 matrix, got shape \(3, 3\)"),
+    (np.full((4, 4), np.nan), None, "tool_matrix: a finite 4x4 matrix"),
+    (np.eye(4), np.diag([1.0, 0.0, 1.0, 1.0]), "matrix_world: the volume's placement cannot be "
+                                               "inverted"),
+])
+def test_tool_to_grid_refuses_bad_placements(tool, volume, match):
+    with pytest.raises(VolumeEVMError, match=match):
+        tool_to_grid(tool, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), matrix_world=volume)

@@ -36,7 +36,22 @@ _ADVICE = {
 
 
 def atomic_target(path, *, overwrite):
-    """Check that ``path`` may be written and make its folder; returns it as a ``Path``.
+    """Check that ``path`` may be written and make its folder.
+
+    Writers call it before slow work (a render, an encoding), so a name that exists fails
+    at once rather than after the work; :func:`write_atomically` calls it too.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file to write.
+    overwrite : bool
+        Whether an existing file may be replaced (keyword-only, required).
+
+    Returns
+    -------
+    Path
+        ``path`` as a :class:`pathlib.Path`.
 
     Raises
     ------

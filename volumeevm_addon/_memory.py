@@ -53,7 +53,15 @@ def memory_limit():
 def available_memory():
     """Bytes this process may still allocate: free memory, capped by :func:`memory_limit`.
 
-    Returns ``None`` when the operating system does not tell and no budget is set.
+    Returns
+    -------
+    int or None
+        ``None`` when the operating system does not tell and no budget is set.
+
+    Raises
+    ------
+    VolumeEVMError
+        If :data:`LIMIT_VARIABLE` is set but is not a size (:func:`memory_limit`).
     """
     free = _system_available()
     limit = memory_limit()
@@ -75,6 +83,7 @@ def check_memory(needed, what, *, source, advice=""):
         The file or parameter the step works on, named first in the message.
     advice : str, optional
         What the user can do instead (crop, a higher threshold, a coarser level).
+        ``source`` and ``advice`` are keyword-only.
 
     Raises
     ------

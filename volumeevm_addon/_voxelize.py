@@ -17,7 +17,8 @@ import numpy as np
 from ._errors import VolumeEVMError
 from ._memory import check_memory
 
-__all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "voxelize_memory", "voxelize_mesh", "voxelize_mesh_evm"]
+__all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "tool_to_grid", "voxelize_memory",
+           "voxelize_mesh", "voxelize_mesh_evm"]
 
 # Shewchuk's forward error bounds for orient2d / orient3d evaluated in float64 ("Adaptive
 # Precision Floating-Point Arithmetic and Fast Robust Geometric Predicates", 1997): if
@@ -40,7 +41,7 @@ _MAX_INDEX = 1e30
 
 @dataclass(frozen=True)
 class MeshCheck:
-    """Facts about a mesh that passed :func:`check_closed_mesh`.
+    """Facts about a mesh that passed :func:`check_closed_mesh` (its return value).
 
     Attributes
     ----------
@@ -547,8 +548,30 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     float64, and the voxelization is invariant under integer translations (the tie rule perturbs
     every centre alike), so the voxels are the same as on the whole grid.
 
-    Parameters and errors are those of :func:`voxelize_mesh`; besides, ``shape`` must fit the
-    EVM's coordinate range (at most 1048575 voxels along each axis).
+    Parameters
+    ----------
+    vertices, faces, shape, to_grid
+        As for :func:`voxelize_mesh`; besides, ``shape`` must fit the EVM's coordinate range
+        (at most 1048575 voxels along each axis).
+
+    Returns
+    -------
+    EVM
+        The voxels of ``voxelize_mesh(vertices, faces, shape, to_grid)``, empty when the mesh
+        meets the grid but holds no voxel centre.
+
+    Raises
+    ------
+    VolumeEVMError
+        As :func:`voxelize_mesh`, and for a ``shape`` beyond the EVM's coordinate range.
+
+    Examples
+    --------
+    >>> v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    >>> f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    >>> to_grid = np.diag([4.0, 4.0, 4.0, 1.0])
+    >>> voxelize_mesh_evm(v, f, (5, 5, 5), to_grid).volume()
+    20
     """
     from .model._evm import EVM, check_lattice_range
 
@@ -576,7 +599,24 @@ def box_evm(lo, hi, shape):
 
     The tie rule of :func:`voxelize_mesh` for a box: centre ``i`` is inside when
     ``lo <= i < hi`` on every axis, so the voxels are ``ceil(lo) <= i < ceil(hi)``, clipped to
-    the grid; their EVM is the box's 8 corners.
+    the grid; their EVM is the box's 8 corners. A box tool (or clip box) needs no mesh.
+
+    Parameters
+    ----------
+    lo, hi : (3,) array_like of float
+        Opposite corners of the box in voxel index space (voxel centres at integers).
+    shape : tuple of 3 int
+        The grid the voxels are clipped to.
+
+    Returns
+    -------
+    EVM
+        Empty when the box holds no voxel centre of the grid.
+
+    Examples
+    --------
+    >>> box_evm((0.5, 0.0, -3.0), (2.0, 2.0, 9.0), (4, 4, 4)).volume()  # 1 x 2 x 4 voxels
+    8
     """
     from .model._evm import EVM
 
@@ -587,3 +627,52 @@ def box_evm(lo, hi, shape):
     ends = np.stack([low, high])
     corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
     return EVM(ends[corners, [0, 1, 2]])
+
+
+def tool_to_grid(tool_matrix, spacing, origin, orientation=None, *, matrix_world=None):
+    """4x4 matrix from a tool's local coordinates to a volume's voxel-centre indices.
+
+    The ``to_grid`` of :func:`voxelize_mesh` for a tool mesh placed in the same world as the
+    volume: the inverse of :func:`~volumeevm_addon.grid_to_world` after the tool's placement.
+
+    Parameters
+    ----------
+    tool_matrix : (4, 4) array_like
+        The tool's placement, local coordinates to world (Blender units): its ``matrix_world``.
+    spacing, origin, orientation
+        The volume's grid, as for :func:`~volumeevm_addon.grid_to_world`.
+    matrix_world : (4, 4) array_like, optional
+        The volume object's placement (default: the identity).
+
+    Returns
+    -------
+    (4, 4) ndarray of np.float64
+        Affine exactly: its last row is ``(0, 0, 0, 1)`` (the inverse may leave rounding there).
+
+    Raises
+    ------
+    VolumeEVMError
+        When ``tool_matrix`` is not a finite 4x4 matrix, or the volume's placement cannot be
+        inverted (a scale of 0).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from volumeevm_addon import tool_to_grid
+    >>> moved = np.eye(4)
+    >>> moved[:3, 3] = (0.004, 0.0, 0.0)  # the tool 4 mm along x (Blender units)
+    >>> tool_to_grid(moved, (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)) @ (0.0, 0.0, 0.0, 1.0)
+    array([2., 0., 0., 1.])
+    """
+    from .model._volume import grid_to_world
+
+    tool = np.asarray(tool_matrix, dtype=np.float64)
+    if tool.shape != (4, 4) or not np.isfinite(tool).all():
+        raise VolumeEVMError(f"tool_matrix: a finite 4x4 matrix, got shape {tool.shape}")
+    world = grid_to_world(spacing, origin, orientation, matrix_world)
+    if not np.isfinite(world).all() or np.linalg.det(world) == 0.0:
+        raise VolumeEVMError("matrix_world: the volume's placement cannot be inverted (a scale "
+                             "of 0?)")
+    to_grid = np.linalg.inv(world) @ tool
+    to_grid[3] = (0.0, 0.0, 0.0, 1.0)
+    return to_grid

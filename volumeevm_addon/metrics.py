@@ -32,13 +32,39 @@ def _pair(image, reference):
 
 
 def rmse(image, reference):
-    """Root mean square difference over every pixel and channel."""
+    """Root mean square difference over every pixel and channel.
+
+    Parameters
+    ----------
+    image, reference : array_like
+        Images of the same shape, e.g. premultiplied RGBA ``(H, W, 4)``.
+
+    Returns
+    -------
+    float
+        0 for empty images.
+
+    Raises
+    ------
+    ValueError
+        When ``image`` and ``reference`` differ in shape.
+
+    Examples
+    --------
+    >>> rmse([0.0, 0.0], [0.0, 2.0]) == 2 ** 0.5
+    True
+    """
     a, b = _pair(image, reference)
     return float(np.sqrt(np.mean((a - b) ** 2))) if a.size else 0.0
 
 
 def image_errors(image, reference):
     """The per-image measures of one render against its reference.
+
+    Parameters
+    ----------
+    image, reference : (H, W, 4) array_like
+        Premultiplied RGBA, the render and the reference (:func:`volumeevm_addon.render`).
 
     Returns
     -------
@@ -47,6 +73,17 @@ def image_errors(image, reference):
         (opacity only: coverage and opacity-correction errors), ``max_abs`` (the worst pixel
         channel: local failures), ``mae``, and ``rmse_foreground`` over the pixels where
         either image is not transparent (so empty background does not dilute the error).
+
+    Raises
+    ------
+    ValueError
+        If the two arrays differ in shape.
+
+    Examples
+    --------
+    >>> errors = image_errors(np.zeros((1, 2, 4)), np.full((1, 2, 4), 0.1))
+    >>> round(errors["psnr"], 6), errors["rmse_foreground"] == errors["rmse"]
+    (20.0, True)
     """
     a, b = _pair(image, reference)
     d = a - b
@@ -63,8 +100,25 @@ def image_errors(image, reference):
 
 
 def luminance(image):
-    """Mean premultiplied luminance (Rec. 709 weights) of each image: the global scalar ``m``
-    whose jumps between frames show popping. Accepts one image or a stack ``(N, H, W, 4)``."""
+    """Mean premultiplied luminance (Rec. 709 weights) of each image.
+
+    The global scalar ``m`` whose jumps between frames show popping.
+
+    Parameters
+    ----------
+    image : (..., H, W, 3 or 4) array_like
+        One image or a stack ``(N, H, W, 4)``; alpha is ignored.
+
+    Returns
+    -------
+    float or ndarray of np.float64
+        One value per image (a 0-d array for one image).
+
+    Examples
+    --------
+    >>> float(luminance(np.ones((2, 2, 4))))
+    1.0
+    """
     rgb = np.asarray(image, dtype=np.float64)[..., :3]
     lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
     return lum.mean(axis=(-2, -1))
@@ -72,8 +126,20 @@ def luminance(image):
 
 def popping_index(images, references):
     """Largest frame-to-frame change of the mean luminance, relative to the reference's typical
-    (median) change over the same sweep: about 1 for a method that changes as smoothly as the
-    truth, much more than 1 for a jump (principal-axis switch)."""
+    (median) change over the same sweep.
+
+    About 1 for a method that changes as smoothly as the truth, much more than 1 for a jump
+    (principal-axis switch).
+
+    Parameters
+    ----------
+    images, references : (N, H, W, 4) array_like
+        The frames of a sweep (N >= 2) and the reference's frames of the same views.
+
+    Returns
+    -------
+    float
+    """
     m_img = np.diff(luminance(images))
     m_ref = np.diff(luminance(references))
     typical = np.median(np.abs(m_ref))
@@ -81,16 +147,57 @@ def popping_index(images, references):
 
 
 def temporal_errors(images, references):
-    """``TE(t) = RMSE(I[t+1] - I[t], R[t+1] - R[t])`` for each consecutive pair of frames: zero
-    when the method changes exactly as the reference does, whatever its static error."""
+    """The temporal error ``TE(t) = RMSE(I[t+1] - I[t], R[t+1] - R[t])`` of each pair of
+    consecutive frames.
+
+    Zero when the method changes exactly as the reference does, whatever its static error.
+
+    Parameters
+    ----------
+    images, references : (N, H, W, C) array_like
+        The frames of a sweep and the reference's frames of the same views.
+
+    Returns
+    -------
+    (N - 1,) ndarray of np.float64
+
+    Examples
+    --------
+    >>> frames = np.zeros((3, 1, 1, 4)); frames[2] = 1.0
+    >>> temporal_errors(frames + 0.5, frames).tolist()
+    [0.0, 0.0]
+    """
     a = np.diff(np.asarray(images, dtype=np.float64), axis=0)
     b = np.diff(np.asarray(references, dtype=np.float64), axis=0)
     return np.sqrt(np.mean((a - b) ** 2, axis=(1, 2, 3)))
 
 
 def bias_jump(angles, images, references, at=45.0, width=5.0):
-    """Change of the signed relative error of the mean luminance across ``at`` degrees: the
-    mean over ``(at, at + width]`` minus the mean over ``[at - width, at)``."""
+    """Change of the signed relative error of the mean luminance across ``at`` degrees.
+
+    The mean over ``(at, at + width]`` minus the mean over ``[at - width, at)``: a method
+    whose error changes sign or size where its principal axis switches shows a jump.
+
+    Parameters
+    ----------
+    angles : (N,) array_like
+        The view angle of each frame, degrees.
+    images, references : (N, H, W, 4) array_like
+        The frames and the reference's frames.
+    at : float, optional
+        The angle of the switch (default 45).
+    width : float, optional
+        Degrees on each side averaged (default 5).
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    ValueError
+        When no angle lies within ``width`` before or after ``at``.
+    """
     angles = np.asarray(angles, dtype=np.float64)
     m_img, m_ref = luminance(images), luminance(references)
     signed = (m_img - m_ref) / np.maximum(np.abs(m_ref), 1e-12)
@@ -102,9 +209,22 @@ def bias_jump(angles, images, references, at=45.0, width=5.0):
 
 
 def spectral_peak(error_image):
-    """Strength of the most periodic pattern in a 2-D error image: the largest magnitude of its
-    Fourier spectrum (mean removed, DC excluded) over the spectrum's mean magnitude. Regular
-    banding gives a sharp peak; noise of the same energy spreads out (about 3–4)."""
+    """Strength of the most periodic pattern in a 2-D error image.
+
+    The largest magnitude of its Fourier spectrum (mean removed, DC excluded) over the
+    spectrum's mean magnitude. Regular banding gives a sharp peak; noise of the same energy
+    spreads out (about 3–4).
+
+    Parameters
+    ----------
+    error_image : (H, W) array_like
+        E.g. the luminance difference between a render and its reference.
+
+    Returns
+    -------
+    float
+        0 for a constant image.
+    """
     e = np.asarray(error_image, dtype=np.float64)
     spectrum = np.abs(np.fft.rfft2(e - e.mean()))
     spectrum[0, 0] = 0.0

@@ -96,10 +96,26 @@ def _centred_index(shape):
 
 # ---------------------------------------------------------------------------- Marschner–Lobb
 def marschner_lobb_value(x, y, z):
-    """The Marschner–Lobb function at ``(x, y, z)`` (arrays broadcast together), in ``[0, 1]``.
+    """The Marschner–Lobb function at ``(x, y, z)``, the continuous truth behind
+    :func:`marschner_lobb`.
 
     ``ρ = [1 - sin(πz/2) + α(1 + cos(2π f_M cos(π r/2)))] / (2(1 + α))`` with ``r = √(x² + y²)``,
     ``f_M = 6``, ``α = 0.25`` (Marschner & Lobb, Visualization '94), domain ``[-1, 1]³``.
+
+    Parameters
+    ----------
+    x, y, z : array_like
+        Positions in the function's units, broadcast together.
+
+    Returns
+    -------
+    ndarray of np.float64
+        Values in ``[0, 1]`` inside the domain.
+
+    Examples
+    --------
+    >>> round(float(marschner_lobb_value(0.0, 0.0, 1.0)), 12)
+    0.2
     """
     x, y, z = (np.asarray(v, dtype=np.float64) for v in (x, y, z))
     r = np.sqrt(x * x + y * y)
@@ -116,10 +132,25 @@ def marschner_lobb(n=41):
     the grid's Nyquist limit; the radial term's local frequency peaks at 9.42 against a limit of
     10 cycles per unit, so this is the hard case). Voxels are 1 mm (the whole cube is 40 mm).
 
+    Parameters
+    ----------
+    n : int, optional
+        Samples per axis, >= 2 (default 41).
+
     Returns
     -------
     Volume
         float64 values in ``[0, 1]``.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``n`` is not an integer >= 2.
+
+    Examples
+    --------
+    >>> marschner_lobb(5).shape
+    (5, 5, 5)
     """
     if int(n) != n or n < 2:
         raise VolumeEVMError(f"n: expected an integer >= 2, got {n!r}")
@@ -135,8 +166,37 @@ def box(shape=(32, 32, 32), lo=(8, 8, 8), hi=(24, 24, 24), density=1.0, spacing=
 
     The box's solid is the union of those voxels' cells: index space ``lo - 0.5 .. hi - 0.5``
     (:func:`box_chords_mm`). With the boundary policy "clamp" a VolumeEVM of the box (any
-    threshold in ``(0, density]``) renders exactly as that homogeneous solid. ``origin`` (mm)
-    moves the grid, e.g. to put the same physical box on grids of another spacing.
+    threshold in ``(0, density]``) renders exactly as that homogeneous solid.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int, optional
+        Grid size (default 32³).
+    lo, hi : tuple of 3 int, optional
+        First voxel in and first voxel past the box per axis, ``0 <= lo < hi <= shape``.
+    density : float, optional
+        The box's density (default 1).
+    spacing : tuple of 3 float, optional
+        Voxel size in mm (default 1 mm).
+    origin : tuple of 3 float, optional
+        Position (mm) of the centre of voxel ``(0, 0, 0)``: moves the grid, e.g. to put the
+        same physical box on grids of another spacing. Keyword-only.
+
+    Returns
+    -------
+    Volume
+        float64: ``density`` inside the box, 0 elsewhere.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape``, ``lo``/``hi`` that are not integers inside the grid with
+        ``lo < hi``, or a bad ``spacing`` or ``origin``.
+
+    Examples
+    --------
+    >>> float(box((4, 4, 4), lo=(1, 1, 1), hi=(3, 3, 3)).array.sum())
+    8.0
     """
     s = _shape(shape)
     lo_i, hi_i = (np.asarray(v) for v in (lo, hi))
@@ -159,9 +219,19 @@ def box_chords_mm(camera, grid_to_world, lo, hi):
     camera (perspective) or the camera plane (orthographic); chords are measured in world units
     and converted with :data:`BLENDER_UNITS_PER_MM`.
 
+    Parameters
+    ----------
+    camera : Camera
+        The camera whose pixel rays are measured.
+    grid_to_world : (4, 4) array_like
+        Voxel-centre index space to world (:func:`volumeevm_addon.grid_to_world`).
+    lo, hi : (3,) array_like
+        The box in voxel indices, as for :func:`box`.
+
     Returns
     -------
     (H, W) ndarray of np.float64
+        Chord length in mm, 0 for rays that miss the box.
     """
     o, d = (x.reshape(-1, 3) for x in camera.rays())
     g = np.asarray(grid_to_world, dtype=np.float64)
@@ -209,13 +279,31 @@ def gaussian_blobs(shape, centres, sigmas, amplitudes, spacing=(1, 1, 1)):
     Parameters
     ----------
     shape : tuple of 3 int
+        Grid size.
     centres : (N, 3) array_like
         Blob centres, mm.
     sigmas, amplitudes : (N,) array_like or float
         Widths ``σ`` (mm; the closed form is exact while each blob lies well inside the grid,
         and grid reconstruction is good for ``σ >= 4`` voxels) and peak densities ``A``.
-    spacing : tuple of 3 float
-        Voxel size in mm.
+    spacing : tuple of 3 float, optional
+        Voxel size in mm (default 1 mm).
+
+    Returns
+    -------
+    Volume
+        float64 densities, spacing ``spacing``, origin 0.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape`` or ``spacing``, centres that are not ``(N, 3)`` finite numbers,
+        widths that are not positive or amplitudes that are not finite.
+
+    Examples
+    --------
+    >>> vol = gaussian_blobs((5, 5, 5), [(2.0, 2.0, 2.0)], 1.5, 3.0)
+    >>> float(vol.array.max())
+    3.0
     """
     s = _shape(shape)
     sp = _vector("spacing", spacing, positive=True)
@@ -251,6 +339,13 @@ def blobs_optical_depth(camera, grid_to_world, spacing, centres, sigmas, amplitu
     Returns
     -------
     (H, W) ndarray of np.float64
+        Optical depth (dimensionless) of each pixel's ray.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``spacing``, ``centres``, ``sigmas`` or ``amplitudes`` (as
+        :func:`gaussian_blobs`).
     """
     sp = _vector("spacing", spacing, positive=True)
     c, sig, amp = _blob_params(centres, sigmas, amplitudes)
@@ -276,6 +371,34 @@ def extinction_tf(k, hi, rgb=(1.0, 1.0, 1.0), *, tol=1e-4):
     colour ``rgb``; piecewise linear with equally spaced control points, enough of them that the
     table is within ``tol`` of the exact opacity (the interpolation error is at most
     ``h²·k²/8`` for a point spacing ``h``).
+
+    Parameters
+    ----------
+    k : float
+        Extinction per mm per unit density, > 0.
+    hi : float
+        Largest density the function must follow, > 0.
+    rgb : tuple of 3 float, optional
+        Straight colour in ``[0, 1]`` (default white).
+    tol : float, optional
+        Largest opacity error of the piecewise-linear table, > 0 (keyword-only).
+
+    Returns
+    -------
+    TransferFunction
+        Opacity per 1 mm, named ``"extinction k=<k>"``.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``k``, ``hi`` or ``tol`` is not a finite number > 0, or ``rgb`` is outside
+        ``[0, 1]``.
+
+    Examples
+    --------
+    >>> tf = extinction_tf(0.5, 2.0)
+    >>> bool(abs(tf.evaluate([2.0])[0, 3] - (1 - np.exp(-1.0))) < 1e-4)
+    True
     """
     k = _positive("k", k)
     hi = _positive("hi", hi)
@@ -291,8 +414,33 @@ def extinction_tf(k, hi, rgb=(1.0, 1.0, 1.0), *, tol=1e-4):
 
 # ---------------------------------------------------------------------------- simple fields
 def ramp(shape, axis=0):
-    """A linear ramp from 0 (first slice) to 1 (last slice) along ``axis``; trilinear
-    interpolation reproduces it exactly, so any error on it is sampling or classification."""
+    """A linear ramp from 0 (first slice) to 1 (last slice) along ``axis``.
+
+    Trilinear interpolation reproduces it exactly, so any error on it is sampling or
+    classification.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        Grid size.
+    axis : {0, 1, 2}, optional
+        The axis the values rise along (default x).
+
+    Returns
+    -------
+    Volume
+        float64 values in ``[0, 1]`` (0 everywhere for a single slice).
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape`` or ``axis``.
+
+    Examples
+    --------
+    >>> ramp((3, 1, 1)).array.ravel().tolist()
+    [0.0, 0.5, 1.0]
+    """
     s = _shape(shape)
     if axis not in (0, 1, 2):
         raise VolumeEVMError(f"axis: expected 0, 1 or 2, got {axis!r}")
@@ -303,8 +451,33 @@ def ramp(shape, axis=0):
 
 
 def checker(shape, period=8):
-    """A 3D checkerboard of 0 and 1: cubes of ``period`` voxels per side alternate (the
-    pattern repeats every ``2·period``); voxel ``(0, 0, 0)`` is 0."""
+    """A 3D checkerboard of 0 and 1: cubes of ``period`` voxels per side alternate.
+
+    The pattern repeats every ``2·period`` voxels; voxel ``(0, 0, 0)`` is 0. Its sharp edges
+    show the sampling phase and moiré under minification.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        Grid size.
+    period : int, optional
+        Side of a cube in voxels, >= 1 (default 8).
+
+    Returns
+    -------
+    Volume
+        float64 values 0 and 1.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape`` or a ``period`` that is not an integer >= 1.
+
+    Examples
+    --------
+    >>> checker((4, 1, 1), period=1).array.ravel().tolist()
+    [0.0, 1.0, 0.0, 1.0]
+    """
     s = _shape(shape)
     if int(period) != period or period < 1:
         raise VolumeEVMError(f"period: expected an integer >= 1, got {period!r}")
@@ -327,6 +500,31 @@ def thin_plate(shape, normal, thickness=1.0):
     integrates to ``thickness`` across the plate. Sums of the samples keep that exactly along
     an axis and within about 2 % for generic normals; normals such as ``(1, 1, 0)``, whose
     voxel-centre distances are coarsely spaced, alias more (up to 15 % for ``thickness <= 1``).
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        Grid size.
+    normal : (3,) array_like
+        The plate's normal in index space, not zero.
+    thickness : float, optional
+        The plate's thickness in voxels, > 0 (default 1).
+
+    Returns
+    -------
+    Volume
+        float64 coverage in ``[0, 1]``.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape``, a zero or non-finite ``normal`` or a ``thickness`` that is not
+        a finite number > 0.
+
+    Examples
+    --------
+    >>> float(thin_plate((5, 5, 5), (0, 0, 1), thickness=2.0).array[2, 2].sum())
+    2.0
     """
     s = _shape(shape)
     n = _vector("normal", normal)
@@ -339,8 +537,28 @@ def thin_plate(shape, normal, thickness=1.0):
 
 
 def shell(shape, radius, thickness=1.0):
-    """An antialiased spherical shell of ``radius`` (voxels) about the grid's centre: the slab
-    profile of :func:`thin_plate` along the radius, values in ``[0, 1]``."""
+    """An antialiased spherical shell about the grid's centre: the slab profile of
+    :func:`thin_plate` along the radius.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        Grid size.
+    radius : float
+        Radius of the shell's middle, in voxels, > 0.
+    thickness : float, optional
+        The shell's thickness in voxels, > 0 (default 1).
+
+    Returns
+    -------
+    Volume
+        float64: the part of each voxel the shell covers, in ``[0, 1]``.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape``, or a ``radius`` or ``thickness`` that is not a finite number > 0.
+    """
     s = _shape(shape)
     x, y, z = _centred_index(s)
     r = np.sqrt(x * x + y * y + z * z)
@@ -349,9 +567,37 @@ def shell(shape, radius, thickness=1.0):
 
 
 def noise(shape, smoothing=2.0, seed=0):
-    """Band-limited noise: white Gaussian noise (``numpy.random.default_rng(seed)``) smoothed by
-    a Gaussian of standard deviation ``smoothing`` voxels (periodic, by FFT) and rescaled to
-    ``[0, 1]`` (min 0, max 1). The same ``seed`` gives the same volume."""
+    """Band-limited noise: white Gaussian noise smoothed and rescaled to ``[0, 1]``.
+
+    The noise comes from ``numpy.random.default_rng(seed)`` and is smoothed by a Gaussian of
+    standard deviation ``smoothing`` voxels (periodic, by FFT); the result has min 0 and max
+    1. The same ``seed`` gives the same volume.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        Grid size.
+    smoothing : float, optional
+        Standard deviation of the smoothing Gaussian in voxels, > 0 (default 2).
+    seed : int, optional
+        Seed of the random generator (default 0).
+
+    Returns
+    -------
+    Volume
+        float64 values in ``[0, 1]``.
+
+    Raises
+    ------
+    VolumeEVMError
+        For a bad ``shape``, or a ``smoothing`` that is not a finite number > 0.
+
+    Examples
+    --------
+    >>> a = noise((8, 8, 8), seed=1).array
+    >>> float(a.min()), float(a.max()), bool((a == noise((8, 8, 8), seed=1).array).all())
+    (0.0, 1.0, True)
+    """
     s = _shape(shape)
     sigma = _positive("smoothing", smoothing)
     white = np.random.default_rng(seed).standard_normal(s)
@@ -364,9 +610,27 @@ def noise(shape, smoothing=2.0, seed=0):
 
 
 def timing_volume(n=256):
-    """A smooth ``n³`` phantom for timing: two linked tori (chain links) with a Gaussian tube
-    profile, float32 in ``[0, 1]``, empty space round them as in a real scan (2 % of the
-    voxels are above 0.5 at n = 256). Each torus is a 2-D field plus a 1-D one, so it builds fast."""
+    """A smooth ``n³`` phantom for timing: two linked tori (chain links).
+
+    Each torus has a Gaussian tube profile, with empty space round them as in a real scan (2 %
+    of the voxels are above 0.5 at n = 256). Each torus is a 2-D field plus a 1-D one, so it
+    builds fast.
+
+    Parameters
+    ----------
+    n : int, optional
+        Grid size along each axis, >= 2 (default 256, the size timings are quoted for).
+
+    Returns
+    -------
+    Volume
+        float32 values in ``[0, 1]`` over ``[-1, 1]³``.
+
+    Raises
+    ------
+    VolumeEVMError
+        For an ``n`` that is not an integer of at least 2.
+    """
     if int(n) != n or n < 2:
         raise VolumeEVMError(f"n: expected an integer >= 2, got {n!r}")
     t = np.linspace(-1.0, 1.0, int(n), dtype=np.float32)

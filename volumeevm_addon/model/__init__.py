@@ -3,13 +3,16 @@
 One module per concept (private; the public names are imported from ``volumeevm_addon``):
 
 - ``_evm.py``: the Extreme Vertices Model of a voxel region (:class:`~volumeevm_addon.EVM`).
-- ``_sweep.py``: plane sweeps over sorted extreme vertices, for all planes at once with NumPy.
+- ``_sweep.py``: plane sweeps over sorted extreme vertices (compiled kernels): Booleans, boxes.
 - ``_mesh.py``: the boundary of an EVM as a closed, outward polygon mesh with merged faces.
 - ``_components.py``: face-connected components of an EVM, one EVM each.
 - ``_densities.py``: voxel -> index in a densities table, computed from the EVM alone.
 - ``_volumeevm.py``: the EVM of a region of interest plus the densities of its voxels.
 - ``_vevm_file.py``: reading and checking a ``.vevm`` file before anything is built.
 - ``_levels.py``: coarser resolution levels of a VolumeEVM (no more than a view needs).
+- ``_cache.py``: what is derived from a VolumeEVM on first use (the renderers' tables, its
+  levels), kept in its :class:`~volumeevm_addon.DerivedCache`: counted, bounded, clearable.
 - ``_stack.py``: the non-destructive stack of tool operations on a VolumeEVM.
 - ``_volume.py``: the volume record every reader returns, and where its grid sits.
+- ``_histogram.py``: a volume's densities histogram and Otsu's threshold.
 """

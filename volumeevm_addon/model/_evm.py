@@ -6,8 +6,9 @@ unit cell ``[i, i+1] x [j, j+1] x [k, k+1]``, so vertices are lattice points fro
 
 The vertex set is the XOR of the 8 shifted copies of the occupancy grid, and the occupancy is
 the prefix XOR of the vertex grid; hence ``EVM(P xor Q) = EVM(P) xor EVM(Q)``. Every other
-operation (Booleans, volume, area, faces, splits) sweeps planes of vertices and their sections;
-:mod:`._sweep` evaluates those sweeps for all planes at once.
+operation (Booleans, volume, area, faces, splits) sweeps planes of vertices and their sections,
+in compiled kernels (:mod:`.._jit`): the sweeps of :mod:`._sweep`, and here the extraction from
+a mask and the clip by a box.
 
 References
 ----------
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import kernel, parallel_map
 from .._memory import check_memory
 from . import _sweep
 
@@ -65,30 +67,177 @@ def integer_triple(value, name):
     return tuple(int(a) for a in array)
 
 
+@kernel
+def _plane_keys(before, after, plane, oy, oz, out):
+    """Packed keys of the extreme vertices on one lattice plane, sorted; returns their count.
+
+    ``before`` and ``after`` are the ``(Y, Z)`` slices (uint8, 0 or 1) on either side of the
+    plane (zeros beyond the grid), ``plane`` its packed x part and ``oy``, ``oz`` the packed
+    offsets. A lattice point is a vertex when an odd number of its 8 cells are inside: row by
+    row, the XOR of the 4 cells at each z (two slices, rows y - 1 and y) differs from the one at
+    z - 1. ``out`` has room for ``(Y + 1) * (Z + 1)`` keys.
+    """
+    ny, nz = after.shape
+    row = np.zeros(nz, np.uint8)  # XOR of the two slices on the row before
+    cells = np.empty(nz, np.uint8)  # XOR of the 4 cells at each z
+    count = 0
+    for y in range(ny + 1):
+        if y < ny:
+            for z in range(nz):
+                across = before[y, z] ^ after[y, z]
+                cells[z] = row[z] ^ across
+                row[z] = across
+        else:
+            cells[:] = row
+        key = plane | ((y + oy) << _sweep.BITS)
+        left = 0
+        for z in range(nz):
+            if cells[z] != left:
+                out[count] = key | (z + oz)
+                count += 1
+                left = cells[z]
+        if left:
+            out[count] = key | (nz + oz)
+            count += 1
+    return count
+
+
+@kernel
+def _block_keys(mask, first, stop, ox, oy, oz):
+    """Sorted keys of the vertices on the planes ``x = first .. stop - 1`` of a uint8 mask."""
+    nx, ny, nz = mask.shape
+    empty = np.zeros((ny, nz), np.uint8)
+    buffer = np.empty((ny + 1) * (nz + 1), np.int64)
+    keys = np.empty(buffer.size, np.int64)
+    n = 0
+    for x in range(first, stop):
+        count = _plane_keys(mask[x - 1] if x > 0 else empty, mask[x] if x < nx else empty,
+                            np.int64(x + ox) << (2 * _sweep.BITS), oy, oz, buffer)
+        if n + count > len(keys):
+            grown = np.empty(2 * (n + count), np.int64)
+            grown[:n] = keys[:n]
+            keys = grown
+        keys[n:n + count] = buffer[:count]
+        n += count
+    return keys[:n].copy()
+
+
+_BLOCK_VOXELS = 1 << 21
+"""Voxels per block of x-slices that :meth:`EVM.from_mask` hands to one thread."""
+
+
+@kernel
+def _clip_line(points, start, stop, lo, hi, prefix, out, n):
+    """Append to ``out[n:]`` the 1-D EVM of the breakpoints ``points[start:stop]`` (their last
+    coordinate, sorted) cut to ``[lo, hi)``: ``lo`` when inside there, the breakpoints between,
+    ``hi`` when inside just below it; each key ``prefix | c``. Returns the new count."""
+    inside = 0
+    i = start
+    while i < stop and points[i] & _sweep.MASK <= lo:
+        inside ^= 1
+        i += 1
+    if inside:
+        out[n] = prefix | lo
+        n += 1
+    while i < stop and points[i] & _sweep.MASK < hi:
+        out[n] = prefix | (points[i] & _sweep.MASK)
+        n += 1
+        inside ^= 1
+        i += 1
+    if inside:
+        out[n] = prefix | hi
+        n += 1
+    return n
+
+
+@kernel
+def _clip_plane(points, start, stop, lo, hi, prefix, out, n, row, scratch):
+    """Append the 2-D EVM of the points ``points[start:stop]`` (sorted by their last two
+    coordinates, B then C) cut to ``[lo[1], hi[1]) x [lo[2], hi[2])``, as :func:`_clip_line`
+    one dimension up: the row (1-D section) at ``lo[1]``, the lines between, the row below
+    ``hi[1]``. ``out`` has room for ``5 * (stop - start) + 4`` more keys; ``row`` and
+    ``scratch`` for ``stop - start``."""
+    length = 0
+    i = start
+    while i < stop and (points[i] >> _sweep.BITS) & _sweep.MASK <= lo[1]:
+        j = _sweep.same_end(points, i, stop, _sweep.BITS)
+        length = _sweep.xor_into(row, length, points, i, j, _sweep.MASK, scratch)
+        row[:length] = scratch[:length]
+        i = j
+    n = _clip_line(row, 0, length, lo[2], hi[2], prefix | (lo[1] << _sweep.BITS), out, n)
+    while i < stop and (points[i] >> _sweep.BITS) & _sweep.MASK < hi[1]:
+        j = _sweep.same_end(points, i, stop, _sweep.BITS)
+        line = (points[i] >> _sweep.BITS) & _sweep.MASK
+        n = _clip_line(points, i, j, lo[2], hi[2], prefix | (line << _sweep.BITS), out, n)
+        length = _sweep.xor_into(row, length, points, i, j, _sweep.MASK, scratch)
+        row[:length] = scratch[:length]
+        i = j
+    return _clip_line(row, 0, length, lo[2], hi[2], prefix | (hi[1] << _sweep.BITS), out, n)
+
+
+@kernel
+def _clip_keys(keys, lo, hi):
+    """The sorted keys of the region of sorted x, y, z ``keys`` cut to the box ``[lo, hi)``
+    (offset coordinates inside the bounding box), as :func:`_clip_plane` one dimension up: the
+    section at ``lo[0]``, the planes between, the section below ``hi[0]``, each cut in 2-D."""
+    plane_bits = 2 * _sweep.BITS
+    plane_mask = (np.int64(1) << plane_bits) - 1
+    size = len(keys) + 1  # bounds every section and row
+    section, scratch = np.empty(size, np.int64), np.empty(size, np.int64)
+    row, row_scratch = np.empty(size, np.int64), np.empty(size, np.int64)
+    out = np.empty(size + 16, np.int64)
+    m = 0
+    n = 0
+    i = 0
+    while i < len(keys) and keys[i] >> plane_bits <= lo[0]:
+        j = _sweep.same_end(keys, i, len(keys), plane_bits)
+        m = _sweep.xor_into(section, m, keys, i, j, plane_mask, scratch)
+        section[:m] = scratch[:m]
+        i = j
+    out = _sweep.with_room(out, n, 5 * m + 4)
+    n = _clip_plane(section, 0, m, lo, hi, lo[0] << plane_bits, out, n, row, row_scratch)
+    while i < len(keys) and keys[i] >> plane_bits < hi[0]:
+        j = _sweep.same_end(keys, i, len(keys), plane_bits)
+        out = _sweep.with_room(out, n, 5 * (j - i) + 4)
+        n = _clip_plane(keys, i, j, lo, hi, (keys[i] >> plane_bits) << plane_bits, out, n, row, row_scratch)
+        m = _sweep.xor_into(section, m, keys, i, j, plane_mask, scratch)
+        section[:m] = scratch[:m]
+        i = j
+    out = _sweep.with_room(out, n, 5 * m + 4)
+    n = _clip_plane(section, 0, m, lo, hi, hi[0] << plane_bits, out, n, row, row_scratch)
+    return out[:n].copy()
+
+
+@kernel
+def _key_bounds(keys):
+    """The smallest and largest offset coordinates of 3-D keys, per axis (one pass, where a
+    NumPy reduction along the short axis of the vertices is slow)."""
+    lo = np.full(3, _sweep.MASK)
+    hi = np.zeros(3, np.int64)
+    for key in keys:
+        for axis in range(3):
+            value = (key >> ((2 - axis) * _sweep.BITS)) & _sweep.MASK
+            lo[axis] = min(lo[axis], value)
+            hi[axis] = max(hi[axis], value)
+    return lo, hi
+
+
 def vertex_keys(slices, shape, offset=(0, 0, 0)):
     """Packed keys of the extreme vertices of a region given as boolean x-slices, plane by plane.
 
     ``slices`` yields the ``(Y, Z)`` boolean slices ``x = 0 .. X-1`` of a region in a grid of
     ``shape``; the generator yields the sorted keys (:func:`._sweep.pack`) of the vertices of
-    planes ``x = 0 .. X``, each shifted by ``offset``. Only two slices' parities are held at a
-    time, so a caller can make the slices on the fly (:meth:`EVM.from_mask`, and
-    ``VolumeEVM.from_array`` straight from the densities).
+    planes ``x = 0 .. X``, each shifted by ``offset``. Only two slices are held at a time, so a
+    caller can make the slices on the fly (``VolumeEVM.from_array``, straight from the densities).
     """
     _, ny, nz = shape
     ox, oy, oz = (int(o) + _sweep.OFFSET for o in offset)
-    previous = np.zeros((ny + 1, nz + 1), np.uint8)
+    buffer = np.empty((ny + 1) * (nz + 1), np.int64)
+    previous = np.zeros((ny, nz), np.uint8)
     for x, mask in enumerate(itertools.chain(slices, [None])):
-        current = np.zeros((ny + 1, nz + 1), np.uint8)
-        if mask is not None:
-            # 2-D parity of slice x: XOR of the four shifted copies.
-            s = mask.view(np.uint8)
-            current[:-1, :-1] ^= s
-            current[1:, :-1] ^= s
-            current[:-1, 1:] ^= s
-            current[1:, 1:] ^= s
-        ys, zs = np.nonzero(previous ^ current)
-        yield ((np.int64(x + ox) << 2 * _sweep.BITS) | ((ys.astype(np.int64) + oy) << _sweep.BITS)
-               | (zs.astype(np.int64) + oz))
+        current = np.zeros((ny, nz), np.uint8) if mask is None else np.ascontiguousarray(mask).view(np.uint8)
+        count = _plane_keys(previous, current, np.int64(x + ox) << (2 * _sweep.BITS), oy, oz, buffer)
+        yield buffer[:count].copy()
         previous = current
 
 
@@ -122,6 +271,21 @@ class EVM:
 
     Immutable. ``vertices`` is ``(n, 3)``, sorted lexicographically in x, y, z order, in the
     smallest signed integer type that holds them. Convert to ``np.int64`` before arithmetic.
+    Usually built with :meth:`from_mask` (or :func:`volumeevm_addon.voxelize_mesh_evm`,
+    :func:`volumeevm_addon.box_evm`); the operators ``|``, ``&``, ``-`` and ``^`` are
+    :meth:`union`, :meth:`intersection`, :meth:`difference` and :meth:`xor`.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like of int, optional
+        Extreme vertices (lattice points), in any order; duplicates are an error. None (the
+        default) is the empty region.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``vertices`` is not ``(n, 3)`` integers, holds duplicates or lies beyond the
+        lattice coordinates an EVM holds (:func:`check_lattice_range`).
 
     Examples
     --------
@@ -138,7 +302,6 @@ class EVM:
     __slots__ = ("_vertices", "_keys", "_boxes")
 
     def __init__(self, vertices=None):
-        """Wrap extreme vertices ``(n, 3)`` (any order; duplicates are an error)."""
         v = np.zeros((0, 3), np.int64) if vertices is None else np.asarray(vertices)
         if v.ndim != 2 or v.shape[1] != 3:
             raise VolumeEVMError(f"vertices must have shape (n, 3), got {v.shape}")
@@ -154,7 +317,7 @@ class EVM:
     def _set(self, keys):
         self._keys = {"xyz": keys}
         self._boxes = {}
-        self._vertices = compact_integers(_sweep.unpack(keys, 3)[1])
+        self._vertices = compact_integers(_sweep.unpack(keys, 3))
 
     @classmethod
     def _from_keys(cls, keys):
@@ -167,8 +330,19 @@ class EVM:
     def from_mask(cls, mask, offset=(0, 0, 0)):
         """The EVM of a boolean voxel mask indexed ``[x, y, z]`` (parity rule).
 
-        ``offset`` places voxel ``mask[0, 0, 0]`` at lattice cell ``offset``. Works slab by slab
-        in x (:func:`vertex_keys`) so that the padded copy never exceeds two x-slices at a time.
+        Blocks of x-slices are read in parallel (:func:`parallel_map`), each by a compiled
+        kernel that finds its planes' vertices in one pass without a padded copy.
+
+        Parameters
+        ----------
+        mask : (X, Y, Z) array_like of bool
+            The region's voxels (any dtype: non-zero is inside).
+        offset : (3,) array_like of int, optional
+            Lattice cell of voxel ``mask[0, 0, 0]`` (default the origin).
+
+        Returns
+        -------
+        EVM
 
         Raises
         ------
@@ -181,14 +355,38 @@ class EVM:
             raise VolumeEVMError(f"mask must be 3-D, got shape {mask.shape}")
         offset = integer_triple(offset, "offset")
         check_lattice_range(offset, [o + n for o, n in zip(offset, mask.shape)], "mask placed at offset")
-        keys = vertex_keys(mask.astype(bool, copy=False), mask.shape, offset)
-        return cls._from_keys(np.concatenate(list(keys)))
+        cells = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+        ox, oy, oz = (o + _sweep.OFFSET for o in offset)
+        step = max(1, _BLOCK_VOXELS // max(1, mask.shape[1] * mask.shape[2]))
+        planes = range(0, mask.shape[0] + 1, step)
+        blocks = parallel_map(_block_keys, [(cells, x, min(x + step, mask.shape[0] + 1), ox, oy, oz)
+                                            for x in planes])
+        return cls._from_keys(np.concatenate(blocks))
 
     def to_mask(self, shape, offset=(0, 0, 0)):
         """The voxels of the region inside a grid of ``shape`` (prefix XOR of the vertices).
 
-        Voxel ``mask[i, j, k]`` is lattice cell ``offset + (i, j, k)``. Vertices outside the grid
-        are folded in exactly (a vertex before the grid toggles the whole orthant it starts).
+        Vertices outside the grid are folded in exactly (a vertex before the grid toggles the
+        whole orthant it starts).
+
+        Parameters
+        ----------
+        shape : tuple of 3 int
+            The grid.
+        offset : (3,) array_like of int, optional
+            Lattice cell of voxel ``mask[0, 0, 0]`` (default the origin).
+
+        Returns
+        -------
+        (X, Y, Z) ndarray of bool
+            ``mask[i, j, k]`` is lattice cell ``offset + (i, j, k)``.
+
+        Raises
+        ------
+        ValueError
+            If ``shape`` does not have 3 entries.
+        VolumeEVMError
+            When the grid would need more memory than is available.
         """
         shape = tuple(int(s) for s in shape)
         if len(shape) != 3:
@@ -228,34 +426,98 @@ class EVM:
         return f"EVM({len(self)} vertices, bounds={self.bounds()})"
 
     def is_empty(self):
-        """True when the region has no voxels."""
+        """True when the region has no voxels.
+
+        Returns
+        -------
+        bool
+        """
         return len(self) == 0
 
     def bounds(self):
-        """``(lo, hi)`` lattice corners of the bounding box, or ``None`` when empty."""
+        """Lattice corners of the region's bounding box.
+
+        Returns
+        -------
+        tuple of 2 tuples of 3 int, or None
+            ``(lo, hi)``: the region's voxels lie in ``lo <= cell < hi``; None when empty.
+        """
         if self.is_empty():
             return None
-        v = self._vertices
-        return tuple(int(a) for a in v.min(axis=0)), tuple(int(a) for a in v.max(axis=0))
+        lo, hi = _key_bounds(self._keys["xyz"])
+        return tuple(int(a) - _sweep.OFFSET for a in lo), tuple(int(a) - _sweep.OFFSET for a in hi)
 
     def keys(self, order="xyz"):
-        """Packed int64 keys of the vertices sorted in ``order`` (cached; see :mod:`._sweep`)."""
+        """Packed int64 keys of the vertices sorted in ``order``, what every sweep reads.
+
+        Parameters
+        ----------
+        order : str, optional
+            One of :data:`ORDERS`, slowest axis first (default ``"xyz"``).
+
+        Returns
+        -------
+        (n,) ndarray of np.int64
+            Sorted; cached, do not modify (the packing is :mod:`._sweep`'s).
+
+        Raises
+        ------
+        ValueError
+            For an order not in :data:`ORDERS`.
+        """
         if order not in self._keys:
-            keys = _sweep.pack(self._vertices[:, _axes(order)])
-            keys.sort()
-            self._keys[order] = keys
+            axes = _axes(order)
+            keys = _sweep.pack(self._vertices[:, axes])
+            # The vertices are in x, y, z order: a stable sort by the leading axes of ``order``
+            # up to where the rest follow x, y, z (one pass for "zxy", two for "yzx") sorts all.
+            leading = next(p for p in range(3) if axes[p:] == sorted(axes[p:]))
+            self._keys[order] = _sweep.radix_sort(keys, 3 - leading, leading)[0]
         return self._keys[order]
 
     def sorted(self, order="xyz"):
-        """Vertices ``(n, 3)`` as x, y, z columns, sorted lexicographically in ``order``."""
-        columns = _sweep.unpack(self.keys(order), 3)[1]
+        """The vertices sorted lexicographically in another axis order.
+
+        Parameters
+        ----------
+        order : str, optional
+            The sort order: one of :data:`ORDERS`, slowest axis first (default ``"xyz"``).
+
+        Returns
+        -------
+        (n, 3) ndarray of int
+            Still x, y, z columns, in the smallest integer type that holds them.
+
+        Raises
+        ------
+        ValueError
+            For an order not in :data:`ORDERS`.
+        """
+        columns = _sweep.unpack(self.keys(order), 3)
         out = np.empty_like(columns)
         out[:, _axes(order)] = columns
         return compact_integers(out)
 
     def planes(self, order="xyz"):
-        """Planes of vertices: ``(coordinate, points (m, 2))`` for A ascending, points as (B, C)."""
-        columns = _sweep.unpack(self.keys(order), 3)[1]
+        """The planes of vertices along the slowest axis ``A`` of ``order``, ascending.
+
+        Parameters
+        ----------
+        order : str, optional
+            One of :data:`ORDERS`: ``"ABC"``, A slowest (default ``"xyz"``).
+
+        Yields
+        ------
+        coordinate : int
+            The plane ``A = coordinate``.
+        points : (m, 2) ndarray of int
+            Its vertices as ``(B, C)``, sorted.
+
+        Raises
+        ------
+        ValueError
+            For an order not in :data:`ORDERS`.
+        """
+        columns = _sweep.unpack(self.keys(order), 3)
         cuts = np.flatnonzero(np.diff(columns[:, 0])) + 1
         for chunk in np.split(columns, cuts) if len(columns) else []:
             yield int(chunk[0, 0]), chunk[:, 1:]
@@ -265,6 +527,23 @@ class EVM:
 
         Forwards ``S_i = S_{i-1} xor plv_i``; backwards (``reverse=True``, far end first)
         ``S_{i-1} = S_i xor plv_i``, as back-to-front rendering needs.
+
+        Parameters
+        ----------
+        order : str, optional
+            One of :data:`ORDERS`: ``"ABC"``, A slowest (default ``"xyz"``).
+        reverse : bool, optional
+            Sweep from the far end (default False).
+
+        Yields
+        ------
+        Slab
+            The section valid for ``lo <= A < hi``, one per pair of consecutive planes.
+
+        Raises
+        ------
+        ValueError
+            For an order not in :data:`ORDERS`.
         """
         planes = list(self.planes(order))
         if reverse:
@@ -273,7 +552,7 @@ class EVM:
         for (c, points), (c_next, _) in zip(planes, planes[1:]):
             section = _sweep.xor(section, _sweep.pack(points))
             lo, hi = (c, c_next) if not reverse else (c_next, c)
-            yield Slab(lo, hi, _sweep.unpack(section, 2)[1])
+            yield Slab(lo, hi, _sweep.unpack(section, 2))
 
     # ------------------------------------------------------------------ Booleans
     def __or__(self, other):
@@ -289,11 +568,43 @@ class EVM:
         return self.xor(other)
 
     def xor(self, other):
-        """Symmetric difference: a plain XOR merge of the vertex sets."""
+        """Symmetric difference (``self ^ other``): a plain XOR merge of the vertex sets.
+
+        Parameters
+        ----------
+        other : EVM
+            A region of the same lattice.
+
+        Returns
+        -------
+        EVM
+            The voxels in exactly one of the two regions.
+
+        Raises
+        ------
+        TypeError
+            If ``other`` is not an EVM.
+        """
         return EVM._from_keys(_sweep.xor(self.keys(), _check_evm(other).keys()))
 
     def union(self, other):
-        """Union, by sweeping sections inside ``other``'s bounding box only."""
+        """Union (``self | other``), by sweeping sections inside ``other``'s bounding box only.
+
+        Parameters
+        ----------
+        other : EVM
+            The region to add.
+
+        Returns
+        -------
+        EVM
+            The voxels in either region.
+
+        Raises
+        ------
+        TypeError
+            If ``other`` is not an EVM.
+        """
         other = _check_evm(other)
         if other.is_empty():
             return self
@@ -302,14 +613,54 @@ class EVM:
         return (self ^ inside) ^ inside._sweep(other, "union")
 
     def intersection(self, other):
-        """Intersection, by sweeping sections inside the overlap of the bounding boxes."""
+        """Intersection (``self & other``), by sweeping sections inside the overlap of the
+        bounding boxes.
+
+        Parameters
+        ----------
+        other : EVM
+            The region to intersect with.
+
+        Returns
+        -------
+        EVM
+            The voxels in both regions.
+
+        Raises
+        ------
+        TypeError
+            If ``other`` is not an EVM.
+        """
         box = _overlap(self, _check_evm(other))
         if box is None:
             return EVM()
         return self.clip(*box)._sweep(other.clip(*box), "intersection")
 
     def difference(self, other):
-        """Difference ``self - other``, by sweeping sections inside the bounding-box overlap."""
+        """Difference ``self - other``, by sweeping sections inside the bounding-box overlap.
+
+        Parameters
+        ----------
+        other : EVM
+            The region to remove.
+
+        Returns
+        -------
+        EVM
+            The voxels of this region outside ``other``.
+
+        Raises
+        ------
+        TypeError
+            If ``other`` is not an EVM.
+
+        Examples
+        --------
+        >>> a = EVM.from_mask(np.ones((4, 4, 4), bool))
+        >>> b = EVM.from_mask(np.ones((2, 2, 2), bool), offset=(2, 2, 2))
+        >>> (a - b).volume(), (a | b).volume(), (a & b).volume()
+        (56, 64, 8)
+        """
         box = _overlap(self, _check_evm(other))
         if box is None:
             return self
@@ -317,16 +668,31 @@ class EVM:
         return (self ^ inside) ^ inside._sweep(other.clip(*box), "difference")
 
     def _sweep(self, other, operation):
-        return EVM._from_keys(_sweep.boolean(self.keys(), other.keys(), 3, operation))
+        return EVM._from_keys(_sweep.boolean(self.keys(), other.keys(), _sweep.TRUTH_TABLES[operation]))
 
     # ------------------------------------------------------------------ measures
     def boxes(self, order="xyz"):
-        """Ordered disjoint boxes ``(lo, hi)`` ``(n, 3)`` each, x, y, z columns, split in ``order``.
+        """The region as ordered disjoint boxes, split in ``order``.
 
         Cached: volume, the relation v and the densities of edits all start from them.
+
+        Parameters
+        ----------
+        order : str, optional
+            One of :data:`ORDERS` (default ``"xyz"``).
+
+        Returns
+        -------
+        lo, hi : (n, 3) ndarray of np.int64
+            Box ``b`` holds the cells ``lo[b] <= cell < hi[b]`` (x, y, z columns); read-only.
+
+        Raises
+        ------
+        ValueError
+            For an order not in :data:`ORDERS`.
         """
         if order not in self._boxes:
-            _, lo, hi = _sweep.boxes(self.keys(order), 3)
+            lo, hi = _sweep.boxes(self.keys(order))
             axes = _axes(order)
             out_lo, out_hi = np.empty_like(lo), np.empty_like(hi)
             out_lo[:, axes], out_hi[:, axes] = lo, hi
@@ -335,7 +701,13 @@ class EVM:
         return self._boxes[order]
 
     def voxels(self):
-        """The region's voxels ``(n, 3)`` (int64), box by box: for lookups, not in table order."""
+        """The region's voxels, box by box (for lookups, not in table order).
+
+        Returns
+        -------
+        (n, 3) ndarray of np.int64
+            Lattice cells, one row per voxel.
+        """
         lo, hi = self.boxes()
         size = hi - lo
         count = np.prod(size, axis=1)
@@ -349,25 +721,43 @@ class EVM:
         return out + lo[box]
 
     def volume(self):
-        """Number of voxels in the region (content of the slabs' sections)."""
+        """Number of voxels in the region (content of the slabs' sections).
+
+        Returns
+        -------
+        int
+        """
         lo, hi = self.boxes()
         return int(np.prod(hi - lo, axis=1).sum())
 
     def area(self):
-        """Boundary area in unit voxel faces: the area of every plane's faces, for all 3 axes."""
-        total = 0
-        for order in ("xyz", "yzx", "zxy"):
-            # Read as grouped 2-D keys, the vertices of each plane form the plane's 2-D EVM.
-            _, lo, hi = _sweep.boxes(self.keys(order), 2)
-            total += int(np.prod(hi - lo, axis=1).sum())
-        return total
+        """Boundary area in unit voxel faces: the area of every plane's faces, for all 3 axes.
+
+        Returns
+        -------
+        int
+        """
+        # The vertices of each plane form the 2-D EVM of its faces.
+        return sum(int(_sweep.plane_area(self.keys(order))) for order in ("xyz", "yzx", "zxy"))
 
     # ------------------------------------------------------------------ geometry
     def translate(self, offset):
-        """The region moved by an integer ``offset`` (3,).
+        """The region moved by an integer offset.
 
-        Raises :class:`VolumeEVMError` if the moved region leaves the lattice coordinates an EVM
-        holds (:func:`check_lattice_range`).
+        Parameters
+        ----------
+        offset : (3,) array_like of int
+            Lattice cells to move by, per axis.
+
+        Returns
+        -------
+        EVM
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``offset`` is not 3 integers, or the moved region leaves the lattice
+            coordinates an EVM holds (:func:`check_lattice_range`).
         """
         offset = integer_triple(offset, "offset")
         if self.is_empty():
@@ -380,36 +770,59 @@ class EVM:
     def split(self, axis, c):
         """Split by the plane ``axis = c``: ``(part below c, part at or above c)``.
 
-        The section just below ``c`` closes the lower part and opens the upper one. ``c`` may be
-        any integer: planes beyond the lattice range split off nothing.
+        Two clips (:meth:`clip`): the section just below ``c`` closes the lower part and opens
+        the upper one.
+
+        Parameters
+        ----------
+        axis : {0, 1, 2}
+            The plane's normal axis.
+        c : int
+            The plane's coordinate; any integer (planes beyond the lattice range split off
+            nothing).
+
+        Returns
+        -------
+        below, above : EVM
+            The cells with ``cell[axis] < c`` and those with ``cell[axis] >= c``.
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``axis`` is not 0, 1 or 2, or ``c`` is not an integer.
         """
         if axis not in (0, 1, 2):
             raise VolumeEVMError(f"axis must be 0, 1 or 2, got {axis!r}")
         if isinstance(c, (bool, np.bool_)) or not isinstance(c, (int, np.integer)):
             raise VolumeEVMError(f"split plane c must be an integer, got {c!r}")
-        if c >= _sweep.LIMIT:  # every vertex lies below the plane
-            return self, EVM()
-        c = max(int(c), -_sweep.LIMIT)  # no vertex lies below -LIMIT: the same split
-        order = ("xyz", "yzx", "zxy")[axis]
-        keys = self.keys(order)
-        cut = np.int64(c + _sweep.OFFSET) << (2 * _sweep.BITS)
-        n = np.searchsorted(keys, cut)
-        below, above = keys[:n], keys[n:]
-        closing = _sweep.parity(below & ((1 << (2 * _sweep.BITS)) - 1)) | cut
-        parts = []
-        for part in (_sweep.xor(below, closing), _sweep.xor(closing, above)):
-            columns = _sweep.unpack(part, 3)[1]
-            xyz = np.empty_like(columns)
-            xyz[:, _axes(order)] = columns
-            parts.append(EVM._from_keys(np.sort(_sweep.pack(xyz))))
-        return tuple(parts)
+        if self.is_empty():
+            return self, self
+        lo, hi = self.bounds()
+        c = min(max(int(c), lo[axis]), hi[axis])  # a plane beyond the region splits the same
+        return (self.clip(lo, hi[:axis] + (c,) + hi[axis + 1:]),
+                self.clip(lo[:axis] + (c,) + lo[axis + 1:], hi))
 
     def clip(self, lo, hi):
         """The part of the region inside the box ``[lo, hi)`` (lattice corners).
 
-        Per axis, the vertices between the two planes are kept, the section entering at ``lo``
-        opens the part and the section leaving at ``hi`` closes it (a split at both planes).
-        ``lo`` and ``hi`` may be any integers: the box is first cut down to the bounding box.
+        One sweep of the planes (a compiled kernel): the section entering at ``lo`` opens the
+        part, the planes between are kept and the section leaving at ``hi`` closes it, each cut
+        the same way in 2-D by its lines, and each line in 1-D.
+
+        Parameters
+        ----------
+        lo, hi : (3,) array_like of int
+            The box's corners; any integers (the box is first cut down to the bounding box).
+
+        Returns
+        -------
+        EVM
+            Empty when the box misses the region.
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``lo`` or ``hi`` is not 3 integers.
         """
         lo, hi = integer_triple(lo, "clip lo"), integer_triple(hi, "clip hi")
         if self.is_empty():
@@ -420,29 +833,36 @@ class EVM:
         if any(a >= b for a, b in zip(lo, hi)):
             return EVM()
         # Now every plane lies inside the bounding box, hence inside the range keys can hold.
-        plane_bits = 2 * _sweep.BITS
-        columns = _sweep.unpack(self.keys(), 3)[1]
-        for axis in range(3):
-            axes = ["xyz".index(a) for a in ("xyz", "yzx", "zxy")[axis]]
-            keys = np.sort(_sweep.pack(columns[:, axes]))
-            cuts = [np.int64(int(c) + _sweep.OFFSET) << plane_bits for c in (lo[axis], hi[axis])]
-            first, stop = np.searchsorted(keys, cuts)
-            rest = (1 << plane_bits) - 1
-            opening = _sweep.parity(keys[:first] & rest) | cuts[0]
-            closing = _sweep.parity(keys[:stop] & rest) | cuts[1]
-            keys = _sweep.parity(np.concatenate([opening, keys[first:stop], closing]), runs=True)
-            columns = np.empty((len(keys), 3), np.int64)
-            columns[:, axes] = _sweep.unpack(keys, 3)[1]
-        return EVM._from_keys(np.sort(_sweep.pack(columns)))
+        box = np.array([lo, hi], np.int64) + _sweep.OFFSET
+        return EVM._from_keys(_clip_keys(self.keys(), box[0], box[1]))
 
     def mesh(self):
-        """Boundary as a closed, outward polygon mesh in lattice units; see :mod:`._mesh`."""
+        """Boundary as a closed, outward polygon mesh in lattice units; see :mod:`._mesh`.
+
+        Returns
+        -------
+        vertices : (n, 3) ndarray of np.float64
+            Lattice points (voxel corners).
+        polygons : Polygons
+            Faces merged per plane, counter-clockwise seen from outside.
+
+        Raises
+        ------
+        VolumeEVMError
+            When the mesh would need more memory than is available.
+        """
         from ._mesh import boundary_mesh
 
         return boundary_mesh(self)
 
     def components(self):
-        """Face-connected components, one EVM each, largest first; see :mod:`._components`."""
+        """Face-connected components, one EVM each, largest first; see :mod:`._components`.
+
+        Returns
+        -------
+        list of EVM
+            Empty for an empty region.
+        """
         from ._components import face_components
 
         return face_components(self)

@@ -2,7 +2,7 @@
 
 A volume much finer than the image's pixels costs time (every voxel is visited) and aliases
 (voxels narrower than a pixel make moiré). Level ``f`` (an integer factor >= 2) renders it from
-a coarser VolumeEVM instead, built on demand and cached on the VolumeEVM (:meth:`.level`):
+a coarser VolumeEVM instead, built on demand and kept in the VolumeEVM's cache (:meth:`.level`):
 
 - **Grid**: coarse voxel ``(I, J, K)`` is the block of fine voxels ``[fI, fI + f) x [fJ, fJ + f)
   x [fK, fK + f)``; the coarse grid is ``ceil(shape / f)``, its spacing ``f`` times the fine one

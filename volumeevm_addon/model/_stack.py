@@ -6,7 +6,7 @@ each entry is cached, so when one tool moves only that entry and the ones after 
 again: dragging the last tool of a stack costs one Boolean, not the whole stack.
 """
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 
 from ._evm import EVM
 
@@ -15,7 +15,10 @@ OPERATIONS = ("cut", "keep", "add", "largest")
 
 @dataclass(frozen=True)
 class ToolOperation:
-    """One entry of the stack.
+    """One entry of the stack: a tool and what to do with it.
+
+    A frozen record, compared by value, so :meth:`EditStack.evaluate` can tell which entries
+    changed since the last call. ``enabled`` and ``density`` are keyword-only.
 
     Parameters
     ----------
@@ -25,14 +28,22 @@ class ToolOperation:
     operation : {"cut", "keep", "add", "largest"}
         Remove the tool's voxels, keep only them, add them as material, or keep the largest
         face-connected part of the region.
-    enabled : bool
-        Disabled entries are skipped.
-    density : float or None
+    enabled : bool, optional
+        Disabled entries are skipped (default True).
+    density : float or None, optional
         Density of added voxels (``"add"`` only); None means the region's largest density.
+
+    Raises
+    ------
+    ValueError
+        For an unknown operation, a tool given to "largest" or none to another operation.
+    TypeError
+        If ``tool`` is not an :class:`EVM`.
     """
 
     tool: EVM = None
     operation: str = "cut"
+    _: KW_ONLY
     enabled: bool = True
     density: float = None
 
@@ -47,7 +58,24 @@ class ToolOperation:
             raise TypeError(f"tool must be an EVM, got {type(self.tool).__name__}")
 
     def apply(self, region):
-        """This entry applied to a VolumeEVM (a new VolumeEVM)."""
+        """This entry applied to a VolumeEVM.
+
+        Parameters
+        ----------
+        region : VolumeEVM
+            The region before this entry.
+
+        Returns
+        -------
+        VolumeEVM
+            A new VolumeEVM (:meth:`VolumeEVM.cut`, ``keep``, ``add`` or
+            ``largest_component``); ``region`` is not changed.
+
+        Raises
+        ------
+        VolumeEVMError
+            When the result would be empty, or an added tool misses the grid.
+        """
         if self.operation == "add":
             return region.add(self.tool, self.density)
         if self.operation == "largest":
@@ -58,10 +86,30 @@ class ToolOperation:
 class EditStack:
     """Evaluates a list of :class:`ToolOperation` on a base VolumeEVM, reusing earlier results.
 
+    Parameters
+    ----------
+    base : VolumeEVM
+        The region before any operation; never changed.
+
+    Attributes
+    ----------
+    last_recomputed : int
+        How many entries the last :meth:`evaluate` computed again (the others were reused).
+
     Examples
     --------
-    >>> stack = EditStack(region)                                    # doctest: +SKIP
-    >>> result = stack.evaluate([ToolOperation(drill, "cut")])       # doctest: +SKIP
+    >>> import numpy as np
+    >>> from volumeevm_addon import VolumeEVM, box_evm
+    >>> region = VolumeEVM.from_array(np.ones((4, 4, 4)), 1.0)
+    >>> drill = box_evm((0, 0, 0), (2, 4, 4), region.shape)
+    >>> stack = EditStack(region)
+    >>> stack.evaluate([ToolOperation(drill, "cut")]).voxel_count
+    32
+    >>> largest = ToolOperation(operation="largest")
+    >>> stack.evaluate([ToolOperation(drill, "cut"), largest]).voxel_count
+    32
+    >>> stack.last_recomputed  # the cut was reused
+    1
     """
 
     def __init__(self, base):
@@ -74,6 +122,21 @@ class EditStack:
 
         Entries equal to those of the previous call (same tool voxels, operation, flag and
         density) reuse their cached results up to the first one that differs.
+
+        Parameters
+        ----------
+        operations : iterable of ToolOperation
+            The stack, first entry first.
+
+        Returns
+        -------
+        VolumeEVM
+            The base itself when no entry is enabled.
+
+        Raises
+        ------
+        VolumeEVMError
+            As :meth:`ToolOperation.apply`, for the first entry that fails.
         """
         operations = list(operations)
         same = 0

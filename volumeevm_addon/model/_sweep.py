@@ -1,27 +1,23 @@
-"""Plane sweeps over sorted extreme vertices, evaluated for all planes at once with NumPy.
+"""Plane sweeps over sorted extreme vertices, as compiled kernels (:mod:`.._jit`).
 
 The EVM algorithms of the report sweep the planes of vertices one by one: the section after plane
 ``i`` is ``S_i = S_{i-1} xor plv_i``, an operation on sections one dimension down gives the result's
-section, and the result's plane is ``plv = S_prev xor S_cur``. A Python loop over planes (and over
-lines inside each plane) is slow, so this module evaluates the same recurrences for every plane
-at once:
-
-- The section valid on slab ``i`` holds the point ``(b, c)`` exactly when an odd number of the
-  vertices on the line ``(., b, c)`` lie at or before plane ``i``. Pairing the sorted vertices of
-  each line (its *brinks*) gives the slabs each point belongs to, so all sections come out of one
-  sort and one ``np.repeat`` (:func:`sections`).
-- Sections are lower-dimensional EVMs tagged with their slab index (a *group*); the recursion goes
-  down to 1-D, where inside/outside is a running parity (:func:`combine_1d`).
-- Going back up, a result section on slab ``[c_j, c_{j+1})`` contributes its points at both ends;
-  the XOR (odd multiplicity) of all contributions is ``plv = S_prev xor S_cur`` for every plane
-  (:func:`extrude`).
+section, and the result's plane is ``plv = S_prev xor S_cur``. The kernels here do exactly that,
+plane by plane and, inside a section, line by line: sorted point sets merged in linear time
+(:func:`xor_into`), a line's points toggling the breakpoints of its row, the 1-D section
+(:func:`toggle_line`), and a running parity along a row for inside and outside. On that:
+Booleans (:func:`boolean`), the ordered disjoint boxes (:func:`boxes`) and the faces' area
+(:func:`plane_area`); the mesh (:mod:`._mesh`) and the clip (:mod:`._evm`) sweep the same way.
 
 Points are packed into int64 *keys* so that sorting keys sorts points lexicographically: each
-coordinate takes :data:`BITS` bits (offset to be non-negative) and a group id takes the bits above
-them. A d-dimensional key with group ``g`` is ``g, c1, ..., cd`` from the most significant bits down.
+coordinate takes :data:`BITS` bits (offset to be non-negative), the first from the most
+significant bits down. Keys in another axis order come from :func:`radix_sort`, linear in the
+number of keys.
 """
 
 import numpy as np
+
+from .._jit import kernel
 
 BITS = 21
 OFFSET = 1 << (BITS - 1)
@@ -29,19 +25,10 @@ MASK = (1 << BITS) - 1
 LIMIT = OFFSET
 """Coordinates must lie in ``[-LIMIT, LIMIT)``: one million lattice steps each way."""
 
-OPERATIONS = {
-    "union": lambda a, b: a | b,
-    "intersection": lambda a, b: a & b,
-    "difference": lambda a, b: a & (1 - b),
-    "xor": lambda a, b: a ^ b,
-    "reverse difference": lambda a, b: b & (1 - a),
-}
-
-
-def pack(coords, group=None):
-    """Pack integer points ``(n, d)`` (and an optional group id per point) into int64 keys."""
+def pack(coords):
+    """Pack integer points ``(n, d)`` into int64 keys."""
     coords = np.asarray(coords, dtype=np.int64)
-    keys = np.zeros(len(coords), np.int64) if group is None else np.array(group, np.int64)
+    keys = np.zeros(len(coords), np.int64)
     for j in range(coords.shape[1]):
         keys <<= BITS
         keys |= coords[:, j] + OFFSET
@@ -49,25 +36,55 @@ def pack(coords, group=None):
 
 
 def unpack(keys, d):
-    """Inverse of :func:`pack`: ``(group, coords (n, d))``."""
-    keys = np.array(keys, dtype=np.int64)
+    """Inverse of :func:`pack`: the points ``(n, d)``."""
     coords = np.empty((len(keys), d), np.int64)
-    for j in range(d - 1, -1, -1):
-        coords[:, j] = (keys & MASK) - OFFSET
-        keys >>= BITS
-    return keys, coords
+    for j in range(d):
+        coords[:, j] = ((keys >> (BITS * (d - 1 - j))) & MASK) - OFFSET
+    return coords
 
 
-def coordinate(keys, d, j):
-    """Coordinate ``j`` (0-based) of d-dimensional keys, without unpacking the others."""
-    return ((keys >> (BITS * (d - 1 - j))) & MASK) - OFFSET
+@kernel
+def radix_sort(keys, lowest, count):
+    """Sort packed keys by ``count`` of their coordinates, from the ``lowest``-th counted from
+    the least significant (0 is the last coordinate): ``(0, 3)`` sorts 3-D keys fully.
 
-
-def unique_sorted(keys):
-    """Distinct values of an already sorted array (no sort; ``np.unique`` would sort again)."""
-    if keys.size < 2:
-        return keys
-    return keys[np.r_[True, keys[1:] != keys[:-1]]]
+    A stable LSD radix sort: one counting pass per coordinate over the range of values it
+    spans, linear in ``len(keys)`` plus that range, where ``np.sort`` compares ``log n`` times
+    per key. A coordinate spanning far more values than there are keys (a few vertices far
+    apart) is sorted by a stable merge sort instead. Returns ``(sorted keys, position of each
+    in keys)``.
+    """
+    n = len(keys)
+    index = np.arange(n)
+    if n == 0:
+        return keys, index
+    out_keys = np.empty(n, np.int64)
+    out_index = np.empty(n, np.int64)
+    for d in range(count):
+        shift = (lowest + d) * BITS
+        lo = MASK
+        hi = 0
+        for key in keys:
+            lo = min(lo, (key >> shift) & MASK)
+            hi = max(hi, (key >> shift) & MASK)
+        if hi - lo > 4 * n + 1024:
+            order = np.argsort((keys >> shift) & MASK, kind="mergesort")
+            out_keys[:] = keys[order]
+            out_index[:] = index[order]
+        else:
+            place = np.zeros(hi - lo + 2, np.int64)
+            for key in keys:
+                place[((key >> shift) & MASK) - lo + 1] += 1
+            for value in range(hi - lo + 1):
+                place[value + 1] += place[value]
+            for i in range(n):
+                value = ((keys[i] >> shift) & MASK) - lo
+                out_keys[place[value]] = keys[i]
+                out_index[place[value]] = index[i]
+                place[value] += 1
+        keys, out_keys = out_keys, keys
+        index, out_index = out_index, index
+    return keys, index
 
 
 def unique_inverse(keys):
@@ -97,143 +114,256 @@ def parity(keys, runs=False):
     return keys[starts[(counts & 1) == 1]]
 
 
+@kernel
+def xor_into(a, length, b, start, stop, mask, out):
+    """``out = a[:length] xor (b[start:stop] & mask)`` for sorted sets (a linear merge in
+    which a key found in both cancels); returns its length. ``out`` has room for both."""
+    i = 0
+    j = start
+    n = 0
+    while i < length or j < stop:
+        if j == stop or (i < length and a[i] < b[j] & mask):
+            out[n] = a[i]
+            i += 1
+        elif i == length or b[j] & mask < a[i]:
+            out[n] = b[j] & mask
+            j += 1
+        else:
+            i += 1
+            j += 1
+            continue
+        n += 1
+    return n
+
+
+@kernel
+def same_end(keys, start, stop, shift):
+    """The first index from ``start`` (at most ``stop``) whose key differs from ``keys[start]``
+    in the bits from ``shift`` up: the end of its plane (``shift = 2 * BITS``) or line."""
+    j = start
+    while j < stop and keys[j] >> shift == keys[start] >> shift:
+        j += 1
+    return j
+
+
+@kernel
+def with_room(out, count, more):
+    """``out`` with room for ``more`` rows after its first ``count`` (doubled when short)."""
+    if count + more <= len(out):
+        return out
+    grown = np.empty((2 * (count + more),) + out.shape[1:], out.dtype)
+    grown[:count] = out[:count]
+    return grown
+
+
+@kernel
+def _xor(a, b):
+    out = np.empty(len(a) + len(b), np.int64)
+    return out[:xor_into(a, len(a), b, 0, len(b), np.int64(-1), out)]
+
+
 def xor(a, b):
     """Symmetric difference of two sorted key sets (the EVM of the regularized XOR)."""
     if a.size == 0:
         return b
     if b.size == 0:
         return a
-    return parity(np.concatenate([a, b]), runs=True)
+    return _xor(a, b)
 
 
-def leading(keys, d):
-    """The ``(group, first coordinate)`` part of d-dimensional keys, as 1-D grouped keys."""
-    return keys >> (BITS * (d - 1))
+TRUTH_TABLES = {"union": 0b1110, "intersection": 0b1000, "difference": 0b0100, "xor": 0b0110,
+                "reverse difference": 0b0010}
+"""Each operation as a truth table: bit ``2 * in_a + in_b`` says whether a point is in the result."""
 
 
-def sections(keys, d, slabs):
-    """Sections of grouped d-D EVMs on the given slabs, for all slabs at once.
+@kernel
+def toggle_line(section, count, start, line, row, length, scratch):
+    """Toggle the breakpoints ``row[:length]`` by the points of ``section[start:count]`` on
+    ``line`` (the 2-D keys' first coordinate; none if the next point is on another line);
+    returns the index past them and the row's new length. ``scratch`` has room for the row."""
+    stop = start
+    while stop < count and section[stop] >> BITS == line:
+        stop += 1
+    if stop > start:
+        length = xor_into(row, length, section, start, stop, MASK, scratch)
+        row[:length] = scratch[:length]
+    return stop, length
 
-    Parameters
-    ----------
-    keys : (n,) int64
-        Sorted keys of grouped d-dimensional EVMs (d >= 2).
-    slabs : (m,) int64
-        Sorted, unique ``(group, first coordinate)`` keys (see :func:`leading`) that include every
-        plane of ``keys``; slab ``j`` runs from ``slabs[j]`` to ``slabs[j + 1]`` in the same group.
+
+@kernel
+def combine_rows(a, length_a, b, length_b, table, out):
+    """The breakpoints of ``table`` applied to two 1-D EVMs (sorted breakpoints); returns the
+    count written to ``out``."""
+    i = 0
+    j = 0
+    inside = 0
+    in_a = 0
+    in_b = 0
+    n = 0
+    while i < length_a or j < length_b:
+        c = a[i] if j == length_b or (i < length_a and a[i] < b[j]) else b[j]
+        if i < length_a and a[i] == c:
+            in_a ^= 1
+            i += 1
+        if j < length_b and b[j] == c:
+            in_b ^= 1
+            j += 1
+        now = (table >> (2 * in_a + in_b)) & 1
+        if now != inside:
+            out[n] = c
+            n += 1
+            inside = now
+    return n
+
+
+@kernel
+def _combine_sections(a, count_a, b, count_b, table, out):
+    """The 2-D EVM (sorted ``(B, C)`` keys) of ``table`` applied to two 2-D EVMs, by a sweep of
+    their lines: each line's rows (1-D sections) combine in 1-D, and the result's points on a
+    line are the change of its row there. Returns ``(out, count)``; ``out`` grows as needed."""
+    size = count_a + count_b + 2
+    row_a, row_b = np.empty(size, np.int64), np.empty(size, np.int64)
+    row, previous, scratch = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64)
+    length_a = 0
+    length_b = 0
+    length_previous = 0
+    n = 0
+    i = 0
+    j = 0
+    while i < count_a or j < count_b:
+        line = a[i] >> BITS if j == count_b or (i < count_a and a[i] < b[j]) else b[j] >> BITS
+        i, length_a = toggle_line(a, count_a, i, line, row_a, length_a, scratch)
+        j, length_b = toggle_line(b, count_b, j, line, row_b, length_b, scratch)
+        length = combine_rows(row_a, length_a, row_b, length_b, table, row)
+        changed = xor_into(previous, length_previous, row, 0, length, MASK, scratch)
+        out = with_room(out, n, changed)
+        for k in range(changed):
+            out[n + k] = (line << BITS) | scratch[k]
+        n += changed
+        previous[:length] = row[:length]
+        length_previous = length
+    return out, n
+
+
+@kernel
+def boolean(a, b, table):
+    """A Boolean operation (its :data:`TRUTH_TABLES` entry) on two EVMs given as sorted 3-D
+    keys: the sweep of the report. Plane by plane both sections advance by their planes'
+    points, the operation applies to them in 2-D, and the result's points on the plane are the
+    change of its section there. Returns the result's sorted keys."""
+    plane_bits = 2 * BITS
+    plane_mask = (np.int64(1) << plane_bits) - 1
+    section_a, section_b = np.empty(len(a) + 1, np.int64), np.empty(len(b) + 1, np.int64)
+    scratch = np.empty(len(a) + len(b) + 1, np.int64)
+    result = np.empty(len(a) + len(b) + 16, np.int64)
+    previous = np.empty_like(result)
+    changes = np.empty_like(result)
+    out = np.empty(len(a) + len(b) + 16, np.int64)
+    count_a = 0
+    count_b = 0
+    length_previous = 0
+    n = 0
+    i = 0
+    j = 0
+    while i < len(a) or j < len(b):
+        plane = a[i] >> plane_bits if j == len(b) or (i < len(a) and a[i] < b[j]) else b[j] >> plane_bits
+        if i < len(a) and a[i] >> plane_bits == plane:
+            stop = same_end(a, i, len(a), plane_bits)
+            count_a = xor_into(section_a, count_a, a, i, stop, plane_mask, scratch)
+            section_a[:count_a] = scratch[:count_a]
+            i = stop
+        if j < len(b) and b[j] >> plane_bits == plane:
+            stop = same_end(b, j, len(b), plane_bits)
+            count_b = xor_into(section_b, count_b, b, j, stop, plane_mask, scratch)
+            section_b[:count_b] = scratch[:count_b]
+            j = stop
+        result, length = _combine_sections(section_a, count_a, section_b, count_b, table, result)
+        changes = with_room(changes, 0, length + length_previous)
+        changed = xor_into(previous, length_previous, result, 0, length, plane_mask, changes)
+        out = with_room(out, n, changed)
+        for k in range(changed):
+            out[n + k] = (plane << plane_bits) | changes[k]
+        n += changed
+        previous = with_room(previous, 0, length)
+        previous[:length] = result[:length]
+        length_previous = length
+    return out[:n].copy()
+
+
+@kernel
+def _boxes_into(keys, lo, hi):
+    """Write the ordered boxes of :func:`boxes` to ``lo`` and ``hi`` as far as they have room
+    (offset coordinates); returns how many boxes there are."""
+    plane_bits = 2 * BITS
+    plane_mask = (np.int64(1) << plane_bits) - 1
+    # Working arrays grow with the largest section, not with all the vertices.
+    section, scratch = np.empty(64, np.int64), np.empty(64, np.int64)
+    row, row_scratch = np.empty(64, np.int64), np.empty(64, np.int64)
+    count = 0
+    m = 0
+    i = 0
+    while i < len(keys):
+        a = keys[i] >> plane_bits
+        j = same_end(keys, i, len(keys), plane_bits)
+        section = with_room(section, m, j - i)
+        scratch = with_room(scratch, 0, m + j - i)
+        m = xor_into(section, m, keys, i, j, plane_mask, scratch)
+        section[:m] = scratch[:m]
+        row = with_room(row, 0, m)
+        row_scratch = with_room(row_scratch, 0, m)
+        i = j
+        length = 0
+        p = 0
+        while p < m:  # empty after the last plane
+            b = section[p] >> BITS
+            p, length = toggle_line(section, m, p, b, row, length, row_scratch)
+            for k in range(0, length, 2):
+                if count < len(lo):
+                    lo[count, 0], lo[count, 1], lo[count, 2] = a, b, row[k]
+                    hi[count, 0], hi[count, 2] = keys[i] >> plane_bits, row[k + 1]
+                    hi[count, 1] = section[p] >> BITS
+                count += 1
+    return count
+
+
+def boxes(keys):
+    """Decompose an EVM (sorted 3-D keys) into ordered, disjoint boxes.
+
+    Slabs between the EVM's own planes, then sub-slabs between the lines of each slab's
+    section, down to runs along the last axis (the ordered union of disjoint boxes of the EVM
+    literature), in one sweep; a first sweep counts them, so that the result is all the memory
+    it takes.
 
     Returns
     -------
-    (k,) int64
-        Sorted keys of grouped (d-1)-D EVMs: the section on slab ``j`` has group ``j``.
+    lo, hi : (n, 3) int64
+        Box corners (lattice coordinates, in the keys' axis order), ``lo`` inclusive and ``hi``
+        exclusive, ordered lexicographically.
     """
-    if keys.size == 0:
-        return keys
-    shift = BITS * (d - 1)
-    rest_mask = (1 << shift) - 1
-    group = keys >> (shift + BITS)
-    # Re-key as (group, rest, first) so that the vertices of each line come out adjacent and in
-    # order: consecutive pairs are the brinks along the first axis.
-    lines = (group << (shift + BITS)) | ((keys & rest_mask) << BITS) | ((keys >> shift) & MASK)
-    lines.sort()
-    lo, hi = lines[0::2], lines[1::2]
-    line_group = (lo >> (shift + BITS)) << BITS
-    first = np.searchsorted(slabs, line_group | (lo & MASK))
-    stop = np.searchsorted(slabs, line_group | (hi & MASK))
-    counts = stop - first
-    slab = np.repeat(first - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
-    out = (slab << shift) | np.repeat((lo >> BITS) & rest_mask, counts)
-    out.sort()
-    return out
+    count = _boxes_into(keys, np.empty((0, 3), np.int64), np.empty((0, 3), np.int64))
+    lo, hi = np.empty((count, 3), np.int64), np.empty((count, 3), np.int64)
+    _boxes_into(keys, lo, hi)
+    lo -= OFFSET
+    hi -= OFFSET
+    return lo, hi
 
 
-def extrude(keys, d, slabs):
-    """Inverse of :func:`sections`: grouped d-D EVMs from their sections on ``slabs``.
-
-    A section on slab ``[s_j, s_{j+1})`` is the prism's cross-section; its points stand at both
-    ends, and the points that cancel in pairs are the planes where consecutive sections agree.
-    """
-    shift = BITS * (d - 1)
-    slab = keys >> shift
-    rest = keys & ((1 << shift) - 1)
-    # Both halves are sorted (slab starts grow with the slab index): a two-run merge.
-    return parity(np.concatenate([(slabs[slab] << shift) | rest, (slabs[slab + 1] << shift) | rest]),
-                  runs=True)
-
-
-def combine_1d(a, b, operations):
-    """Boolean operations on grouped 1-D EVMs (sorted breakpoints per group), all groups at once.
-
-    Inside/outside of each operand is the parity of the breakpoints passed so far. Every group of
-    an EVM has an even number of breakpoints, so a running count over all groups restarts at
-    "outside" at each group's end, and a single cumulative sum serves every group. Returns one
-    result per name in ``operations``, from a single merge of the operands.
-    """
-    keys = np.concatenate([a, b])
-    if keys.size == 0:
-        return [keys for _ in operations]
-    source = np.concatenate([np.ones(a.size, np.int8), np.full(b.size, 2, np.int8)])
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    source = source[order]
-    first = np.empty(keys.size, bool)
-    first[0] = True
-    np.not_equal(keys[1:], keys[:-1], out=first[1:])
-    starts = np.flatnonzero(first)
-    toggles = np.bitwise_or.reduceat(source, starts)
-    keys = keys[starts]
-    inside_a = np.cumsum(toggles & 1, dtype=np.int64) & 1
-    inside_b = np.cumsum(toggles >> 1, dtype=np.int64) & 1
-    results = []
-    for operation in operations:
-        result = OPERATIONS[operation](inside_a, inside_b)
-        before = np.concatenate([[0], result[:-1]])
-        results.append(keys[result != before])
-    return results
-
-
-def merged_slabs(a, b, d):
-    """The union of the planes of two grouped d-D EVMs, as sorted slab keys."""
-    return unique_sorted(np.sort(np.concatenate([leading(a, d), leading(b, d)]), kind="stable"))
-
-
-def boolean(a, b, d, operation):
-    """Boolean operation on grouped d-D EVMs given as sorted keys.
-
-    The sweep of the report, all planes at once: sections of both operands on the merged planes,
-    the operation one dimension down on every pair of sections, and the result's planes from its
-    consecutive sections.
-    """
-    if d == 1:
-        return combine_1d(a, b, [operation])[0]
-    slabs = merged_slabs(a, b, d)
-    result = boolean(sections(a, d, slabs), sections(b, d, slabs), d - 1, operation)
-    return extrude(result, d, slabs)
-
-
-def boxes(keys, d):
-    """Decompose grouped d-D EVMs into ordered, disjoint boxes.
-
-    Slabs between the EVM's own planes, then sub-slabs between the lines of each section, down to
-    runs along the last axis (the ordered union of disjoint boxes of the EVM literature).
-
-    Returns
-    -------
-    group : (n,) int64
-        The group of each box.
-    lo, hi : (n, d) int64
-        Box corners, ``lo`` inclusive and ``hi`` exclusive, ordered lexicographically.
-    """
-    levels = []
-    for level in range(d, 1, -1):
-        slabs = unique_sorted(leading(keys, level))
-        levels.append(slabs)
-        keys = sections(keys, level, slabs)
-    group = keys[0::2] >> BITS
-    lo = [(keys[0::2] & MASK) - OFFSET]
-    hi = [(keys[1::2] & MASK) - OFFSET]
-    for slabs in reversed(levels):
-        lo.insert(0, (slabs[group] & MASK) - OFFSET)
-        hi.insert(0, (slabs[group + 1] & MASK) - OFFSET)
-        group = slabs[group] >> BITS
-    return group, np.stack(lo, axis=1), np.stack(hi, axis=1)
+@kernel
+def plane_area(keys):
+    """The total area of the planes' 2-D EVMs (sorted 3-D keys read plane by plane): by a sweep
+    of each plane's lines, the length of its row (1-D section) times the distance to the next."""
+    row, scratch = np.empty(len(keys) + 1, np.int64), np.empty(len(keys) + 1, np.int64)
+    total = 0
+    i = 0
+    while i < len(keys):
+        j = same_end(keys, i, len(keys), 2 * BITS)
+        length = 0
+        p = i
+        while p < j:
+            line = keys[p] >> BITS
+            p, length = toggle_line(keys, j, p, line, row, length, scratch)
+            if p < j:
+                for k in range(0, length, 2):
+                    total += (row[k + 1] - row[k]) * ((keys[p] >> BITS) - line)
+        i = j
+    return total

@@ -13,7 +13,7 @@ Conventions (one place for all of them):
 - ``units`` are the data's own units ("HU" for CT); densities are never rescaled by the core.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 
@@ -28,25 +28,36 @@ default metric scene), so a 25 cm head is 0.25 BU across and measures right in B
 class Volume:
     """A grey-level volume with its grid geometry.
 
+    What every reader returns, and what :meth:`VolumeEVM.from_volume` builds a region from.
+    The record stores what it is given; the readers and :meth:`VolumeEVM.from_volume` check
+    it. Every field after ``array`` is keyword-only.
+
     Parameters
     ----------
     array : (X, Y, Z) ndarray
         Densities in data units, indexed ``[x, y, z]``.
-    spacing : tuple of 3 float
-        Voxel size in mm along x, y, z.
-    origin : tuple of 3 float
-        Physical position (mm, LPS) of the centre of voxel ``(0, 0, 0)``.
-    orientation : (3, 3) ndarray
-        Column ``i`` is the direction of index axis ``i`` in LPS.
-    units : str
+    spacing : tuple of 3 float, optional
+        Voxel size in mm along x, y, z (default 1 mm).
+    origin : tuple of 3 float, optional
+        Physical position (mm, LPS) of the centre of voxel ``(0, 0, 0)`` (default 0).
+    orientation : (3, 3) ndarray, optional
+        Column ``i`` is the direction of index axis ``i`` in LPS (default the identity).
+    units : str, optional
         Data units ("HU", "a.u.", ...); "" when the file does not say.
-    source : str
+    source : str, optional
         The file or folder the volume was read from ("" for arrays made in memory).
-    spacing_known : bool
+    spacing_known : bool, optional
         False when the file carries no spacing and ``spacing`` is a guess of 1 mm.
+
+    Examples
+    --------
+    >>> vol = Volume(np.zeros((4, 3, 2)), spacing=(0.5, 0.5, 2.0), units="HU")
+    >>> vol.shape, vol.index_to_physical()[:3, 3].tolist()
+    ((4, 3, 2), [0.0, 0.0, 0.0])
     """
 
     array: np.ndarray
+    _: KW_ONLY
     spacing: tuple = (1.0, 1.0, 1.0)
     origin: tuple = (0.0, 0.0, 0.0)
     orientation: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -60,7 +71,13 @@ class Volume:
         return self.array.shape
 
     def index_to_physical(self):
-        """4x4 matrix taking voxel-centre indices ``(i, j, k, 1)`` to physical mm (LPS)."""
+        """4x4 matrix taking voxel-centre indices ``(i, j, k, 1)`` to physical mm (LPS).
+
+        Returns
+        -------
+        (4, 4) ndarray of np.float64
+            :func:`index_to_physical` of this volume's geometry.
+        """
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
 
@@ -68,6 +85,25 @@ def index_to_physical(spacing, origin, orientation=None):
     """4x4 matrix from voxel-centre index space to physical mm (LPS).
 
     A lattice point ``p`` (a voxel corner, as EVM vertices are) sits at index ``p - 0.5``.
+
+    Parameters
+    ----------
+    spacing : (3,) array_like
+        Voxel size in mm along x, y, z.
+    origin : (3,) array_like
+        Physical position (mm) of the centre of voxel ``(0, 0, 0)``.
+    orientation : (3, 3) array_like, optional
+        Column ``i`` is the direction of index axis ``i`` (default the identity).
+
+    Returns
+    -------
+    (4, 4) ndarray of np.float64
+        ``[orientation · diag(spacing) | origin]``, last row ``(0, 0, 0, 1)``.
+
+    Examples
+    --------
+    >>> index_to_physical((0.5, 0.5, 2.0), (10.0, 0.0, 0.0)) @ (2, 0, 1, 1)
+    array([11.,  0.,  2.,  1.])
     """
     m = np.eye(4)
     rot = np.eye(3) if orientation is None else np.asarray(orientation, dtype=np.float64)
@@ -80,7 +116,24 @@ def grid_to_world(spacing, origin, orientation=None, matrix_world=None):
     """4x4 matrix from voxel-centre indices to Blender world units.
 
     ``matrix_world`` (the volume object's placement, default identity) after the one unit mapping
-    :data:`BLENDER_UNITS_PER_MM` after :func:`index_to_physical`.
+    :data:`BLENDER_UNITS_PER_MM` after :func:`index_to_physical`: where a renderer or a tool
+    finds a voxel in the scene.
+
+    Parameters
+    ----------
+    spacing, origin, orientation
+        Grid geometry, as for :func:`index_to_physical`.
+    matrix_world : (4, 4) array_like, optional
+        The volume object's placement in the scene (default the identity).
+
+    Returns
+    -------
+    (4, 4) ndarray of np.float64
+
+    Examples
+    --------
+    >>> grid_to_world((1.0, 1.0, 1.0), (0.0, 0.0, 0.0)) @ (1000, 0, 0, 1)
+    array([1., 0., 0., 1.])
     """
     scale = np.diag([BLENDER_UNITS_PER_MM] * 3 + [1.0])
     placement = np.eye(4) if matrix_world is None else np.asarray(matrix_world, dtype=np.float64)

@@ -3,7 +3,8 @@
 Only the region is stored: its extreme vertices and one densities table, the region's voxels in
 slice-major order along x (table order "xyz", the C order of an ``[x, y, z]`` array). Tables for
 the other principal axes are made from it when a view asks for them, and cached. The relation v
-(voxel -> table index) comes from the EVM alone (:mod:`._densities`).
+(voxel -> table index) comes from the EVM alone (:mod:`._densities`). What the renderers derive
+from it, and its coarser levels, are kept in its :class:`DerivedCache` (:mod:`._cache`).
 
 Files: one ``.vevm`` file is a NumPy ``.npz`` archive of plain arrays (never pickled objects),
 with a format name and version, the geometry as JSON, and SHA-256 checksums of the vertices and
@@ -22,6 +23,7 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._files import write_atomically
 from .._memory import available_memory, check_memory
+from ._cache import DerivedCache, default_budget
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
@@ -30,6 +32,12 @@ from ._volume import Volume, checked_densities, checked_geometry, index_to_physi
 
 class VolumeEVM:
     """A region of interest of a volume: its EVM and the densities of its voxels.
+
+    What every renderer and tool works on. Usually built with :meth:`from_volume` or
+    :meth:`from_array`, or read with :meth:`load`; the constructor wraps a region and its table
+    as they are (everything after ``table`` is keyword-only). The attributes ``evm``, ``shape``,
+    ``spacing``, ``origin``, ``orientation``, ``units``, ``threshold`` and ``upper`` hold the
+    checked parameters; treat them as read-only (edits return new VolumeEVMs).
 
     Parameters
     ----------
@@ -43,6 +51,30 @@ class VolumeEVM:
         Grid geometry and data units, as in :class:`Volume`.
     threshold, upper : float or None
         The density interval that selected the region (``None`` for regions made otherwise).
+
+    Attributes
+    ----------
+    cache : DerivedCache
+        What is derived from this VolumeEVM on first use and kept for the next use: the
+        renderers' tables and the coarser levels (:mod:`._cache`). Counted by
+        :meth:`size_report` (``cache_bytes``), bounded by ``cache.budget`` (default
+        :func:`._cache.default_budget`, settable), dropped by ``cache.clear()``.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``evm`` is not an EVM or reaches outside the grid, the table is not a 1-D array of
+        finite numbers with one density per voxel of the region, or the geometry, units or
+        interval are bad (naming the parameter).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from volumeevm_addon import EVM
+    >>> mask = np.zeros((4, 4, 4), bool); mask[1:3, 1:3, 1:3] = True
+    >>> vevm = VolumeEVM(EVM.from_mask(mask), np.arange(8.0), shape=(4, 4, 4))
+    >>> vevm.voxel_count, float(vevm.to_dense()[2, 2, 2])
+    (8, 7.0)
     """
 
     def __init__(self, evm, table, *, shape, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0),
@@ -74,7 +106,7 @@ class VolumeEVM:
         self.units = units
         self._tables = {0: table}
         self._indices = {}
-        self._levels = {}
+        self.cache = DerivedCache(budget=default_budget(self.shape))
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -177,7 +209,31 @@ class VolumeEVM:
     def from_volume(cls, volume, threshold, upper=None):
         """Build from a :class:`Volume` (a reader's result), keeping its geometry and units.
 
-        Checks as :meth:`from_array`; messages name the volume's source file.
+        Parameters
+        ----------
+        volume : Volume
+            As :func:`volumeevm_addon.read_volume` returns it.
+        threshold, upper : real number
+            The density interval that selects the region, as for :meth:`from_array`.
+
+        Returns
+        -------
+        VolumeEVM
+            With the volume's spacing, origin, orientation and units.
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``volume`` is not a :class:`Volume`; otherwise as :meth:`from_array`, the
+            messages naming the volume's source file.
+
+        Examples
+        --------
+        >>> from volumeevm_addon import phantoms
+        >>> vol = phantoms.box((8, 8, 8), lo=(2, 2, 2), hi=(6, 6, 6), density=100.0)
+        >>> vevm = VolumeEVM.from_volume(vol, 50)
+        >>> vevm.voxel_count, len(vevm.evm), vevm.units
+        (64, 8, 'a.u.')
         """
         if not isinstance(volume, Volume):
             raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got {type(volume).__name__}")
@@ -197,6 +253,24 @@ class VolumeEVM:
         Axis 0 is the stored table; the others are made on first use and cached. Making one
         scatters the stored table into a transient grid and reads it back in the other order:
         two vectorized passes, and only the cached table stays.
+
+        Parameters
+        ----------
+        axis : {0, 1, 2}, optional
+            The slowest axis of the order: 0 is x, y, z (the C order of the ``[x, y, z]``
+            array), 1 is y, z, x and 2 is z, x, y.
+
+        Returns
+        -------
+        (N,) ndarray
+            The densities, in the data's dtype; do not modify (it is cached).
+
+        Raises
+        ------
+        ValueError
+            If ``axis`` is not 0, 1 or 2.
+        VolumeEVMError
+            When the transient grid would need more memory than is available.
         """
         if axis not in (0, 1, 2):
             raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
@@ -207,23 +281,75 @@ class VolumeEVM:
         return self._tables[axis]
 
     def index(self, voxels, axis=0):
-        """The relation v: table indices (in ``table(axis)``) of voxels ``(m, 3)``; -1 outside."""
+        """The relation v: where voxels' densities sit in :meth:`table`, from the EVM alone.
+
+        Parameters
+        ----------
+        voxels : (m, 3) array_like of int
+            Voxel indices ``[x, y, z]``.
+        axis : {0, 1, 2}, optional
+            Which table (:meth:`table`).
+
+        Returns
+        -------
+        (m,) ndarray of np.int64
+            Indices into ``table(axis)``; -1 for voxels outside the region.
+
+        Examples
+        --------
+        >>> from volumeevm_addon import phantoms
+        >>> vevm = VolumeEVM.from_volume(phantoms.ramp((3, 2, 2)), 0.5)
+        >>> vevm.index([[2, 1, 1], [0, 0, 0]]).tolist(), vevm.table()[7].item()
+        ([7, -1], 1.0)
+        """
         if axis not in self._indices:
             self._indices[axis] = TableIndex(self.evm, TABLE_ORDERS[axis])
         return self._indices[axis](voxels)
 
     def level(self, factor):
         """This VolumeEVM at ``factor`` times coarser voxels (:func:`._levels.coarsen`): made on
-        first use and cached, so only the levels views ask for are ever built."""
+        first use and kept in :attr:`cache` (key ``("level", factor)``), so only the levels views
+        ask for are ever built. :func:`volumeevm_addon.render` picks one with ``level``.
+
+        Parameters
+        ----------
+        factor : int
+            Fine voxels per coarse voxel along each axis, from 2 to the grid's largest side.
+
+        Returns
+        -------
+        VolumeEVM
+            Same orientation, units and threshold; ``spacing * factor``.
+
+        Raises
+        ------
+        VolumeEVMError
+            For a factor that is not such an integer, or when the level would need more
+            memory than is available.
+        """
         from ._levels import checked_factor, coarsen
 
         factor = checked_factor(factor, self.shape)
-        if factor not in self._levels:
-            self._levels[factor] = coarsen(self, factor)
-        return self._levels[factor]
+        return self.cache.get(("level", factor), lambda: coarsen(self, factor))
 
     def to_dense(self, background=0):
-        """The full grid: the region's densities, ``background`` everywhere else."""
+        """The full grid: the region's densities, ``background`` everywhere else.
+
+        Parameters
+        ----------
+        background : scalar, optional
+            Value outside the region (default 0), cast to the table's dtype.
+
+        Returns
+        -------
+        (X, Y, Z) ndarray
+            In the table's dtype.
+
+        Raises
+        ------
+        VolumeEVMError
+            When the grid would need more memory than is available.
+        """
         return self._scatter(background)[0]
 
     def _scatter(self, background):
@@ -242,26 +368,99 @@ class VolumeEVM:
 
     # ------------------------------------------------------------------ editing
     def cut(self, tool):
-        """Remove the tool's voxels: a new VolumeEVM of ``region - tool``, densities kept."""
+        """Remove the tool's voxels: a new VolumeEVM of ``region - tool``, densities kept.
+
+        Parameters
+        ----------
+        tool : EVM
+            The voxels to remove, in this grid's lattice (e.g. a drill's voxelized mesh).
+
+        Returns
+        -------
+        VolumeEVM
+            The region less the tool; this one is left as it is.
+
+        Raises
+        ------
+        TypeError
+            If ``tool`` is not an EVM.
+        VolumeEVMError
+            When the tool covers the whole region.
+        """
         return self._subset(self.evm - _check_tool(tool), "cut")
 
     def keep(self, tool):
-        """Keep only the voxels inside the tool: ``region & tool``, densities kept."""
+        """Keep only the voxels inside the tool: ``region & tool``, densities kept.
+
+        Parameters
+        ----------
+        tool : EVM
+            The voxels that may stay, in this grid's lattice.
+
+        Returns
+        -------
+        VolumeEVM
+            The part of the region inside the tool.
+
+        Raises
+        ------
+        TypeError
+            If ``tool`` is not an EVM.
+        VolumeEVMError
+            When the tool misses the region.
+        """
         return self._subset(self.evm & _check_tool(tool), "keep inside")
 
     def clip(self, lo, hi):
-        """Keep only the voxels inside the box ``[lo, hi)`` (lattice corners)."""
+        """Keep only the voxels inside the box ``[lo, hi)`` (lattice corners).
+
+        Parameters
+        ----------
+        lo, hi : (3,) array_like of int
+            The box's corners, as for :meth:`EVM.clip`.
+
+        Returns
+        -------
+        VolumeEVM
+
+        Raises
+        ------
+        VolumeEVMError
+            For corners that are not 3 integers, or when nothing would be left.
+        """
         return self._subset(self.evm.clip(lo, hi), "clip")
 
     def largest_component(self):
-        """Keep only the largest face-connected part of the region."""
+        """Keep only the largest face-connected part of the region (e.g. drop loose debris).
+
+        Returns
+        -------
+        VolumeEVM
+        """
         return self._subset(self.evm.components()[0], "keep largest part")
 
     def add(self, tool, density=None):
         """Add the tool's voxels as material: ``region | tool``; every tool voxel gets ``density``.
 
-        ``density`` defaults to the largest density of the region (the report gives geometric
-        models the maximum grey value). The tool is clipped to the grid.
+        Parameters
+        ----------
+        tool : EVM
+            The tool's voxels in this grid's lattice; clipped to the grid.
+        density : real number, optional
+            Density of every tool voxel; by default the largest density of the region (the
+            report gives geometric models the maximum grey value). Must fit the table's dtype.
+
+        Returns
+        -------
+        VolumeEVM
+
+        Raises
+        ------
+        TypeError
+            If ``tool`` is not an EVM.
+        VolumeEVMError
+            When the tool has no voxel inside the grid, or ``density`` is not finite or does
+            not fit the table's integer dtype.
         """
         tool = _check_tool(tool).clip((0, 0, 0), self.shape)
         if tool.is_empty():
@@ -319,18 +518,48 @@ class VolumeEVM:
 
     # ------------------------------------------------------------------ geometry
     def index_to_physical(self):
-        """4x4 matrix from voxel-centre indices to physical mm (LPS); see :mod:`._volume`."""
+        """4x4 matrix from voxel-centre indices to physical mm (LPS); see :mod:`._volume`.
+
+        Returns
+        -------
+        (4, 4) ndarray of np.float64
+            :func:`volumeevm_addon.index_to_physical` of this grid's geometry.
+        """
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
     def mesh(self):
-        """The region's boundary mesh in physical mm (LPS): ``(vertices (n, 3), Polygons)``."""
+        """The region's boundary mesh in physical mm (LPS), e.g. to show it in Blender.
+
+        Returns
+        -------
+        vertices : (n, 3) ndarray of np.float64
+            Voxel corners in physical mm.
+        polygons : Polygons
+            Faces merged per plane, counter-clockwise seen from outside (:meth:`EVM.mesh`).
+
+        Raises
+        ------
+        VolumeEVMError
+            When the mesh would need more memory than is available.
+        """
         vertices, polygons = self.evm.mesh()
         # Lattice point p is the corner at voxel-centre index p - 0.5.
         matrix = self.index_to_physical()
         return (vertices - 0.5) @ matrix[:3, :3].T + matrix[:3, 3], polygons
 
     def size_report(self):
-        """Bytes of the vertices and the tables built so far, against the dense array."""
+        """Bytes of the model (vertices and the densities tables built so far) against the dense
+        array, and of what :attr:`cache` holds beside it.
+
+        Returns
+        -------
+        dict
+            ``vertices_bytes``, ``tables_bytes`` (every axis's table built so far),
+            ``total_bytes`` (their sum: the model itself), ``dense_bytes`` (the dense array of
+            the table's type), ``ratio`` (``total_bytes / dense_bytes``) and ``cache_bytes``
+            (``cache.nbytes``: the renderers' tables and the coarser levels, not part of the
+            model; ``cache.clear()`` frees them).
+        """
         vertices = self.evm.vertices.nbytes
         tables = sum(t.nbytes for t in self._tables.values())
         dense = int(np.prod(self.shape)) * self._tables[0].dtype.itemsize
@@ -340,6 +569,7 @@ class VolumeEVM:
             "total_bytes": vertices + tables,
             "dense_bytes": dense,
             "ratio": (vertices + tables) / dense,
+            "cache_bytes": self.cache.nbytes,
         }
 
     def __repr__(self):
@@ -362,7 +592,19 @@ class VolumeEVM:
         }
 
     def save(self, path, *, overwrite=False):
-        """Write one ``.vevm`` file atomically (:func:`volumeevm_addon._files.write_atomically`).
+        """Write one ``.vevm`` file atomically (:func:`volumeevm_addon.write_atomically`).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file to write (``.vevm`` by convention).
+        overwrite : bool, optional
+            Replace an existing file (default False: raise instead). Keyword-only.
+
+        Returns
+        -------
+        Path
+            The file written.
 
         Raises
         ------
@@ -386,6 +628,16 @@ class VolumeEVM:
     def load(cls, path):
         """Read a ``.vevm`` file, checked in full before anything is built (:mod:`._vevm_file`).
 
+        Parameters
+        ----------
+        path : str or path-like
+            A file written by :meth:`save`.
+
+        Returns
+        -------
+        VolumeEVM
+            Equal to the one saved: same vertices, table (and dtype) and geometry.
+
         Raises
         ------
         VolumeEVMError
@@ -407,16 +659,17 @@ def build_memory(shape, dtype, voxel_count, vertex_count, box_count):
     are extracted, then the EVM's keys and compact coordinates); the EVM's boxes
     (:meth:`EVM.boxes`, which the volume count and the relation v use) and their sweep
     temporaries; a few x-slices of the grid. The per-vertex and per-box costs are measured
-    peaks with a margin: tracemalloc (which traces NumPy's allocations) over the CT head at
-    three density intervals and upsampled to 512^3, MRI, a label map, noise and a checkerboard
-    gives ``peak - table = 23 bytes * vertices + 117 bytes * boxes`` (least squares), and the
-    estimate is 1.03 to 1.22 times the measured peak on each of them.
+    peaks with a margin: tracemalloc (which traces NumPy's allocations and the compiled
+    kernels') over the CT head at three density intervals and upsampled twice, two MRIs, a
+    label map, noise and a checkerboard gives ``peak - table = 13 bytes * vertices + 97 bytes
+    * boxes`` (least squares), and the estimate is 1.09 to 1.22 times the measured peak on each
+    of them.
     """
     _, ny, nz = shape
     slices = 8 * (ny + 1) * (nz + 1)
     dtype = np.dtype(dtype)
     table = voxel_count * (dtype.itemsize + (dtype.kind == "f"))
-    return int(table + 32 * vertex_count + 128 * box_count + slices)
+    return int(table + 16 * vertex_count + 112 * box_count + slices)
 
 
 def _new_boxes(selected, previous):

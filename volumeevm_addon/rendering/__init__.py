@@ -12,10 +12,17 @@ method; ``_render.py`` is the entry point that checks the inputs and dispatches 
 - ``_camera.py``: a plain camera record that reproduces Blender's projection exactly.
 - ``_transfer.py``: transfer functions, piecewise-linear colour and opacity in the data's units.
 - ``_depth.py``: what "visible" means for the output depth, one threshold for every method.
+- The pieces every method shares, each written once: ``_checks.py`` (input checks),
+  ``_rays.py`` (the camera's pixel rays in index space, clipped to the volume's box, the clip
+  range and ``depth_in``), ``_gradients.py`` (per-voxel gradients over the region's voxels),
+  ``_shading.py`` (``Shading`` and the Blinn–Phong headlight), ``_modes.py`` (``MODES``, a
+  view's compositing settings and the finishing of X-ray and MIP).
 - ``_images.py``: image files of the results: OpenEXR (R, G, B, A, Z) and PNG previews.
+- ``_compositing.py``: a volume render laid over a scene render (alpha over, output depth).
+- ``_quality.py``: one quality setting as each method's options (``method_options``).
 
 To add a method: write its ``render_<method>`` (and ``tables_to_build``) in a module of its own
-here, with the signature of the others, then name it in ``_render.py``: ``METHODS``,
-``_renderers()``, ``_tables_to_build()`` and the memory model (``_GRID_BYTES`` and the tables
-beside it, measured with ``bench/bench_memory.py``).
+here, with the signature of the others and built on the shared pieces above, then name it in
+``_render.py``: ``METHODS``, ``_renderers()``, ``_tables_to_build()`` and the memory model
+(``_GRID_BYTES`` and the tables beside it, measured with ``bench/bench_memory.py``).
 """

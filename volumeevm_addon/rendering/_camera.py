@@ -26,11 +26,12 @@ Conventions
   for both projections.
 """
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 
 import numpy as np
 
 from .._errors import VolumeEVMError
+from ._checks import finite_number, positive_integer, positive_number
 
 __all__ = ["Camera", "BACKGROUND_DEPTH"]
 
@@ -38,38 +39,6 @@ BACKGROUND_DEPTH = 1e10
 """Axial depth Blender's Z pass writes where no geometry is hit."""
 
 _FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
-
-
-def _finite(name, value):
-    """``value`` as a finite float, or a :class:`VolumeEVMError` naming ``name``."""
-    if isinstance(value, (bool, np.bool_, str, bytes)):
-        raise VolumeEVMError(f"{name}: expected a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as error:
-        raise VolumeEVMError(f"{name}: expected a number, got {value!r}") from error
-    if not np.isfinite(v):
-        raise VolumeEVMError(f"{name}: must be finite, got {value!r}")
-    return v
-
-
-def _positive(name, value):
-    v = _finite(name, value)
-    if v <= 0:
-        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _positive_int(name, value):
-    if isinstance(value, (bool, np.bool_, str, bytes)):
-        raise VolumeEVMError(f"{name}: expected an integer, got {value!r}")
-    try:
-        v = int(value)
-    except (TypeError, ValueError, OverflowError) as error:
-        raise VolumeEVMError(f"{name}: expected an integer, got {value!r}") from error
-    if v != value or v < 1:
-        raise VolumeEVMError(f"{name}: must be an integer >= 1, got {value!r}")
-    return v
 
 
 def _cross(a, b):
@@ -93,33 +62,55 @@ def _unit(v, problem):
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """Blender's camera projection as a frozen record (build with :meth:`orthographic` or
-    :meth:`perspective`).
+    """Blender's camera projection as a frozen record.
 
-    Attributes
+    Every renderer takes one, so an image can be composited over Blender's own render pixel for
+    pixel. Build it with :meth:`orthographic`, :meth:`perspective` or :meth:`look_at`; the
+    fields are Blender's camera and render settings of the same names, checked and stored as
+    plain floats and ints (every option after ``matrix_world`` is keyword-only).
+
+    Parameters
     ----------
-    projection : str
-        ``"ORTHO"`` or ``"PERSP"``.
-    matrix_world : (4, 4) ndarray
-        Camera-to-world matrix, axis columns normalised (read-only, float64).
-    ortho_scale : float
-        Orthographic: width of the fitted image dimension in Blender units.
-    lens_mm, sensor_width, sensor_height : float
-        Perspective: focal length and sensor size (mm).
-    sensor_fit : str
-        ``"AUTO"``, ``"HORIZONTAL"`` or ``"VERTICAL"``.
-    shift_x, shift_y : float
+    projection : {"ORTHO", "PERSP"}
+        Orthographic or perspective.
+    matrix_world : (4, 4) array_like
+        Camera-to-world matrix; stored with its axis columns normalised (read-only float64
+        ndarray), as Blender uses it without scale.
+    ortho_scale : float, optional
+        Orthographic: width of the fitted image dimension in Blender units (default 6).
+    lens_mm, sensor_width, sensor_height : float, optional
+        Perspective: focal length and sensor size in mm (defaults 50, 36, 24).
+    sensor_fit : {"AUTO", "HORIZONTAL", "VERTICAL"}, optional
+        Which image dimension the sensor (or ``ortho_scale``) spans (module docstring).
+    shift_x, shift_y : float, optional
         Lens shift in units of the fitted dimension (Blender's ``shift_x/y``).
-    clip_start, clip_end : float
-        Near and far clip, axial depth in Blender units.
-    resolution_x, resolution_y, resolution_percentage : int
-        Render resolution and percentage.
-    pixel_aspect_x, pixel_aspect_y : float
-        Pixel aspect ratio.
+    clip_start, clip_end : float, optional
+        Near and far clip, axial depth in Blender units: ``clip_start > 0`` for a perspective
+        camera (``>= 0`` orthographic), ``clip_end > clip_start``.
+    resolution_x, resolution_y, resolution_percentage : int, optional
+        Render resolution and percentage; the image is ``resolution × percentage // 100``
+        pixels per axis (at least 1).
+    pixel_aspect_x, pixel_aspect_y : float, optional
+        Pixel aspect ratio, > 0.
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming the field that is not as described: an unknown projection or fit, a matrix
+        that is not a finite affine 4x4 matrix with independent axes, a size, clip distance
+        or aspect that is not a finite positive number, a resolution that is not a positive
+        integer or leaves an empty image.
+
+    Examples
+    --------
+    >>> cam = Camera("ORTHO", np.eye(4), ortho_scale=2.0, resolution_x=4, resolution_y=2)
+    >>> cam.shape, cam.fit
+    ((2, 4), 'HORIZONTAL')
     """
 
     projection: str
     matrix_world: np.ndarray
+    _: KW_ONLY
     ortho_scale: float = 6.0
     lens_mm: float = 50.0
     sensor_width: float = 36.0
@@ -159,10 +150,10 @@ class Camera:
             raise VolumeEVMError(f"sensor_fit: one of {_FITS}, got {self.sensor_fit!r}")
         for name in ("ortho_scale", "lens_mm", "sensor_width", "sensor_height", "clip_end",
                      "pixel_aspect_x", "pixel_aspect_y"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive_number(name, getattr(self, name)))
         for name in ("shift_x", "shift_y"):
-            object.__setattr__(self, name, _finite(name, getattr(self, name)))
-        cs = _finite("clip_start", self.clip_start)
+            object.__setattr__(self, name, finite_number(name, getattr(self, name)))
+        cs = finite_number("clip_start", self.clip_start)
         if cs < 0 or (self.projection == "PERSP" and cs == 0):
             raise VolumeEVMError(f"clip_start: must be > 0 (>= 0 orthographic), got {cs!r}")
         object.__setattr__(self, "clip_start", cs)
@@ -170,7 +161,7 @@ class Camera:
             raise VolumeEVMError(
                 f"clip_end: must be greater than clip_start ({cs!r}), got {self.clip_end!r}")
         for name in ("resolution_x", "resolution_y", "resolution_percentage"):
-            object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+            object.__setattr__(self, name, positive_integer(name, getattr(self, name)))
         if self.width < 1 or self.height < 1:
             raise VolumeEVMError(
                 f"resolution_percentage: {self.resolution_percentage}% of "
@@ -183,6 +174,27 @@ class Camera:
                      resolution_y=1080, resolution_percentage=100, pixel_aspect_x=1.0,
                      pixel_aspect_y=1.0):
         """An orthographic camera; ``ortho_scale`` spans the fitted image dimension (BU).
+
+        Parameters
+        ----------
+        matrix_world : (4, 4) array_like
+            Camera-to-world matrix (Blender's ``camera.matrix_world``; scale is ignored).
+        ortho_scale : float
+            Width of the fitted image dimension in Blender units, > 0.
+        sensor_fit, shift_x, shift_y, clip_start, clip_end : optional
+            Fit, lens shift and clip range, as in :class:`Camera` (``clip_start`` may be 0).
+        resolution_x, resolution_y, resolution_percentage, pixel_aspect_x, pixel_aspect_y
+            Image size and pixel aspect, as in :class:`Camera`.
+
+        Returns
+        -------
+        Camera
+            With ``projection="ORTHO"``.
+
+        Raises
+        ------
+        VolumeEVMError
+            For a bad ``ortho_scale`` or option (:class:`Camera` checks them).
 
         Examples
         --------
@@ -200,11 +212,42 @@ class Camera:
                    pixel_aspect_x=pixel_aspect_x, pixel_aspect_y=pixel_aspect_y)
 
     @classmethod
-    def perspective(cls, matrix_world, lens_mm, sensor_width=36.0, sensor_height=24.0,
+    def perspective(cls, matrix_world, lens_mm, *, sensor_width=36.0, sensor_height=24.0,
                     sensor_fit="AUTO", shift_x=0.0, shift_y=0.0, clip_start=0.1,
                     clip_end=100.0, resolution_x=1920, resolution_y=1080,
                     resolution_percentage=100, pixel_aspect_x=1.0, pixel_aspect_y=1.0):
-        """A perspective camera with Blender's lens, sensor and fit rules."""
+        """A perspective camera with Blender's lens, sensor and fit rules.
+
+        Parameters
+        ----------
+        matrix_world : (4, 4) array_like
+            Where the camera is: Blender's ``camera.matrix_world`` (its scale is ignored).
+        lens_mm : float
+            Focal length in mm, > 0.
+        sensor_width, sensor_height : float, optional
+            Sensor size in mm (defaults 36 and 24, Blender's).
+        sensor_fit, shift_x, shift_y, clip_start, clip_end, resolution_x, resolution_y
+            As for :meth:`orthographic`, except that ``clip_start`` must be > 0.
+        resolution_percentage, pixel_aspect_x, pixel_aspect_y : optional
+            As for :meth:`orthographic`.
+
+        Returns
+        -------
+        Camera
+            With ``projection="PERSP"``.
+
+        Raises
+        ------
+        VolumeEVMError
+            Naming ``lens_mm``, a sensor size or an option that :class:`Camera` refuses.
+
+        Examples
+        --------
+        >>> cam = Camera.perspective(np.eye(4), 50.0, resolution_x=4, resolution_y=2)
+        >>> uv, depth = cam.project([[0.0, 0.0, -2.0]])
+        >>> uv.tolist(), depth.tolist()
+        ([[2.0, 1.0]], [2.0])
+        """
         return cls("PERSP", matrix_world, lens_mm=lens_mm, sensor_width=sensor_width,
                    sensor_height=sensor_height, sensor_fit=sensor_fit, shift_x=shift_x,
                    shift_y=shift_y, clip_start=clip_start, clip_end=clip_end,
@@ -242,6 +285,12 @@ class Camera:
         -------
         Camera
 
+        Raises
+        ------
+        VolumeEVMError
+            If ``kind`` is unknown, ``eye``, ``target`` or ``up`` is not 3 finite numbers,
+            ``eye`` equals ``target``, or an option is bad (as :class:`Camera`).
+
         Examples
         --------
         >>> cam = Camera.look_at((0.0, -2.0, 0.0), (0.0, 0.0, 0.0), resolution_x=4,
@@ -276,6 +325,7 @@ class Camera:
     # ------------------------------------------------------------------ geometry
     @property
     def is_ortho(self):
+        """True for an orthographic camera, False for a perspective one."""
         return self.projection == "ORTHO"
 
     @property
@@ -341,8 +391,16 @@ class Camera:
                 (-0.5 * ycor * h + dy) * pix, (0.5 * ycor * h + dy) * pix)
 
     def matrix_projection(self):
-        """4x4 OpenGL-style projection matrix, as ``Object.calc_matrix_camera`` returns for the
-        rendered size and pixel aspect (float64)."""
+        """4x4 OpenGL-style projection matrix, as Blender's ``Object.calc_matrix_camera``
+        returns it for the rendered size and pixel aspect.
+
+        Useful to check the camera against Blender, or to project with a GPU.
+
+        Returns
+        -------
+        (4, 4) ndarray of np.float64
+            Clip space from camera space, near and far planes at ``clip_start``/``clip_end``.
+        """
         xmin, xmax, ymin, ymax = self.viewplane
         n, f = self.clip_start, self.clip_end
         p = np.zeros((4, 4))
@@ -367,7 +425,23 @@ class Camera:
         return p
 
     def world_to_camera(self, points):
-        """Points ``(..., 3)`` in world space to camera space (float64)."""
+        """Points in world space to camera space (the inverse of the normalised camera matrix).
+
+        Parameters
+        ----------
+        points : (..., 3) array_like
+            Positions in the scene (world space, Blender units).
+
+        Returns
+        -------
+        (..., 3) ndarray of np.float64
+            The camera looks down ``-Z``, ``+Y`` up, ``+X`` right.
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``points`` does not end in an axis of 3.
+        """
         pts = np.asarray(points, dtype=np.float64)
         if pts.shape[-1:] != (3,):
             raise VolumeEVMError(f"points: expected shape (..., 3), got {pts.shape}")
@@ -391,6 +465,11 @@ class Camera:
             at or behind the plane of a perspective camera (axial depth ``<= 0``).
         depth : (...) ndarray of np.float64
             Axial depth (distance along the view axis) in Blender units.
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``points`` does not end in an axis of 3.
         """
         c = self.world_to_camera(points)
         depth = -c[..., 2]
@@ -434,5 +513,16 @@ class Camera:
         return origins, directions
 
     def axial_depth(self, points):
-        """Axial depth (Blender units) of world points ``(..., 3)``."""
+        """Axial depth of world points: their distance along the view axis, as Blender's Z pass.
+
+        Parameters
+        ----------
+        points : (..., 3) array_like
+            World positions (Blender units).
+
+        Returns
+        -------
+        (...) ndarray of np.float64
+            Axial depth in Blender units (negative behind the camera).
+        """
         return -self.world_to_camera(points)[..., 2]

@@ -20,7 +20,14 @@ __all__ = ["write_exr", "read_exr", "write_png", "exr_channels", "openexr_module
 
 
 def openexr_module():
-    """The ``OpenEXR`` module, or None when it is not installed."""
+    """The ``OpenEXR`` module, or None when it is not installed.
+
+    EXR support is optional: callers ask first, to offer EXR only where it works.
+
+    Returns
+    -------
+    module or None
+    """
     try:
         import OpenEXR
     except ImportError:
@@ -53,7 +60,31 @@ def checked_image(name, array, shape=None, dtype=np.float32):
 
 
 def exr_channels(rgba, depth=None):
-    """The named float32 channels of an RGBA (+ Z) image, checked (:func:`checked_image`)."""
+    """The named float32 channels of an RGBA (+ Z) image, as an EXR file (or Blender's
+    compositor) takes them.
+
+    Parameters
+    ----------
+    rgba : (H, W, 4) array_like
+        Premultiplied colour and alpha, row 0 at the top.
+    depth : (H, W) array_like, optional
+        Axial depth for the ``Z`` channel.
+
+    Returns
+    -------
+    dict of str to (H, W) ndarray of np.float32
+        ``"R"``, ``"G"``, ``"B"``, ``"A"`` and, with ``depth``, ``"Z"``; each contiguous.
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming ``rgba`` or ``depth`` when it is not numeric, has the wrong shape or no pixels.
+
+    Examples
+    --------
+    >>> sorted(exr_channels(np.zeros((2, 3, 4)), np.ones((2, 3))))
+    ['A', 'B', 'G', 'R', 'Z']
+    """
     rgba = checked_image("rgba", rgba)
     channels = {name: np.ascontiguousarray(rgba[..., i]) for i, name in enumerate("RGBA")}
     if depth is not None:
@@ -67,17 +98,24 @@ def write_exr(path, rgba, depth=None, *, overwrite=False):
     Parameters
     ----------
     path : str or Path
-    rgba : (H, W, 4) ndarray
+        The file to write.
+    rgba : (H, W, 4) array_like
         Premultiplied, scene-linear colour and alpha; row 0 at the top.
-    depth : (H, W) ndarray, optional
+    depth : (H, W) array_like, optional
         Axial depth (Blender units) for the ``Z`` channel (1e10 where nothing is seen).
-    overwrite : bool
+    overwrite : bool, optional
         Replace an existing file (default False: raise instead).
 
     Returns
     -------
     Path
         The file written.
+
+    Raises
+    ------
+    VolumeEVMError
+        When the OpenEXR module is missing, the image is bad (:func:`exr_channels`), the file
+        exists and ``overwrite`` is False, or the write fails (:func:`write_atomically`).
     """
     exr = openexr_module()
     if exr is None:
@@ -96,10 +134,20 @@ def write_exr(path, rgba, depth=None, *, overwrite=False):
 def read_exr(path):
     """Every channel of an OpenEXR file (all parts), by its full name.
 
+    Parameters
+    ----------
+    path : str or Path
+        An OpenEXR file (ours or Blender's multilayer EXR).
+
     Returns
     -------
     dict of str to (H, W) ndarray of np.float32
         E.g. ``{"R": ..., "Z": ...}`` or ``{"ViewLayer.Depth.Z": ...}``; row 0 at the top.
+
+    Raises
+    ------
+    VolumeEVMError
+        When the OpenEXR module is missing.
     """
     exr = openexr_module()
     if exr is None:
@@ -116,9 +164,29 @@ def write_png(path, rgba, *, overwrite=False):
     """Write a premultiplied, linear RGBA image as an 8-bit sRGB PNG preview, atomically.
 
     Colour is un-premultiplied and encoded with the sRGB transfer function; alpha stays linear
-    (PNG stores straight alpha). An image without pixels, of another shape than ``(H, W, 4)``
-    or with NaN values (which have no 8-bit value) raises :class:`VolumeEVMError` naming
-    ``rgba``.
+    (PNG stores straight alpha).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.png`` file to write.
+    rgba : (H, W, 4) array_like
+        Premultiplied, scene-linear colour and alpha; row 0 at the top. Values are clipped
+        to ``[0, 1]``.
+    overwrite : bool, optional
+        Whether an existing file may be replaced (default False).
+
+    Returns
+    -------
+    Path
+        ``path``, now holding the preview.
+
+    Raises
+    ------
+    VolumeEVMError
+        Naming ``rgba`` for an image without pixels, of another shape than ``(H, W, 4)`` or
+        with NaN values (which have no 8-bit value); as :func:`write_atomically` when the file
+        exists and ``overwrite`` is False or the write fails.
     """
     rgba = checked_image("rgba", rgba, dtype=np.float64)
     if np.isnan(rgba).any():

@@ -69,9 +69,9 @@ made once through a temporary grid). Slow by design; same image as :func:`render
 Python loops over ray steps (and chunks of rays); all rays of a chunk advance together and the
 active set is compacted as rays finish. The padded sampling tables (complex64 density and
 weight, float32 gradients when shading) and the block grid are built on first use, in place
-(no grid-sized temporaries beside the region mask), and cached per VolumeEVM (about 8 bytes
-per grid voxel, 20 with gradients); :func:`tables_to_build` tells whether a render would
-build them.
+(no grid-sized temporaries beside the region mask), and kept in the VolumeEVM's cache,
+``vevm.cache`` (about 8 bytes per grid voxel, 20 with gradients); :func:`tables_to_build` tells
+whether a render would build them.
 
 References
 ----------
@@ -81,155 +81,24 @@ J. Rodríguez, D. Ayala, "VolumeEVM: a new surface/volume integrated model", UPC
 report (density location through the EVM).
 """
 
-import weakref
+from dataclasses import dataclass
 
 import numpy as np
 
-from .._errors import VolumeEVMError
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._reference import MODES, Shading, _shade
+from ._checks import (RAY_STEPS_PER_VOXEL, checked_step_mm, checked_view, flag,
+                      positive_integer)
+from ._gradients import region_gradients
+from ._modes import finish_mode
+from ._rays import box_entry_exit, camera_rays
+from ._shading import Lighting, checked_shading
 
 __all__ = ["render_raycast", "render_raycast_navigate"]
 
-_CACHE = weakref.WeakKeyDictionary()
-"""Per VolumeEVM: the padded sampling tables and the block grid, made once."""
-
 _LUT_SIZE = 4096
-_SLAB_VOXELS = 1 << 18
-"""Voxels per slab of the gradient tables' construction (bounds its temporaries, ~1 MB each)."""
 _PREINT_SIZE = 256
 """Rows and columns of the pre-integrated table (over the data's and the function's range)."""
-_CAMERA_API = ("rays", "axial_depth", "shape", "clip_start", "clip_end", "project", "forward",
-               "is_ortho", "position")
-_TF_API = ("evaluate", "transparent_between", "straight_table", "unit_length_mm", "value_range")
-
-
-# ---------------------------------------------------------------------------- inputs
-def check_common(vevm, camera, tf, grid_to_world, mode, depth_in, termination, xray_scale,
-                 xray_offset):
-    """Checks shared by the ray casters and the splatter; returns the converted values.
-
-    Returns ``(g (4, 4) float64, depth_in (H, W) float64 or None, termination, xray_scale,
-    xray_offset)``; raises :class:`VolumeEVMError` naming the bad parameter.
-    """
-    for attr in ("evm", "shape", "spacing", "table", "index"):
-        if not hasattr(vevm, attr):
-            raise VolumeEVMError(f"vevm: expected a VolumeEVM, got {type(vevm).__name__}")
-    if not all(hasattr(camera, a) for a in _CAMERA_API):
-        raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
-    if mode not in MODES:
-        raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
-    if mode != "xray" and not all(hasattr(tf, a) for a in _TF_API):
-        raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
-    g = np.asarray(grid_to_world, dtype=np.float64)
-    if g.shape != (4, 4) or not np.all(np.isfinite(g)) or not np.allclose(g[3], (0, 0, 0, 1)):
-        raise VolumeEVMError("grid_to_world: expected a finite affine 4x4 matrix")
-    if abs(np.linalg.det(g[:3, :3])) < 1e-300 or np.linalg.cond(g[:3, :3]) > 1e12:
-        raise VolumeEVMError("grid_to_world: the 3x3 part is singular")
-    depth_in = _depth.checked_depth_in(depth_in, camera.shape)
-    try:
-        termination = float(termination)
-    except (TypeError, ValueError):
-        termination = np.nan
-    if not 0.0 < termination <= 1.0:
-        raise VolumeEVMError(f"termination: a number in (0, 1], got {termination!r}")
-    try:
-        xray_scale, xray_offset = float(xray_scale), float(xray_offset)
-    except (TypeError, ValueError):
-        xray_scale = np.nan
-    if not np.isfinite(xray_scale) or xray_scale < 0 or not np.isfinite(xray_offset):
-        raise VolumeEVMError(f"xray_scale/xray_offset: need finite numbers, scale >= 0, got "
-                             f"{xray_scale!r}, {xray_offset!r}")
-    return g, depth_in, termination, xray_scale, xray_offset
-
-
-def check_shading(shading):
-    """``None``/``False`` -> None, ``True`` -> ``Shading()``, a dict -> ``Shading(**dict)``."""
-    if shading is True:
-        return Shading()
-    if shading is None or shading is False:
-        return None
-    if isinstance(shading, dict):
-        unknown = set(shading) - {"ambient", "diffuse", "specular", "shininess"}
-        if unknown:
-            raise VolumeEVMError(f"shading: unknown keys {sorted(unknown)}")
-        return Shading(**shading)
-    if isinstance(shading, Shading):
-        return shading
-    raise VolumeEVMError(f"shading: None, True, a dict or a Shading, got {shading!r}")
-
-
-def _positive(name, value):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = np.nan
-    if not np.isfinite(v) or v <= 0:
-        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
-    return v
-
-
-# ---------------------------------------------------------------------------- rays
-def finish_mode(acc, vmax, mode, tf):
-    """Turn the per-ray accumulators of ``"xray"`` and ``"mip"`` into premultiplied RGBA, in
-    place (the ray casters and splatting share this).
-
-    ``acc`` (m, 4): X-ray holds the optical depth in column 0; ``vmax`` (m,): MIP's maximum
-    density per ray (``-inf`` for none), classified by ``tf`` without length correction.
-    Returns, for MIP, the rays whose maximum is visible (the others keep no depth); else None.
-    """
-    if mode == "xray":
-        acc[:] = 1 - np.exp(-acc[:, :1])
-    elif mode == "mip":
-        seen = np.isfinite(vmax)
-        acc[:] = 0
-        if seen.any():
-            straight = tf.evaluate(vmax[seen])
-            acc[seen, 3] = straight[:, 3]
-            acc[seen, :3] = straight[:, :3] * straight[:, 3:4]
-        return seen & _depth.visible(acc[:, 3], 1.0)
-    return None
-
-
-def camera_rays(camera, g, shape, depth_in):
-    """Pixel rays in index space, clipped like the reference's.
-
-    Returns a dict of flat per-pixel arrays (float64): ``o``, ``d`` (index space), ``dirs``
-    (world, unit), ``t0``, ``t1`` (clipped ray parameters; empty where ``t1 <= t0``), ``a0``,
-    ``kz`` (axial depth ``a0 + kz·t``).
-    """
-    h, w = camera.shape
-    origins, directions = camera.rays()
-    origins = origins.reshape(-1, 3)
-    directions = directions.reshape(-1, 3)
-    a0 = camera.axial_depth(origins)
-    kz = camera.axial_depth(origins + directions) - a0
-    far = np.full(h * w, camera.clip_end)
-    if depth_in is not None:
-        far = np.minimum(far, depth_in.ravel())
-    t_near = (camera.clip_start - a0) / kz
-    t_far = (far - a0) / kz
-    inv = np.linalg.inv(g)
-    o = origins @ inv[:3, :3].T + inv[:3, 3]
-    d = directions @ inv[:3, :3].T
-    lo, hi = -0.5, np.asarray(shape, dtype=np.float64) - 0.5
-    tmin, tmax = _slabs(o, d, lo, hi)
-    t0 = np.maximum(tmin, t_near)
-    t1 = np.minimum(tmax, t_far)
-    return {"o": o, "d": d, "dirs": directions, "t0": t0, "t1": t1, "a0": a0, "kz": kz}
-
-
-def _slabs(o, d, lo, hi):
-    """Entry and exit parameters of lines ``o + t d`` through the box ``[lo, hi]``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (lo - o) / d
-        tb = (hi - o) / d
-    parallel = d == 0
-    inside = (o >= lo) & (o <= hi)
-    tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
-    tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
-    return tmin.max(axis=1), tmax.min(axis=1)
 
 
 # ---------------------------------------------------------------------------- samplers
@@ -245,34 +114,6 @@ def _lerp8(v, f):
     c0 = c00 + fy * (c01 - c00)
     c1 = c10 + fy * (c11 - c10)
     return c0 + fx * (c1 - c0)
-
-
-def _voxel_gradients(tab, out):
-    """Per-voxel index-space central differences over region voxels (one-sided where one
-    neighbour is outside, 0 where both are; 0 outside), as the reference's, into ``out``
-    ``(3,) + padded shape`` float32 (zeros; its one-voxel border stays 0), from the padded
-    sampling table ``tab`` (real: density in the region, 0 elsewhere; imaginary: 1 in the
-    region). Made a slab of x-slices at a time, so the temporaries stay small beside the grid.
-    """
-    nx = tab.shape[0] - 2
-    per_slice = tab.shape[1] * tab.shape[2]
-    slab = max(1, _SLAB_VOXELS // per_slice)
-    core = (slice(1, -1),) * 3
-    for x0 in range(0, nx, slab):
-        x1 = min(nx, x0 + slab)
-        dpad = tab.real[x0:x1 + 2]  # padded slices x0 .. x1 + 1
-        mpad = tab.imag[x0:x1 + 2] > 0
-        f0, mask = dpad[core], mpad[core]
-        for ax in range(3):
-            plus = [slice(1, -1)] * 3
-            minus = [slice(1, -1)] * 3
-            plus[ax] = slice(2, None)
-            minus[ax] = slice(0, -2)
-            fp, fm = dpad[tuple(plus)], dpad[tuple(minus)]
-            mp, mm = mpad[tuple(plus)], mpad[tuple(minus)]
-            g = np.where(mp & mm, 0.5 * (fp - fm),
-                         np.where(mp, fp - f0, np.where(mm, f0 - fm, 0)))
-            out[ax, x0 + 1:x1 + 1, 1:-1, 1:-1] = np.where(mask, g, 0)
 
 
 class _Grid:
@@ -321,7 +162,7 @@ class _DenseSampler:
         self.grad = None
         if with_gradient:
             gpad = np.zeros((3,) + pad, np.float32)
-            _voxel_gradients(tab, gpad)
+            region_gradients(tab.real, tab.imag, gpad[:, 1:-1, 1:-1, 1:-1])
             self.grad = gpad.reshape(3, -1)
 
     def __call__(self, p):
@@ -368,17 +209,9 @@ class _NavigationSampler:
             hd, hok = hd.reshape(-1, 4, 4, 4), hok.reshape(-1, 4, 4, 4)
             dens = hd[:, 1:3, 1:3, 1:3].reshape(-1, 8)
             ok = hok[:, 1:3, 1:3, 1:3].reshape(-1, 8)
-            gcols = []
-            for ax in range(3):
-                sl = [slice(None), slice(1, 3), slice(1, 3), slice(1, 3)]
-                plus, minus = list(sl), list(sl)
-                plus[ax + 1] = slice(2, 4)
-                minus[ax + 1] = slice(0, 2)
-                fp, fm = hd[tuple(plus)].reshape(-1, 8), hd[tuple(minus)].reshape(-1, 8)
-                mp, mm = hok[tuple(plus)].reshape(-1, 8), hok[tuple(minus)].reshape(-1, 8)
-                g = np.where(mp & mm, np.float32(0.5) * (fp - fm),
-                             np.where(mp, fp - dens, np.where(mm, dens - fm, np.float32(0))))
-                gcols.append(np.where(ok, g, np.float32(0)))
+            gcols = np.empty((3, len(hd), 2, 2, 2), np.float32)  # at the 8 corners
+            region_gradients(hd, hok, gcols)
+            gcols = gcols.reshape(3, -1, 8)
         cvals = (dens + 1j * ok.astype(np.float32)).astype(np.complex64)
         grads = None
         if self.with_gradient:
@@ -549,26 +382,18 @@ def tables_to_build(vevm, options, *, navigate):
     preintegrate = bool(options.get("preintegrate", False)) and mode in ("over", "under")
     keys = _cache_keys(spacing, navigate, shaded, options.get("skip_empty", True),
                        options.get("block", 8), step_mm, preintegrate)
-    entry = _CACHE.get(vevm, {})
-    return int(not all(key in entry for key in keys if key is not None))
+    return int(not all(key in vevm.cache for key in keys if key is not None))
 
 
 def _cache_keys(spacing, navigate, shaded, skip_empty, block, step_mm, preintegrate):
-    """The :data:`_CACHE` keys of the tables a render reads, ``(sampler, blocks)``: the dense
+    """The ``vevm.cache`` keys of the tables a render reads, ``(sampler, blocks)``: the dense
     sampling tables (None when ``navigate``) and the space-leaping blocks (None without
     ``skip_empty``). One function for the render and :func:`tables_to_build`, so that the
     memory check sees the same cache the render uses."""
-    sampler = None if navigate else ("sampler", shaded)
-    blocks = ("blocks", block, _reach(spacing, step_mm, preintegrate)) if skip_empty else None
+    sampler = None if navigate else ("raycast", "sampler", shaded)
+    blocks = (("raycast", "blocks", block, _reach(spacing, step_mm, preintegrate))
+              if skip_empty else None)
     return sampler, blocks
-
-
-def _cached(vevm, key, make):
-    """The table cached on ``vevm`` under ``key``, made by ``make()`` on first use."""
-    entry = _CACHE.setdefault(vevm, {})
-    if key not in entry:
-        entry[key] = make()
-    return entry[key]
 
 
 # ---------------------------------------------------------------------------- casting
@@ -578,7 +403,7 @@ def _lut(tf, step_mm):
     lo, hi = tf.value_range
     if hi <= lo:
         hi = lo + 1.0
-    tab = np.array(tf.straight_table(lo, hi, _LUT_SIZE), dtype=np.float64)
+    tab = np.array(tf.straight_table(lo=lo, hi=hi, n=_LUT_SIZE), dtype=np.float64)
     tab[:, 3] = 1.0 - np.power(1.0 - tab[:, 3], step_mm / tf.unit_length_mm)
     step = (hi - lo) / (_LUT_SIZE - 1)
     return tab.astype(np.float32), lo, 1.0 / step, step
@@ -588,18 +413,21 @@ def _preintegration(vevm, tf, step_mm):
     """The pre-integrated table for segments of ``step_mm`` over the range of the data and the
     transfer function (a segment's ends must not be clamped); returns ``(table (n·n, 4)
     float32, lo, scale, step, n)``."""
-    entry = _CACHE.setdefault(vevm, {})
-    if "range" not in entry:
-        dens = np.asarray(vevm.table(0), dtype=np.float64)
-        entry["range"] = (float(dens.min()), float(dens.max()))
-    lo = min(entry["range"][0], tf.value_range[0])
-    hi = max(entry["range"][1], tf.value_range[1])
+    data_lo, data_hi = vevm.cache.get(("raycast", "range"), lambda: _data_range(vevm))
+    lo = min(data_lo, tf.value_range[0])
+    hi = max(data_hi, tf.value_range[1])
     if hi <= lo:
         hi = lo + 1.0
     n = _PREINT_SIZE
-    tab = tf.preintegrated_table(lo, hi, n, step_mm=step_mm)
+    tab = tf.preintegrated_table(lo=lo, hi=hi, n=n, step_mm=step_mm)
     step = (hi - lo) / (n - 1)
     return tab.reshape(-1, 4), lo, 1.0 / step, step, n
+
+
+def _data_range(vevm):
+    """The smallest and largest density of the region, as floats."""
+    dens = np.asarray(vevm.table(0), dtype=np.float64)
+    return float(dens.min()), float(dens.max())
 
 
 def _classify_preintegrated(pre, front, back, ratio):
@@ -641,12 +469,6 @@ def _jitter(count):
     return x / 2.0 ** 32
 
 
-def _flag(name, value):
-    if value is not True and value is not False:
-        raise VolumeEVMError(f"{name}: True or False, got {value!r}")
-    return value
-
-
 def _classify(lut, value, ratio):
     """Straight RGB (m, 3) and opacity (m,) of densities for segments of ``ratio`` (m,) steps
     (in the region)."""
@@ -665,24 +487,68 @@ def _classify(lut, value, ratio):
     return rgba[:, :3], alpha
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class _Sampling:
+    """A view's samples: their length and how they are classified.
+
+    ``step_mm``: the lattice step in mm; ``tf``: the transfer function (None for X-ray);
+    ``lut``: :func:`_lut` (None for X-ray); ``pre``: :func:`_preintegration` (None without
+    pre-integration).
+    """
+
+    step_mm: float
+    tf: object
+    lut: tuple
+    pre: tuple
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Leaping:
+    """Space leaping: ``visible``, per block of ``size``³ voxels (flat, the grid of ``nb``
+    blocks padded by one invisible block on each side), whether a ray must sample it."""
+
+    visible: np.ndarray
+    nb: np.ndarray
+    size: int
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Lattice:
+    """The sample lattices of rays, one row per ray: sample ``k`` at ``p0 + k·sv`` (index
+    space) stands for the segment ``[k - 0.5, k + 0.5]`` of ``K`` (the first starts at
+    ``0.5 - head``, the last ends at ``K - 1.5 + last``); ``first .. stop - 1`` are the
+    samples to march; ``dirs``: the world directions (for shading, else None)."""
+
+    p0: np.ndarray
+    sv: np.ndarray
+    first: np.ndarray
+    stop: np.ndarray
+    K: np.ndarray
+    head: np.ndarray
+    last: np.ndarray
+    dirs: np.ndarray
+
+    def chunk(self, rows):
+        """The lattices of ``rows`` (a slice), positions in float32 as the caster marches."""
+        return _Lattice(self.p0[rows].astype(np.float32), self.sv[rows].astype(np.float32),
+                        self.first[rows], self.stop[rows], self.K[rows], self.head[rows],
+                        self.last[rows], None if self.dirs is None else self.dirs[rows])
+
+
 def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_mm, skip_empty,
             termination, shading, xray_scale, xray_offset, block, chunk_rays, jitter,
             preintegrate):
-    g, depth_in, termination, xray_scale, xray_offset = check_common(
-        vevm, camera, tf, grid_to_world, mode, depth_in, termination, xray_scale, xray_offset)
-    shading = check_shading(shading)
-    jitter = _flag("jitter", jitter)
-    preintegrate = _flag("preintegrate", preintegrate) and mode in ("over", "under")
+    g, depth_in, compositing = checked_view(vevm, camera, tf, grid_to_world, mode, depth_in,
+                                            termination, xray_scale, xray_offset)
+    shading = checked_shading(shading)
+    jitter = flag("jitter", jitter)
+    preintegrate = flag("preintegrate", preintegrate) and mode in ("over", "under")
     if mode not in ("over", "under"):
         shading = None
     spacing = np.asarray(vevm.spacing, dtype=np.float64)
-    step_mm = float(spacing.min()) / 2 if step_mm is None else _positive("step_mm", step_mm)
-    block = int(block)
-    if block < 1:
-        raise VolumeEVMError(f"block: must be >= 1, got {block}")
-    chunk_rays = int(chunk_rays)
-    if chunk_rays < 1:
-        raise VolumeEVMError(f"chunk_rays: must be >= 1, got {chunk_rays}")
+    step_mm = checked_step_mm(step_mm, spacing, RAY_STEPS_PER_VOXEL)
+    block = positive_integer("block", block)
+    chunk_rays = positive_integer("chunk_rays", chunk_rays)
     h, w = camera.shape
     rgba = np.zeros((h * w, 4), np.float32)
     depth = np.full(h * w, BACKGROUND_DEPTH, np.float32)
@@ -690,10 +556,10 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
         return rgba.reshape(h, w, 4), depth.reshape(h, w)
 
     r = camera_rays(camera, g, vevm.shape, depth_in)
-    mm_per_t = np.linalg.norm(r["d"] * spacing, axis=1)
+    mm_per_t = r.mm_per_t(spacing)
     with np.errstate(divide="ignore", invalid="ignore"):
         dt = step_mm / mm_per_t
-        nseg = (r["t1"] - r["t0"]) / dt
+        nseg = (r.t1 - r.t0) / dt
     rays = np.flatnonzero(nseg > 0)
     if len(rays) == 0:
         return rgba.reshape(h, w, 4), depth.reshape(h, w)
@@ -701,29 +567,30 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     # Jitter moves the lattice back by a fraction of a step: the first segment, from the entry
     # point, is then shorter (`head` steps).
     shift = _jitter(h * w)[rays] if jitter else np.zeros(len(rays))
-    t0 = r["t0"][rays] - shift * dt
+    t0 = r.t0[rays] - shift * dt
     nseg = nseg[rays] + shift
     K = np.maximum(np.ceil(nseg * (1 - 1e-12)), 1).astype(np.int64)
     last = (nseg - (K - 1)).astype(np.float32)  # length of the last segment, in steps
     head = (1 - shift).astype(np.float32)  # length of the first segment, in steps
-    o, d = r["o"][rays], r["d"][rays]
+    o, d = r.o[rays], r.d[rays]
     p0 = o + (t0 + 0.5 * dt)[:, None] * d  # sample k is at p0 + k sv
     sv = dt[:, None] * d
     first = np.zeros(len(rays), np.int64)
     stop = K.copy()
-    visible = None
+    leaping = None
     lut = None if mode == "xray" else _lut(tf, step_mm)
     pre = _preintegration(vevm, tf, step_mm) if preintegrate else None
     sampler_key, blocks_key = _cache_keys(spacing, navigate, shading is not None, skip_empty,
                                           block, step_mm, pre is not None)
     if skip_empty:
-        blocks = _cached(vevm, blocks_key, lambda: _Blocks(vevm, block, blocks_key[2]))
+        blocks = vevm.cache.get(blocks_key, lambda: _Blocks(vevm, block, blocks_key[3]))
         margin = 0.0 if lut is None else lut[3] if pre is None else max(lut[3], pre[3])
-        visible = blocks.visible(mode, tf, margin, xray_scale, xray_offset)
+        leaping = _Leaping(blocks.visible(mode, tf, margin, compositing.xray_scale,
+                                          compositing.xray_offset), blocks.nb, block)
         # Start and stop at the region's bounding box (cells lo .. hi - 1) grown by one voxel,
         # with one sample to spare at each end (the last sample sits before its lattice
         # position).
-        bmin, bmax = _slabs(p0, sv, blocks.bbox[0] - 1.5, blocks.bbox[1] + 0.5)
+        bmin, bmax = box_entry_exit(p0, sv, blocks.bbox[0] - 1.5, blocks.bbox[1] + 0.5)
         with np.errstate(invalid="ignore"):
             first = np.maximum(np.ceil(bmin) - 1, 0)
             stop = np.minimum(np.floor(bmax) + 2, K)
@@ -732,24 +599,24 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     if navigate:
         sampler = _NavigationSampler(vevm, shading is not None)
     else:
-        sampler = _cached(vevm, sampler_key, lambda: _DenseSampler(vevm, shading is not None))
-    inv_t = np.linalg.inv(g)[:3, :3].T if shading is not None else None
+        sampler = vevm.cache.get(sampler_key,
+                                 lambda: _DenseSampler(vevm, shading is not None))
+    lighting = Lighting.of_view(shading, g)
+    sampling = _Sampling(step_mm, tf, lut, pre)
+    lattice = _Lattice(p0, sv, first, stop, K, head, last,
+                       None if lighting is None else r.dirs[rays])
 
     out_acc = np.zeros((len(rays), 4), np.float32)
     out_k = np.full(len(rays), np.nan)  # depth event, in sample units along the lattice
     for c0 in range(0, len(rays), chunk_rays):
         sl = slice(c0, min(len(rays), c0 + chunk_rays))
-        acc, kev = _march(
-            sampler, visible, blocks.nb if skip_empty else None, block, mode, lut, pre,
-            shading, inv_t, termination, step_mm, xray_scale, xray_offset, tf,
-            p0[sl].astype(np.float32), sv[sl].astype(np.float32), first[sl], stop[sl], K[sl],
-            head[sl], last[sl], r["dirs"][rays[sl]])
+        acc, kev = _march(sampler, leaping, compositing, sampling, lighting, lattice.chunk(sl))
         out_acc[sl] = acc
         out_k[sl] = kev
     found = np.isfinite(out_k)
     t_ev = t0 + (out_k + 0.5) * dt
     rgba[rays] = out_acc
-    dep = r["a0"][rays] + r["kz"][rays] * t_ev
+    dep = r.a0[rays] + r.kz[rays] * t_ev
     depth[rays[found]] = dep[found]
     return rgba.reshape(h, w, 4), depth.reshape(h, w)
 
@@ -762,48 +629,73 @@ _EPS = 2e-3
 """Index-space tolerance of a leap: samples this close to a block's exit are never skipped."""
 
 
-def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, termination, step_mm,
-           xray_scale, xray_offset, tf, p0, sv, first, stop, K, head, last, dirs):
-    """March one chunk of rays; returns (accumulated (m, 4) float32, depth event (m,) float64:
-    lattice position ``k'`` of the event, the ray point ``p0 + k'·sv``; NaN for none).
+def _march(sampler, leaping, compositing, sampling, lighting, lattice):
+    """March one chunk of rays (``lattice``: :meth:`_Lattice.chunk`; ``leaping`` None: no
+    space leaping; ``lighting`` None: no shading); returns (accumulated (m, 4) float32, depth
+    event (m,) float64: lattice position ``k'`` of the event, the ray point ``p0 + k'·sv``; NaN
+    for none).
 
-    Sample ``k`` stands for the lattice segment ``[k - 0.5, k + 0.5]``; the first starts at
-    ``0.5 - head``, the last ends at ``K - 1.5 + last``. The state of the rays still marching is
-    kept compact (finished rays are frozen, then dropped once they are a tenth of the set).
-    Each step first leaps every ray whose current sample lies in an invisible block
-    (repeatedly, only those rays), then samples all rays. With pre-integration (``pre``) the
-    density at the segment boundary shared with the previous step's segment is kept, so a
-    marching ray samples one segment end per step.
+    The state of the rays still marching is kept compact (finished rays are frozen, then
+    dropped once they are a tenth of the set). Each step first leaps every ray whose current
+    sample lies in an invisible block (repeatedly, only those rays), then samples all rays.
+    With pre-integration the density at the segment boundary shared with the previous step's
+    segment is kept, so a marching ray samples one segment end per step.
     """
-    m = len(p0)
-    backward = mode == "under"
-    step = -1 if backward else 1
-    out_acc = np.zeros((m, 4), np.float32)
-    out_kev = np.full(m, np.nan)
-    out_vmax = np.full(m, -np.inf, np.float32)
-    k = (stop - 1) if backward else first.copy()
-    keep = (k >= first) & (k < stop)
-    st = {"idx": np.flatnonzero(keep), "k": k[keep]}
-    st.update({name: arr[keep] for name, arr in (("p0", p0), ("sv", sv), ("first", first),
-                                                    ("stop", stop), ("K", K), ("head", head),
-                                                    ("last", last))})
-    if shading is not None:
-        st["dirs"] = dirs[keep]
-    n = len(st["idx"])
-    st["acc"] = np.zeros((n, 4), np.float32)
-    st["kev"] = np.full(n, np.nan)
-    st["vmax"] = np.full(n, -np.inf, np.float32)
-    if pre is not None:
-        st["edge_b"] = np.full(n, -1, np.int64)  # lattice boundary b is at b - 0.5
-        st["edge_v"] = np.zeros(n, np.float32)
-    live = np.ones(n, bool)
-    if visible is not None:
-        pstrides = np.array([(nb[1] + 2) * (nb[2] + 2), nb[2] + 2, 1], dtype=np.int64)
-        st["eps"] = _EPS / np.abs(st["sv"].astype(np.float64)).max(axis=1)
+    march = _Marching(sampler, leaping, compositing, sampling, lighting, lattice)
+    while march.live.any():
+        hold = None if leaping is None else march.leap()
+        march.sample(hold)
+        march.advance(hold)
+    return march.result()
 
-    def position(rows, kk):
+
+class _Marching:
+    """The state of a chunk of rays on their lattices (:func:`_march`).
+
+    ``st`` holds, per ray still marching (``live``: not finished yet), one array per quantity:
+    its lattice, its current sample ``k``, its accumulators (``acc``, the depth event ``kev``,
+    MIP's ``vmax``) and, with pre-integration, the density at the segment boundary it last
+    sampled (``edge_b``, ``edge_v``); finished rays are copied to the ``out_*`` arrays.
+    """
+
+    def __init__(self, sampler, leaping, compositing, sampling, lighting, lattice):
+        self.sampler = sampler
+        self.leaping = leaping
+        self.compositing = compositing
+        self.sampling = sampling
+        self.lighting = lighting
+        self.backward = compositing.mode == "under"
+        self.step = -1 if self.backward else 1
+        m = len(lattice.p0)
+        self.out_acc = np.zeros((m, 4), np.float32)
+        self.out_kev = np.full(m, np.nan)
+        self.out_vmax = np.full(m, -np.inf, np.float32)
+        first, stop = lattice.first, lattice.stop
+        k = (stop - 1) if self.backward else first.copy()
+        keep = (k >= first) & (k < stop)
+        st = {"idx": np.flatnonzero(keep), "k": k[keep]}
+        st.update({name: getattr(lattice, name)[keep]
+                   for name in ("p0", "sv", "first", "stop", "K", "head", "last")})
+        if lighting is not None:
+            st["dirs"] = lattice.dirs[keep]
+        n = len(st["idx"])
+        st["acc"] = np.zeros((n, 4), np.float32)
+        st["kev"] = np.full(n, np.nan)
+        st["vmax"] = np.full(n, -np.inf, np.float32)
+        if sampling.pre is not None:
+            st["edge_b"] = np.full(n, -1, np.int64)  # lattice boundary b is at b - 0.5
+            st["edge_v"] = np.zeros(n, np.float32)
+        self.live = np.ones(n, bool)
+        if leaping is not None:
+            nb = leaping.nb
+            self.pstrides = np.array([(nb[1] + 2) * (nb[2] + 2), nb[2] + 2, 1], dtype=np.int64)
+            st["eps"] = _EPS / np.abs(st["sv"].astype(np.float64)).max(axis=1)
+        self.st = st
+
+    def position(self, rows, kk):
         """Lattice ends (float32) of the segments of samples ``kk`` of ``rows`` and the
         index-space points of their middles."""
+        st = self.st
         kf = kk.astype(np.float32)
         lo, hi = kf - np.float32(0.5), kf + np.float32(0.5)
         cut = kk == 0
@@ -815,16 +707,17 @@ def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, terminati
         mid = np.float32(0.5) * (lo + hi)
         return lo, hi, st["p0"][rows] + mid[:, None] * st["sv"][rows]
 
-    def ends(rows, lo, hi):
+    def ends(self, rows, lo, hi):
         """Densities at the front and back ends of the segments of ``rows`` (lattice ends
         ``lo``, ``hi``), reusing the boundary the ray's previous segment shared."""
+        st, backward = self.st, self.backward
         kk = st["k"][rows]
         near, far = (kk + 1, kk) if backward else (kk, kk + 1)
         p_near, p_far = (hi, lo) if backward else (lo, hi)
         fresh = np.flatnonzero(st["edge_b"][rows] != near)
         which = np.concatenate([fresh, np.arange(len(rows))])
         lattice = np.concatenate([p_near[fresh], p_far])
-        value = sampler(st["p0"][rows][which] + lattice[:, None] * st["sv"][rows][which])[3]
+        value = self.sampler(st["p0"][rows][which] + lattice[:, None] * st["sv"][rows][which])[3]
         v_near = st["edge_v"][rows]
         v_near[fresh] = value[:len(fresh)]
         v_far = value[len(fresh):]
@@ -832,119 +725,151 @@ def _march(sampler, visible, nb, size, mode, lut, pre, shading, inv_t, terminati
         st["edge_v"][rows] = v_far
         return (v_far, v_near) if backward else (v_near, v_far)
 
-    def finish(rows):
+    def finish(self, rows):
         """Copy the results of ``rows`` to the outputs."""
+        st = self.st
         ids = st["idx"][rows]
-        out_acc[ids] = st["acc"][rows]
-        out_kev[ids] = st["kev"][rows]
-        out_vmax[ids] = st["vmax"][rows]
+        self.out_acc[ids] = st["acc"][rows]
+        self.out_kev[ids] = st["kev"][rows]
+        self.out_vmax[ids] = st["vmax"][rows]
 
-    while live.any():
-        hold = None
-        if visible is not None:
-            # Leap: rays whose current sample is in an invisible block jump past the block
-            # (up to _LEAPS blocks per step; rays still in one wait for the next step).
-            rows = np.flatnonzero(live)
-            for _ in range(_LEAPS):
-                _, _, pos = position(rows, st["k"][rows])
-                _, _, nearest = sampler.grid.locate(pos)
-                bcell = (nearest + size) // size  # padded block coordinates
-                out = ~visible[bcell[:, 0] * pstrides[0] + bcell[:, 1] * pstrides[1]
-                               + bcell[:, 2]]
-                rows, bcell = rows[out], bcell[out]
-                if not len(rows):
-                    break
-                blo = (bcell - 1) * size - 0.5
-                kk = _leap(st["p0"][rows].astype(np.float64), st["sv"][rows].astype(np.float64),
-                           blo, blo + size, st["eps"][rows], backward)
-                kold = st["k"][rows]
-                knew = np.minimum(kold - 1, kk) if backward else np.maximum(kold + 1, kk)
-                st["k"][rows] = knew
-                gone = (knew < st["first"][rows]) | (knew >= st["stop"][rows])
-                live[rows[gone]] = False
-                rows = rows[~gone]
-            if len(rows):
-                hold = np.zeros(len(live), bool)
-                hold[rows] = True
-        lo, hi, pos = position(slice(None), st["k"])
-        base, f, readable, value, grad = sampler(pos)
-        active = live if hold is None else live & ~hold
+    def leap(self):
+        """Rays whose current sample is in an invisible block jump past the block (up to
+        :data:`_LEAPS` blocks per step); returns the rays still in one, which wait for the
+        next step (bool per ray), or None."""
+        st, live, size = self.st, self.live, self.leaping.size
+        visible, pstrides = self.leaping.visible, self.pstrides
+        rows = np.flatnonzero(live)
+        for _ in range(_LEAPS):
+            _, _, pos = self.position(rows, st["k"][rows])
+            _, _, nearest = self.sampler.grid.locate(pos)
+            bcell = (nearest + size) // size  # padded block coordinates
+            out = ~visible[bcell[:, 0] * pstrides[0] + bcell[:, 1] * pstrides[1] + bcell[:, 2]]
+            rows, bcell = rows[out], bcell[out]
+            if not len(rows):
+                break
+            blo = (bcell - 1) * size - 0.5
+            kk = _leap(st["p0"][rows].astype(np.float64), st["sv"][rows].astype(np.float64),
+                       blo, blo + size, st["eps"][rows], self.backward)
+            kold = st["k"][rows]
+            knew = np.minimum(kold - 1, kk) if self.backward else np.maximum(kold + 1, kk)
+            st["k"][rows] = knew
+            gone = (knew < st["first"][rows]) | (knew >= st["stop"][rows])
+            live[rows[gone]] = False
+            rows = rows[~gone]
+        if not len(rows):
+            return None
+        hold = np.zeros(len(live), bool)
+        hold[rows] = True
+        return hold
+
+    def sample(self, hold):
+        """Sample the current segment of every ray not on ``hold`` and accumulate it."""
+        st = self.st
+        lo, hi, pos = self.position(slice(None), st["k"])
+        base, f, readable, value, grad = self.sampler(pos)
+        active = self.live if hold is None else self.live & ~hold
         # The sample's segment: half a step each side (the first and last may be shorter).
         kf = np.float32(0.5) * (lo + hi)
         half = np.float32(0.5) * (hi - lo)
-        acc = st["acc"]
-        kev = st["kev"]
         hsv = st["sv"] * half[:, None]
-        if mode == "mip":
-            # The segment's two ends (nudged into it) and its middle, in ray order: linear
-            # stretches of the field peak at their ends, as the reference's MIP knows.
-            vmax = st["vmax"]
-            for e in (-_END, None, _END):
-                if e is None:
-                    f_, readable_, value_, kpos = f, readable, value, kf
-                else:
-                    _, f_, readable_, value_, _ = sampler(pos + np.float32(e) * hsv)
-                    kpos = kf + np.float32(e) * half
-                corner = (f_[:, 0] >= 0.5) * 4 + (f_[:, 1] >= 0.5) * 2 + (f_[:, 2] >= 0.5)
-                inside = readable_[np.arange(len(f_)), corner] & active
-                better = inside & (value_ > vmax)  # ties keep the frontmost
-                vmax[better] = value_[better]
-                kev[better] = kpos[better]
+        if self.compositing.mode == "mip":
+            self.maximum(pos, hsv, f, readable, value, kf, half, active)
+            return
+        frac, start = _coverage(pos - hsv, pos + hsv, base, readable)
+        frac *= active
+        length = frac * (2 * half)  # in steps: the part of the segment in the region
+        front = kf - half + start * (2 * half)  # lattice position where it starts
+        if self.compositing.mode == "xray":
+            self.attenuate(value, length, front)
         else:
-            frac, start = _coverage(pos - hsv, pos + hsv, base, readable)
-            frac *= active
-            length = frac * (2 * half)  # in steps: the part of the segment in the region
-            front = kf - half + start * (2 * half)  # lattice position where it starts
-            if mode == "xray":
-                mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-                tau = mu * length * np.float32(step_mm)
-                acc[:, 0] += tau
-                hit = _depth.attenuates(tau, length * np.float32(step_mm)) & np.isnan(kev)
-                kev[hit] = front[hit]
+            self.composite(lo, hi, value, grad, frac, length, front)
+
+    def maximum(self, pos, hsv, f, readable, value, kf, half, active):
+        """MIP: the segment's two ends (nudged into it) and its middle, in ray order (linear
+        stretches of the field peak at their ends, as the reference's MIP knows)."""
+        vmax, kev = self.st["vmax"], self.st["kev"]
+        for e in (-_END, None, _END):
+            if e is None:
+                f_, readable_, value_, kpos = f, readable, value, kf
             else:
-                rgb, alpha = _classify(lut, value, length)
-                if pre is not None:
-                    # Segments wholly in the region are pre-integrated from their ends' densities;
-                    # those the region's surface cuts keep the point-sampled middle.
-                    whole = np.flatnonzero(frac == 1)
-                    if len(whole):
-                        front_s, back_s = ends(whole, lo[whole], hi[whole])
-                        rgb[whole], alpha[whole] = _classify_preintegrated(
-                            pre, front_s, back_s, length[whole])
-                if grad is not None:
-                    rgb = _shade(rgb, grad, inv_t, st["dirs"], shading).astype(np.float32)
-                c = rgb * alpha[:, None]
-                hit = _depth.visible(alpha, length * np.float32(step_mm / tf.unit_length_mm))
-                if backward:
-                    keep = 1 - alpha
-                    acc[:, :3] *= keep[:, None]
-                    acc[:, :3] += c
-                    acc[:, 3] *= keep
-                    acc[:, 3] += alpha
-                    kev[hit] = front[hit]  # the last met is the frontmost
-                else:
-                    trans = 1 - acc[:, 3]
-                    acc[:, :3] += trans[:, None] * c
-                    acc[:, 3] += trans * alpha
-                    hit &= np.isnan(kev)
-                    kev[hit] = front[hit]
-        st["k"] += step if hold is None else np.where(hold, 0, step)
+                _, f_, readable_, value_, _ = self.sampler(pos + np.float32(e) * hsv)
+                kpos = kf + np.float32(e) * half
+            corner = (f_[:, 0] >= 0.5) * 4 + (f_[:, 1] >= 0.5) * 2 + (f_[:, 2] >= 0.5)
+            inside = readable_[np.arange(len(f_)), corner] & active
+            better = inside & (value_ > vmax)  # ties keep the frontmost
+            vmax[better] = value_[better]
+            kev[better] = kpos[better]
+
+    def attenuate(self, value, length, front):
+        """X-ray: add the optical depth of segments of ``length`` steps in the region."""
+        acc, kev = self.st["acc"], self.st["kev"]
+        step_mm = np.float32(self.sampling.step_mm)
+        c = self.compositing
+        mu = np.float32(c.xray_scale) * np.maximum(value - np.float32(c.xray_offset), 0)
+        tau = mu * length * step_mm
+        acc[:, 0] += tau
+        hit = _depth.attenuates(tau, length * step_mm) & np.isnan(kev)
+        kev[hit] = front[hit]
+
+    def composite(self, lo, hi, value, grad, frac, length, front):
+        """Over and under: classify segments of ``length`` steps in the region (``frac`` of
+        each), light them, and composite them."""
+        st, sampling = self.st, self.sampling
+        acc, kev = st["acc"], st["kev"]
+        rgb, alpha = _classify(sampling.lut, value, length)
+        if sampling.pre is not None:
+            # Segments wholly in the region are pre-integrated from their ends' densities;
+            # those the region's surface cuts keep the point-sampled middle.
+            whole = np.flatnonzero(frac == 1)
+            if len(whole):
+                front_s, back_s = self.ends(whole, lo[whole], hi[whole])
+                rgb[whole], alpha[whole] = _classify_preintegrated(
+                    sampling.pre, front_s, back_s, length[whole])
+        if grad is not None:
+            rgb = self.lighting.shade(rgb, grad, st["dirs"]).astype(np.float32)
+        c = rgb * alpha[:, None]
+        hit = _depth.visible(alpha, length * np.float32(sampling.step_mm
+                                                        / sampling.tf.unit_length_mm))
+        if self.backward:
+            keep = 1 - alpha
+            acc[:, :3] *= keep[:, None]
+            acc[:, :3] += c
+            acc[:, 3] *= keep
+            acc[:, 3] += alpha
+            kev[hit] = front[hit]  # the last met is the frontmost
+        else:
+            trans = 1 - acc[:, 3]
+            acc[:, :3] += trans[:, None] * c
+            acc[:, 3] += trans * alpha
+            hit &= np.isnan(kev)
+            kev[hit] = front[hit]
+
+    def advance(self, hold):
+        """Move every ray not on ``hold`` to its next sample; retire finished rays (and, over,
+        terminated ones), compacting the state once they are a tenth of it."""
+        st, live = self.st, self.live
+        st["k"] += self.step if hold is None else np.where(hold, 0, self.step)
         kk = st["k"]
         ended = live & ((kk < st["first"]) | (kk >= st["stop"]))
-        if mode == "over" and termination < 1:
-            ended |= live & (acc[:, 3] >= termination)
+        termination = self.compositing.termination
+        if self.compositing.mode == "over" and termination < 1:
+            ended |= live & (st["acc"][:, 3] >= termination)
         live &= ~ended
         dead = ~live
         if dead.sum() * 10 >= len(live):
-            finish(np.flatnonzero(dead))
-            st = {name: arr[live] for name, arr in st.items()}
-            live = live[live]
-    finish(slice(None))
-    acc, kev = out_acc, out_kev
-    visible = finish_mode(acc, out_vmax, mode, tf)
-    if visible is not None:
-        kev = np.where(visible, kev, np.nan)
-    return acc, kev
+            self.finish(np.flatnonzero(dead))
+            self.st = {name: arr[live] for name, arr in st.items()}
+            self.live = live[live]
+
+    def result(self):
+        """The outputs of :func:`_march`, once every ray finished."""
+        self.finish(slice(None))
+        acc, kev = self.out_acc, self.out_kev
+        visible = finish_mode(acc, self.out_vmax, self.compositing.mode, self.sampling.tf)
+        if visible is not None:
+            kev = np.where(visible, kev, np.nan)
+        return acc, kev
 
 
 def _leap(p0, sv, blo, bhi, eps, backward):
@@ -988,7 +913,7 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
         ``"over"``: a ray stops once its opacity reaches this value (1 = never); the error
         this makes is at most ``1 - termination`` per channel.
     shading : None, True, dict or Shading
-        Gradient shading (Blinn–Phong headlight, :class:`._reference.Shading`) for over/under.
+        Gradient shading (Blinn–Phong headlight, :class:`._shading.Shading`) for over/under.
     xray_scale, xray_offset : float
         X-ray attenuation per mm per data unit and the density of zero attenuation.
     block : int

@@ -66,47 +66,23 @@ not matter: at the VoI's surface, the volume's box, the near clip and ``depth_in
 exact.
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from .._errors import VolumeEVMError
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera  # noqa: F401  (Camera: doctest)
+from ._checks import (REFERENCE_STEPS_PER_VOXEL, check_camera, check_mode,
+                      check_transfer_function, checked_affine, checked_step_mm, checked_xray,
+                      positive_integer)
+from ._gradients import region_gradients
+from ._modes import Compositing, finish_mode
+from ._rays import camera_rays
+from ._shading import Lighting, checked_shading
 from ._transfer import TransferFunction  # noqa: F401  (doctest)
 
-__all__ = ["render_reference", "Shading", "MODES", "BOUNDARIES"]
+__all__ = ["render_reference", "BOUNDARIES"]
 
-MODES = ("over", "under", "xray", "mip")
-_CAMERA_API = ("rays", "axial_depth", "shape", "clip_start", "clip_end")
-_TF_API = ("evaluate", "transparent_between", "unit_length_mm")
 BOUNDARIES = ("clamp", "shell")
-
-
-@dataclass(frozen=True)
-class Shading:
-    """Blinn–Phong gradient shading with the light at the camera (a headlight).
-
-    ``rgb_shaded = rgb · (ambient + diffuse · |N·L|) + specular · |N·H| ** shininess`` (clipped to
-    1), with ``N = -∇f / |∇f|`` (two-sided: absolute values), ``L = V = -ray direction`` so
-    ``H = L``. Where ``|∇f| == 0`` the sample is lit as if facing the light without highlight:
-    ``rgb · (ambient + diffuse)``. Opacity is not changed.
-    """
-
-    ambient: float = 0.3
-    diffuse: float = 0.7
-    specular: float = 0.3
-    shininess: float = 20.0
-
-    def __post_init__(self):
-        for name in ("ambient", "diffuse", "specular", "shininess"):
-            try:
-                v = float(getattr(self, name))
-            except (TypeError, ValueError):
-                raise VolumeEVMError(
-                    f"shading.{name}: expected a number, got {getattr(self, name)!r}") from None
-            if not np.isfinite(v) or v < 0:
-                raise VolumeEVMError(f"shading.{name}: must be finite and >= 0, got {v!r}")
 
 
 def _check_inputs(densities, mask, grid_to_world, spacing, camera, tf, mode, step_mm, depth_in,
@@ -127,60 +103,16 @@ def _check_inputs(densities, mask, grid_to_world, spacing, camera, tf, mode, ste
             raise VolumeEVMError(f"mask: expected a bool array, got dtype {m.dtype}")
         if m.shape != d.shape:
             raise VolumeEVMError(f"mask: shape {m.shape} differs from densities' {d.shape}")
-    g = np.asarray(grid_to_world, dtype=np.float64)
-    if g.shape != (4, 4) or not np.all(np.isfinite(g)):
-        raise VolumeEVMError(f"grid_to_world: expected a finite 4x4 matrix, got shape {g.shape}")
-    if not np.allclose(g[3], (0.0, 0.0, 0.0, 1.0)):
-        raise VolumeEVMError(f"grid_to_world: last row must be (0, 0, 0, 1), got {g[3]}")
-    if abs(np.linalg.det(g[:3, :3])) < 1e-300 or np.linalg.cond(g[:3, :3]) > 1e12:
-        raise VolumeEVMError("grid_to_world: the 3x3 part is singular")
+    g = checked_affine("grid_to_world", grid_to_world, invertible=True)
     sp = np.asarray(spacing, dtype=np.float64)
     if sp.shape != (3,) or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
         raise VolumeEVMError(f"spacing: expected 3 positive mm values, got {spacing!r}")
-    # Duck-typed, so that records made by another copy of the package (an add-on reloaded in
-    # Blender, or imported under two names) are accepted.
-    if not all(hasattr(camera, a) for a in _CAMERA_API):
-        raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
-    if mode not in MODES:
-        raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
-    if mode != "xray" and not all(hasattr(tf, a) for a in _TF_API):
-        raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
-    if step_mm is None:
-        step = float(sp.min()) / 16.0
-    else:
-        step = float(step_mm)
-        if not np.isfinite(step) or step <= 0:
-            raise VolumeEVMError(f"step_mm: must be a finite number > 0, got {step_mm!r}")
+    check_camera(camera)
+    check_mode(mode)
+    check_transfer_function(tf, mode)
+    step = checked_step_mm(step_mm, sp, REFERENCE_STEPS_PER_VOXEL)
     depth_in = _depth.checked_depth_in(depth_in, camera.shape)
-    if shading is True:
-        shading = Shading()
-    elif shading is False:
-        shading = None
-    elif isinstance(shading, dict):
-        unknown = set(shading) - {"ambient", "diffuse", "specular", "shininess"}
-        if unknown:
-            raise VolumeEVMError(f"shading: unknown keys {sorted(unknown)}")
-        shading = Shading(**shading)
-    elif shading is not None and not isinstance(shading, Shading):
-        raise VolumeEVMError(f"shading: None, True, a dict or a Shading, got {shading!r}")
-    return d, m, g, sp, step, depth_in, shading
-
-
-def _voxel_gradients(dpad, mpad):
-    """Index-space central differences (per index unit) on the padded grid, one-sided where a
-    neighbour is outside the VoI, 0 where both are. Returns (3, ...) float64."""
-    grads = np.zeros((3,) + dpad.shape)
-    core = (slice(1, -1),) * 3
-    for ax in range(3):
-        plus = [slice(1, -1)] * 3
-        minus = [slice(1, -1)] * 3
-        plus[ax] = slice(2, None)
-        minus[ax] = slice(0, -2)
-        fp, fm, f0 = dpad[tuple(plus)], dpad[tuple(minus)], dpad[core]
-        mp, mm = mpad[tuple(plus)], mpad[tuple(minus)]
-        g = np.where(mp & mm, 0.5 * (fp - fm), np.where(mp, fp - f0, np.where(mm, f0 - fm, 0.0)))
-        grads[ax][core] = g * mpad[core]
-    return grads
+    return d, m, g, sp, step, depth_in, checked_shading(shading)
 
 
 def _dilate(mask):
@@ -210,7 +142,9 @@ class _Sampler:
         dpad[1:-1, 1:-1, 1:-1] = np.where(readable, densities, 0.0)
         cols = [dpad, rpad.astype(np.float64)]
         if with_gradient:
-            cols.extend(_voxel_gradients(dpad, rpad))
+            grads = np.zeros((3,) + pshape)
+            region_gradients(dpad, rpad, grads[:, 1:-1, 1:-1, 1:-1])
+            cols.extend(grads)
         self.table = np.stack([c.ravel() for c in cols], axis=1)  # (P, 2 or 5)
         self.inside = vpad.ravel()
         self.strides = np.array([pshape[1] * pshape[2], pshape[2], 1], dtype=np.int64)
@@ -342,73 +276,37 @@ def render_reference(densities, mask, grid_to_world, spacing, camera, tf, *, mod
     """
     d, m, g, sp, step, depth_in, shading = _check_inputs(
         densities, mask, grid_to_world, spacing, camera, tf, mode, step_mm, depth_in, shading)
-    try:
-        xray_scale, xray_offset = float(xray_scale), float(xray_offset)
-    except (TypeError, ValueError):
-        xray_scale = np.nan
-    if not np.isfinite(xray_scale) or xray_scale < 0 or not np.isfinite(xray_offset):
-        raise VolumeEVMError(f"xray_scale/xray_offset: need finite numbers, scale >= 0, got "
-                             f"{xray_scale!r}, {xray_offset!r}")
+    compositing = Compositing(mode, 1.0, *checked_xray(xray_scale, xray_offset))
     if boundary not in BOUNDARIES:
         raise VolumeEVMError(f"boundary: one of {BOUNDARIES}, got {boundary!r}")
-    chunk_rays = int(chunk_rays)
-    if chunk_rays < 1:
-        raise VolumeEVMError(f"chunk_rays: must be >= 1, got {chunk_rays}")
+    chunk_rays = positive_integer("chunk_rays", chunk_rays)
     h, w = camera.shape
     rgba = np.zeros((h * w, 4))
     depth = np.full(h * w, BACKGROUND_DEPTH)
     if not m.any():
         return rgba.reshape(h, w, 4).astype(np.float32), depth.reshape(h, w).astype(np.float32)
 
-    origins, directions = camera.rays()
-    origins = origins.reshape(-1, 3)
-    directions = directions.reshape(-1, 3)
-    # Axial depth along each ray: a0 + k t.
-    a0 = camera.axial_depth(origins)
-    k = camera.axial_depth(origins + directions) - a0
-    far = np.full(h * w, camera.clip_end)
-    if depth_in is not None:
-        far = np.minimum(far, depth_in.ravel())
-    t_near = (camera.clip_start - a0) / k
-    t_far = (far - a0) / k
-
-    # Rays into index space; exact clipping against the box -0.5 .. n - 0.5.
-    inv = np.linalg.inv(g)
-    o_i = origins @ inv[:3, :3].T + inv[:3, 3]
-    d_i = directions @ inv[:3, :3].T
-    lo = -0.5
-    hi = np.array(d.shape, dtype=np.float64) - 0.5
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (lo - o_i) / d_i
-        tb = (hi - o_i) / d_i
-    parallel = d_i == 0
-    inside_slab = (o_i >= lo) & (o_i <= hi)
-    tmin = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(ta, tb))
-    tmax = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(ta, tb))
-    t0 = np.maximum(tmin.max(axis=1), t_near)
-    t1 = np.minimum(tmax.min(axis=1), t_far)
-    mm_per_t = np.linalg.norm(d_i * sp, axis=1)
-    rays = np.nonzero(t1 > t0)[0]
+    rays = camera_rays(camera, g, d.shape, depth_in)
+    mm_per_t = rays.mm_per_t(sp)
+    live = np.nonzero(rays.t1 > rays.t0)[0]
 
     # Chunks bounded in rays x breakpoints and in samples.
-    seg_mm = (t1[rays] - t0[rays]) * mm_per_t[rays]
-    span = np.abs(d_i[rays]) * (t1[rays] - t0[rays])[:, None]  # index-space extent per axis
-    estimate = np.ceil(seg_mm / step) + 2.0 * span.sum(axis=1) + 8.0
+    length = rays.t1[live] - rays.t0[live]
+    span = np.abs(rays.d[live]) * length[:, None]  # index-space extent per axis
+    estimate = np.ceil(length * mm_per_t[live] / step) + 2.0 * span.sum(axis=1) + 8.0
     per_ray_breaks = 2 * int(sum(d.shape)) + 8
     max_rays = max(1, min(chunk_rays, _BREAK_BUDGET // per_ray_breaks))
     readable = m if boundary == "clamp" else _dilate(m)
-    sampler = _Sampler(d, m, readable,
-                       with_gradient=shading is not None and mode in ("over", "under"))
-    inv_t = inv[:3, :3].T  # gradient (index space) -> world: inverse transpose of index->world
+    lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g)
+    sampler = _Sampler(d, m, readable, with_gradient=lighting is not None)
     start = 0
-    while start < len(rays):
-        stop = min(len(rays), start + max_rays)
+    while start < len(live):
+        stop = min(len(live), start + max_rays)
         budget = np.searchsorted(np.cumsum(estimate[start:stop]), _SAMPLE_BUDGET, side="right")
         stop = start + max(1, min(stop - start, int(budget)))
-        ids = rays[start:stop]
-        c_rgba, c_depth = _march(
-            sampler, mode, tf, shading, inv_t, step, o_i[ids], d_i[ids], directions[ids],
-            t0[ids], t1[ids], mm_per_t[ids], a0[ids], k[ids], xray_scale, xray_offset)
+        ids = live[start:stop]
+        c_rgba, c_depth = _march(sampler, compositing, tf, lighting, step, rays.take(ids),
+                                 mm_per_t[ids])
         rgba[ids] = c_rgba
         depth[ids] = c_depth
         start = stop
@@ -474,20 +372,11 @@ def _plan(o, d, t0, t1, mm_per_t, step, may_contribute):
     return nsamp, t_front, piece_dt[piece], piece_dmm[piece]
 
 
-def _shade(rgb, grad, inv_t, view_dirs, shading):
-    """Blinn–Phong with a headlight on straight colours ``rgb`` (m, 3)."""
-    n_world = grad @ inv_t.T
-    norm = np.linalg.norm(n_world, axis=1)
-    has = norm > 0
-    cos = np.abs(np.einsum("mi,mi->m", n_world, view_dirs)) / np.where(has, norm, 1.0)
-    cos = np.where(has, cos, 1.0)
-    spec = np.where(has, shading.specular * cos ** shading.shininess, 0.0)
-    out = rgb * (shading.ambient + shading.diffuse * cos)[:, None] + spec[:, None]
-    return np.minimum(out, 1.0)
-
-
-def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_per_t, a0, k,
-           xray_scale, xray_offset):
+def _may_contribute(sampler, compositing, tf):
+    """The test :func:`_plan` skips pieces with: index-space points -> may the piece holding
+    each contribute (its cell in the VoI and, over/under, the transfer function not transparent
+    on its 8 neighbours' densities; X-ray: some density attenuates)."""
+    mode = compositing.mode
     if mode in ("over", "under"):
         def may_contribute(p):
             inside, lo, hi = sampler.corner_range(p)
@@ -495,20 +384,30 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
     elif mode == "xray":
         def may_contribute(p):
             inside, lo, hi = sampler.corner_range(p)
-            return inside & (xray_scale > 0) & (hi > xray_offset)
+            return inside & (compositing.xray_scale > 0) & (hi > compositing.xray_offset)
     else:
         def may_contribute(p):
             return sampler.corner_range(p)[0]
-    nsamp, t_front, dt, dmm = _plan(o_i, d_i, t0, t1, mm_per_t, step, may_contribute)
+    return may_contribute
+
+
+def _march(sampler, compositing, tf, lighting, step, rays, mm_per_t):
+    """March one chunk of ``rays`` (:class:`._rays.Rays`, ``mm_per_t`` their mm per unit of
+    the ray parameter) with samples no longer than ``step`` mm; returns (premultiplied RGBA
+    (m, 4), axial depth (m,)), float64."""
+    mode = compositing.mode
+    nsamp, t_front, dt, dmm = _plan(rays.o, rays.d, rays.t0, rays.t1, mm_per_t, step,
+                                    _may_contribute(sampler, compositing, tf))
     offsets = np.cumsum(nsamp) - nsamp
     order = np.argsort(-nsamp, kind="stable")  # longest first: the active rays are a prefix
     nsamp, offsets = nsamp[order], offsets[order]
-    o_i, d_i, dirs = o_i[order], d_i[order], dirs[order]
+    o_i, d_i, dirs = rays.o[order], rays.d[order], rays.dirs[order]
     n = len(nsamp)
     acc = np.zeros((n, 4))
     tdepth = np.full(n, np.inf)  # ray parameter of the depth event
     smax = int(nsamp[0]) if n else 0
     count = np.searchsorted(-nsamp, -np.arange(smax), side="left")  # rays with nsamp > s
+    vmax = None
     if mode == "mip":
         vmax = np.full(n, -np.inf)
         tmax = np.zeros(n)
@@ -523,7 +422,8 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
         p = o_i[:a] + tm[:, None] * d_i[:a]
         inside, value, grad = sampler(p)
         if mode == "xray":
-            mu = xray_scale * np.maximum(value - xray_offset, 0.0) * inside
+            mu = (compositing.xray_scale * np.maximum(value - compositing.xray_offset, 0.0)
+                  * inside)
             tau = mu * dmm[rows]
             acc[:a, 0] += tau
             first = _depth.attenuates(tau, dmm[rows]) & np.isinf(tdepth[:a])
@@ -552,7 +452,7 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
         hit = _depth.visible(alpha, units)
         rgb = straight[:, :3]
         if grad is not None:
-            rgb = _shade(rgb, grad, inv_t, dirs[:a], shading)
+            rgb = lighting.shade(rgb, grad, dirs[:a])
         c = rgb * alpha[:, None]
         if mode == "over":
             trans = 1.0 - acc[:a, 3]
@@ -565,20 +465,13 @@ def _march(sampler, mode, tf, shading, inv_t, step, o_i, d_i, dirs, t0, t1, mm_p
             acc[:a, :3] = c + keep[:, None] * acc[:a, :3]
             acc[:a, 3] = alpha + keep * acc[:a, 3]
             tdepth[:a][hit] = tf_[hit]  # the last one met (the frontmost) wins
-    if mode == "xray":
-        acc[:] = (1.0 - np.exp(-acc[:, 0]))[:, None]
-    elif mode == "mip":
-        seen = np.isfinite(vmax)
-        acc = np.zeros((n, 4))
-        if seen.any():
-            st = tf.evaluate(vmax[seen])
-            acc[seen, 3] = st[:, 3]
-            acc[seen, :3] = st[:, :3] * st[:, 3:4]
-        tdepth = np.where(seen & _depth.visible(acc[:, 3], 1.0), tmax, np.inf)
+    visible = finish_mode(acc, vmax, mode, tf)
+    if visible is not None:
+        tdepth = np.where(visible, tmax, np.inf)
     inverse = np.empty_like(order)
     inverse[order] = np.arange(n)
     acc, tdepth = acc[inverse], tdepth[inverse]
     depth = np.full(n, BACKGROUND_DEPTH)
     found = np.isfinite(tdepth)
-    depth[found] = a0[found] + k[found] * tdepth[found]
+    depth[found] = rays.a0[found] + rays.kz[found] * tdepth[found]
     return acc, depth

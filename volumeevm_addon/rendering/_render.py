@@ -11,7 +11,7 @@ renormalised). Rendering a VolumeEVM therefore equals rendering the dense volume
 everything outside the region transparent, which is the exactness contract every method keeps.
 
 Resolution levels (:mod:`volumeevm_addon.model._levels`): ``level="auto"`` renders a volume much
-finer than the image's pixels from a coarser VolumeEVM (cached on the VolumeEVM); the exactness
+finer than the image's pixels from a coarser VolumeEVM (kept in its cache); the exactness
 contract holds for the level rendered, and the default ``level="full"`` renders the VolumeEVM
 itself.
 
@@ -31,8 +31,9 @@ from .._memory import check_memory
 from ..model._levels import level_factor
 from ..model._volume import grid_to_world
 from ._camera import Camera
+from ._checks import (RAY_STEPS_PER_VOXEL, REFERENCE_STEPS_PER_VOXEL, check_mode,
+                      check_volumeevm, checked_affine, checked_step_mm, positive_number)
 from ._depth import checked_depth_in
-from ._reference import MODES
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
 
@@ -48,10 +49,11 @@ at the ray casters' default step (half a voxel) is about 1.5e10 samples, still a
 
 # Memory model of each method, bytes, fitted to tracemalloc peaks (bench/bench_memory.py:
 # CT head 256x256x108 and the same upsampled to 512³, MRI 128x128x84; 64² to 512² images) and
-# rounded up. Per grid voxel: the tables a method builds on first use and caches on the
-# VolumeEVM, with their construction temporaries, counted once per set of tables the render
-# would build (the renderers' ``tables_to_build``: none when they are cached already). Per
-# pixel: the ray set-up and per-ray state beside the image buffers.
+# rounded up. Per grid voxel: the tables a method builds on first use and keeps in the
+# VolumeEVM's cache (``vevm.cache``), with their construction temporaries, counted once per set
+# of tables the render would build (the renderers' ``tables_to_build``, which look in that
+# cache: none when they are kept already). Per pixel: the ray set-up and per-ray state beside
+# the image buffers.
 _IMAGE_BYTES_PER_PIXEL = 20
 """The float32 RGBA image and depth every method returns."""
 _GRID_BYTES = {
@@ -93,14 +95,30 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
            level="full", **options):
     """Render ``vevm`` seen by ``camera`` with transfer function ``tf``.
 
+    Every method gives the same image up to its sampling error (the exactness contract in the
+    module docstring); they differ in speed, memory and quality settings. All settings but the
+    volume, the camera and the transfer function are keyword-only.
+
     Parameters
     ----------
     vevm : VolumeEVM
+        The region and its densities.
     camera : Camera
-        Blender's projection (see :mod:`._camera`).
+        Blender's projection (see :mod:`._camera`): image size, pixels and depth.
     tf : TransferFunction
+        Colour and opacity per density; unused (may be None) for ``mode="xray"``.
     method : {"shear_warp", "splat", "raycast", "raycast_navigate", "reference"}
+        ``"shear_warp"`` (default): shear-warp factorisation (Lacroute & Levoy), the fastest
+        on the CPU. ``"splat"``: sheet-buffer splatting (Westover), post-classified.
+        ``"raycast"``: ray casting with the EVM as space-leaping structure.
+        ``"raycast_navigate"``: the same caster finding every density through the EVM (no
+        dense array; the report's baseline). ``"reference"``: the dense float64 ray caster,
+        the accuracy oracle (slow; ignores ``level``).
     mode : {"over", "under", "xray", "mip"}
+        ``"over"``: front-to-back emission–absorption compositing; ``"under"``: back to front
+        (the same image up to rounding); ``"xray"``: attenuation through the region (grey,
+        ``xray_scale``/``xray_offset``, no transfer function); ``"mip"``: the maximum density
+        along each ray, classified by ``tf``.
     depth_in : (H, W) ndarray, optional
         Axial depth (Blender units) of the scene's geometry; rays stop there.
     matrix_world : (4, 4) array_like, optional
@@ -113,11 +131,11 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         given ``step_mm`` by the factor (the ray casters keep their samples per voxel). The
         reference method ignores it: it is the full-resolution oracle.
     **options
-        Method-specific quality settings (the keywords of the method's renderer;
-        :func:`render_options` lists each method's with its defaults). An option
-        the method does not take raises ``TypeError``; a value of the wrong type (a number
-        where a flag is expected, a fraction where an integer is) or out of range raises
-        :class:`VolumeEVMError` naming it.
+        Method-specific quality settings: the options under Other Parameters, each with the
+        methods that take it and their defaults (:func:`render_options` gives the same per
+        method). An option the method does not take raises ``TypeError``; a value of the
+        wrong type (a number where a flag is expected, a fraction where an integer is) or out
+        of range raises :class:`VolumeEVMError` naming it.
 
     Returns
     -------
@@ -125,6 +143,84 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Premultiplied colour and opacity, row 0 at the top of the image.
     depth : (H, W) float32
         Axial depth in Blender units of the first visible sample; 1e10 where none.
+
+    Other Parameters
+    ----------------
+    step_mm : float or None
+        Default ``None`` (raycast, raycast_navigate, reference). Sample spacing along the rays
+        in mm; None: half the smallest voxel size for the ray casters, a sixteenth for the
+        reference (its largest spacing: it also samples at every voxel boundary). A coarser
+        ``level`` multiplies a given step by its factor.
+    skip_empty : bool
+        Default ``True`` (shear_warp, splat, raycast, raycast_navigate). True: work only where
+        the EVM (and, for over/under, the transfer function) shows something visible. False:
+        the same algorithm over every voxel of the dense grid with the region as a mask: the
+        same image, slower (the dense side of the exactness contract).
+    termination : float
+        Default ``0.99`` (shear_warp, splat, raycast, raycast_navigate). Early ray termination
+        for ``"over"``: a pixel takes no more samples once its opacity reaches this, so the
+        error is at most ``1 - termination`` per channel; 1 composites everything.
+    shading : None, True, dict or Shading
+        Default ``None`` (shear_warp, splat, raycast, raycast_navigate, reference). Gradient
+        shading for ``"over"`` and ``"under"`` (:class:`Shading`: a Blinn–Phong headlight;
+        True for its defaults, a dict for its fields); ignored by ``"xray"`` and ``"mip"``.
+        Gradients are central differences over region voxels; shear-warp lights voxels before
+        interpolation, the others light each sample.
+    xray_scale : float
+        Default ``1.0`` (shear_warp, splat, raycast, raycast_navigate, reference). ``"xray"``:
+        attenuation per mm per data unit above ``xray_offset``.
+    xray_offset : float
+        Default ``0.0`` (shear_warp, splat, raycast, raycast_navigate, reference). ``"xray"``:
+        the density of zero attenuation (e.g. -1000 HU for air).
+    intermediate_scale : float
+        Default ``1.0`` (shear_warp). Intermediate-image pixels per voxel along each in-slice
+        axis: above 1 keeps detail when the camera zooms in beyond a pixel per voxel (cost
+        grows with its square), below 1 gives a coarse preview.
+    slices_per_voxel : {1, 2, 3, 4, 8}
+        Default ``1`` (shear_warp). Samples along each ray per voxel slice: 1 is VolPack's one
+        sample per slice; more interpolate between slices (trilinear).
+    classification : {"pre", "post"}
+        Default ``"pre"`` (shear_warp). ``"pre"``: classify (and light) voxels, then
+        interpolate colours (VolPack); ``"post"``: interpolate densities, then classify each
+        sample as the reference does (sharper boundaries). Over/under only.
+    lut_size : int
+        Default ``4096`` (shear_warp). Rows of the classification table over the transfer
+        function's control-point range.
+    kernel_sigma : float
+        Default ``0.4`` (splat). Standard deviation of the Gaussian splat kernel, in voxels.
+    kernel_radius : float
+        Default ``1.0`` (splat). Truncation radius of the kernel in voxels, >= 0.9 (every cell
+        a ray crosses must reach the pixel).
+    max_footprint_px : int
+        Default ``32`` (splat). Largest half-width of a footprint in pixels; larger footprints
+        (extreme close-ups) are cut.
+    blend : float
+        Default ``0.2`` (splat). Cross-fade between sheet families, in ``[0, 1)``: axes whose
+        view component is within this fraction of the largest render their own sheets and
+        the images are blended, so the image changes smoothly where the principal axis
+        switches (up to 3x the cost there); 0 is a hard switch (pops).
+    substeps : int
+        Default ``1`` (splat). Sub-slabs per sheet, each classified apart: 1 is Westover's
+        one sample per sheet; 3 removes the popping with the rays' sub-voxel phase at 2.2x
+        the time. MIP always takes one.
+    block : int
+        Default ``8`` (raycast, raycast_navigate). Edge in voxels of the space-leaping blocks.
+    chunk_rays : int
+        Default ``262144`` (raycast), ``16384`` (raycast_navigate), ``8192`` (reference). Rays
+        marched together: bounds the working memory; larger chunks take fewer Python steps.
+    jitter : bool
+        Default ``False`` (raycast, raycast_navigate). Offset each ray's samples by its pixel's
+        fraction of a step (a fixed hash: the same image every run), so banding at coarse steps
+        becomes noise.
+    preintegrate : bool
+        Default ``False`` (raycast, raycast_navigate). Over/under: classify each segment by the
+        densities at both its ends through the pre-integrated table
+        (:meth:`TransferFunction.preintegrated_table`), for transfer functions narrower than
+        the density change per step.
+    boundary : {"clamp", "shell"}
+        Default ``"clamp"`` (reference). What interpolation reads at the region's surface:
+        only the region's voxels (``"clamp"``, every method's policy), or also the one-voxel
+        shell of outside voxels around it (``"shell"``).
 
     Raises
     ------
@@ -135,22 +231,39 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         (:func:`render_memory`) exceeds the memory available
         (:func:`volumeevm_addon.available_memory`; the message suggests a coarser level, a smaller
         image or another method).
+    TypeError
+        For an option the method does not take.
+
+    Examples
+    --------
+    >>> from volumeevm_addon import Camera, TransferFunction, VolumeEVM, phantoms
+    >>> vevm = VolumeEVM.from_volume(phantoms.box((4, 4, 4), lo=(1, 1, 1), hi=(3, 3, 3)), 0.5)
+    >>> camera = Camera.look_at((0.0015, 0.0015, 1.0), (0.0015, 0.0015, 0.0), (0.0, 1.0, 0.0),
+    ...                         ortho_scale=0.004, resolution_x=4, resolution_y=4)
+    >>> tf = TransferFunction([(0, 1, 1, 1, 0.5), (1, 1, 1, 1, 0.5)])
+    >>> rgba, depth = render(vevm, camera, tf)  # shear-warp
+    >>> rgba[1, :, 3].round(4).tolist()  # opacity 0.5 per mm through the 2 mm box
+    [0.0, 0.75, 0.75, 0.0]
+    >>> [round(float(d), 4) for d in depth[1]]  # the box's top (z = 0.0025 BU) seen from z = 1
+    [10000000000.0, 0.9975, 0.9975, 10000000000.0]
+    >>> rgba2, _ = render(vevm, camera, tf, method="splat", substeps=3)
+    >>> bool(abs(rgba2 - rgba).max() < 1e-6)
+    True
     """
     if method not in METHODS:
         raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
-    if mode not in MODES:
-        raise VolumeEVMError(f"mode: one of {MODES}, got {mode!r}")
+    check_mode(mode)
     if not isinstance(camera, Camera):
         raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
-    if not all(hasattr(vevm, a) for a in ("evm", "shape", "spacing", "origin", "orientation")):
-        raise VolumeEVMError(f"vevm: expected a VolumeEVM, got {type(vevm).__name__}")
+    check_volumeevm(vevm)
     renderer = _renderers()[method]
     _check_option_types(method, options)
     depth_in = checked_depth_in(depth_in, camera.shape)
     h, w = camera.shape
     check_memory(h * w * _IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",
                  advice="lower the resolution or resolution_percentage")
-    matrix_world = _checked_placement(matrix_world)
+    if matrix_world is not None:
+        matrix_world = checked_affine("matrix_world", matrix_world)
     to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
     factor = level_factor(level, vevm.shape, to_world, camera)
     if factor > 1 and method != "reference":
@@ -183,15 +296,8 @@ def check_samples(method, vevm, camera, grid_to_world, options):
 
     Parameters
     ----------
-    method : str
-        One of :data:`METHODS`.
-    vevm : VolumeEVM
-        The VolumeEVM rendered (the level, when a coarser one is rendered).
-    camera : Camera
-    grid_to_world : (4, 4) ndarray
-        Voxel-centre indices to world (:func:`volumeevm_addon.grid_to_world`).
-    options : dict
-        The method's options (``step_mm`` or ``substeps`` are read).
+    method, vevm, camera, grid_to_world, options
+        As for :func:`render_memory`; of the options, ``step_mm`` or ``substeps`` are read.
 
     Raises
     ------
@@ -213,9 +319,8 @@ def check_samples(method, vevm, camera, grid_to_world, options):
                 f"than the {MAX_SAMPLES:.0e} a render may take (hours); use substeps <= {most} "
                 f"or a smaller image")
         return
-    default = spacing.min() / (16.0 if method == "reference" else 2.0)
-    step = options.get("step_mm")
-    step = default if step is None else _positive_number("step_mm", step)
+    step = checked_step_mm(options.get("step_mm"), spacing, REFERENCE_STEPS_PER_VOXEL
+                           if method == "reference" else RAY_STEPS_PER_VOXEL)
     diagonal = float(np.linalg.norm(np.asarray(vevm.shape) * spacing))
     samples = pixels * diagonal / step
     if samples > MAX_SAMPLES:
@@ -232,7 +337,7 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
 
     The sum of the image buffers, the per-pixel ray state (all rays of the image: the ray
     casters' default chunk holds a 512² image), the tables the method builds from the grid
-    (once per set the render would build: tables cached on ``vevm`` by an earlier render
+    (once per set the render would build: tables an earlier render left in ``vevm.cache``
     cost nothing, :func:`_tables_to_build`) and per-method working sets (shear-warp's
     intermediate image, the reference's chunks, lookup tables). The constants are
     tracemalloc peaks per voxel and per pixel measured on real volumes and rounded up
@@ -287,7 +392,8 @@ def render_options(method):
     ``depth_in`` (which :func:`render` takes for every method); the defaults are the
     renderer's own (each method's fastest settings). :func:`render` checks the options it is
     given against this: an unknown name raises ``TypeError``, a value whose type does not
-    match the default's raises :class:`VolumeEVMError`.
+    match the default's raises :class:`VolumeEVMError`. What each option means is under
+    "Other Parameters" in :func:`render`'s docstring, which a test keeps equal to this.
 
     Parameters
     ----------
@@ -375,35 +481,7 @@ def _check_option_types(method, options):
         if not ok:
             raise VolumeEVMError(f"{name}: {kind} for method {method!r}, got {value!r}")
     if "step_mm" in options and options["step_mm"] is not None:
-        _positive_number("step_mm", options["step_mm"])
-
-
-def _positive_number(name, value):
-    """``value`` as a finite float > 0, or a :class:`VolumeEVMError` naming ``name``."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) \
-            or not np.isfinite(value) or value <= 0:
-        raise VolumeEVMError(f"{name}: must be a finite number > 0, got {value!r}")
-    return float(value)
-
-
-def _numbers(name, value):
-    """``value`` as a float64 array, or a :class:`VolumeEVMError` naming ``name``."""
-    try:
-        return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as error:
-        raise VolumeEVMError(f"{name}: expected an array of numbers, got "
-                             f"{type(value).__name__}") from error
-
-
-def _checked_placement(matrix_world):
-    """``matrix_world`` as a finite affine 4x4 float64 matrix (None stays None)."""
-    if matrix_world is None:
-        return None
-    m = _numbers("matrix_world", matrix_world)
-    if m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], (0, 0, 0, 1)):
-        raise VolumeEVMError(f"matrix_world: expected a finite affine 4x4 matrix (last row "
-                             f"0, 0, 0, 1), got shape {m.shape}")
-    return m
+        positive_number("step_mm", options["step_mm"])
 
 
 def _renderers():

@@ -32,9 +32,9 @@ Pipeline
    per column of the slice. ``intermediate_scale = k`` divides ``α_s`` by ``k`` (the separable
    path, orthographic too).
 3. **Slices are moved, voxels are not.** What depends only on the principal axis is computed
-   once and cached on the VolumeEVM (weakly): per slice, the bounding box of the EVM section
-   valid at it (:meth:`EVM.sections`) and, over that box, the position in ``vevm.table(c)`` of
-   each voxel (0 outside the region). A view only shifts (scales) these boxes: per slice, the
+   once and kept in the VolumeEVM's cache, ``vevm.cache``: per slice, the bounding box of the
+   EVM section valid at it (:meth:`EVM.sections`) and, over that box, the position in
+   ``vevm.table(c)`` of each voxel (0 outside the region). A view only shifts (scales) these boxes: per slice, the
    work is a few vectorised operations on the box, cut to the part of the intermediate image
    that is still needed (early ray termination) and, for ``"over"``/``"under"``, to the part
    holding voxels that the transfer function does not make transparent (cached per transfer
@@ -118,9 +118,8 @@ environment", IEEE Visualization 2001, https://doi.org/10.1109/VISUAL.2001.96451
 VolPack 1.0b3 (``vp_view.c``, ``vp_renderA.c``, ``vp_warp.c``), Stanford University.
 """
 
-import functools
 import math
-import weakref
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -128,10 +127,12 @@ from .._errors import VolumeEVMError
 from ..model._densities import TABLE_ORDERS
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._raycast import check_common, check_shading
-from ._reference import MODES
+from ._checks import checked_view
+from ._gradients import region_gradients
+from ._modes import finish_mode
+from ._shading import Shading, blinn_phong, checked_shading
 
-__all__ = ["render_shear_warp", "MODES", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
+__all__ = ["render_shear_warp", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
 
 SLICES_PER_VOXEL = (1, 2, 3, 4, 8)
 """Allowed samples per voxel slice along the rays (Shear-Warp Deluxe's intermediate slices)."""
@@ -152,9 +153,6 @@ _TIE = 1e-6
 _UNSEEN = -np.finfo(np.float32).max
 """MIP maximum before any sample (finite, so that the tie margin stays a number)."""
 
-_LAYOUTS = weakref.WeakKeyDictionary()
-"""VolumeEVM -> {principal axis: _Layout}: what depends only on the view axis."""
-
 
 class _Layout:
     """The slices of one principal axis.
@@ -170,35 +168,53 @@ class _Layout:
         ``values[0] = 0``, then the densities the codes point at.
     ranges : (n, 2) ndarray or None
         Per slice, min and max density of its voxels (``None``: no slice may be skipped).
-    axes, region_only
-        The table order as grid axes; whether codes number the region's voxels (True) or
-        every voxel of the dense grid (False).
-    gradients : (N + 1, 3) ndarray of np.float32 or None
-        Per code, the voxel's index-space gradient, made when shading first needs it.
-    classes : WeakKeyDictionary
-        Per transfer function and table size, its :class:`_Classes`.
-    tables : dict
-        The per-code channels post-classification interpolates (:func:`_post_table`).
+    axis, axes, region_only
+        The principal axis; the table order as grid axes; whether codes number the region's
+        voxels (True: the layout is kept in ``vevm.cache``, and so is what is derived from it,
+        :func:`_kept`) or every voxel of the dense grid (False: made for one render).
     """
 
     def __init__(self, boxes, codes, values, ranges, axes, region_only):
+        self.axis = axes[0]
         self.axes = axes
         self.region_only = region_only
-        self.gradients = None  # (len(values), 3) float32 when shading first asks for them
         self.boxes = boxes
         self.codes = codes
         self.values = values
         self.values32 = values.astype(np.float32)
         self.ranges = ranges
-        self.classes = weakref.WeakKeyDictionary()  # TransferFunction -> {lut_size: _Classes}
-        self.tables = {}  # what post-classification interpolates (_post_table)
+
+
+def _key(axis, part, tf=None, lut_size=None):
+    """The ``vevm.cache`` key of ``part`` of the slices of principal axis ``axis``: "layout"
+    (:func:`_region_layout`), "gradients", "post" or "post_shaded" (:func:`_post_table`), and
+    per transfer function and table size "classes" and "slice_rows" (:func:`_classes`,
+    :func:`_slice_rows`). The function enters the key by its control points, all these depend
+    on: equal functions share them, and the cache keeps no function (nor its own tables) alive.
+    One function for the render and :func:`tables_to_build`, so that the memory check sees the
+    same cache the render uses."""
+    if part in ("classes", "slice_rows"):
+        return ("shear_warp", part, axis, tf.points.tobytes(), lut_size)
+    return ("shear_warp", part, axis)
+
+
+def _kept(vevm, layout, part, make, tf=None, lut_size=None):
+    """``make()``, kept in ``vevm.cache`` under :func:`_key` for the region's layouts; for the
+    dense layout (made anew for every render: the dense side of the exactness contract)
+    nothing is kept."""
+    if not layout.region_only:
+        return make()
+    return vevm.cache.get(_key(layout.axis, part, tf, lut_size), make)
 
 
 def _region_layout(vevm, axis):
+    """The region's slices along ``axis`` (:func:`_make_region_layout`), kept in
+    ``vevm.cache``."""
+    return vevm.cache.get(_key(axis, "layout"), lambda: _make_region_layout(vevm, axis))
+
+
+def _make_region_layout(vevm, axis):
     """Slice boxes from the EVM's sections and table positions, for ``vevm.table(axis)``."""
-    per_axis = _LAYOUTS.setdefault(vevm, {})
-    if axis in per_axis:
-        return per_axis[axis]
     order = TABLE_ORDERS[axis]
     axes = ["xyz".index(ch) for ch in order]
     shape = tuple(vevm.shape[a] for a in axes)
@@ -224,9 +240,7 @@ def _region_layout(vevm, axis):
         ranges[full, 0] = np.minimum.reduceat(table, starts)
         ranges[full, 1] = np.maximum.reduceat(table, starts)
     values = np.concatenate([np.zeros(1, table.dtype), table])
-    layout = _Layout(boxes, codes, values, ranges, axes, True)
-    per_axis[axis] = layout
-    return layout
+    return _Layout(boxes, codes, values, ranges, axes, True)
 
 
 def _dense_layout(vevm, axis):
@@ -257,43 +271,40 @@ def _transform(points, matrix, offset=None):
 
 
 def _gradients(layout, vevm):
-    """Per voxel, in code order: index-space central differences over region voxels (one-sided
-    where one neighbour is outside, 0 where both are), as the reference computes them."""
-    if layout.gradients is not None:
-        return layout.gradients
-    dense = vevm.to_dense().astype(np.float32)
+    """Per code, the voxel's index-space gradient (:func:`_make_gradients`), kept
+    (:func:`_kept`)."""
+    return _kept(vevm, layout, "gradients", lambda: _make_gradients(layout, vevm))
+
+
+def _make_gradients(layout, vevm):
+    """Per voxel, in code order: index-space gradients over region voxels, the reference's
+    rule (:func:`._gradients.region_gradients`)."""
     mask = vevm.evm.to_mask(vevm.shape)
+    pad = tuple(int(n) + 2 for n in vevm.shape)
+    dense = np.zeros(pad, np.float32)
+    dense[1:-1, 1:-1, 1:-1] = vevm.to_dense()
+    region = np.zeros(pad, bool)
+    region[1:-1, 1:-1, 1:-1] = mask
+    grads = np.empty((3,) + tuple(int(n) for n in vevm.shape), np.float32)
+    region_gradients(dense, region, grads)
     chosen = np.transpose(mask, layout.axes) if layout.region_only else None
     out = np.zeros((len(layout.values), 3), np.float32)
     for k in range(3):
-        ahead, behind = [slice(None)] * 3, [slice(None)] * 3
-        ahead[k], behind[k] = slice(1, None), slice(None, -1)
-        ahead, behind = tuple(ahead), tuple(behind)
-        fp, fm = np.zeros_like(dense), np.zeros_like(dense)
-        mp, mm = np.zeros_like(mask), np.zeros_like(mask)
-        fp[behind], mp[behind] = dense[ahead], mask[ahead]  # the neighbour at +1
-        fm[ahead], mm[ahead] = dense[behind], mask[behind]  # the neighbour at -1
-        grad = np.where(mp & mm, 0.5 * (fp - fm),
-                        np.where(mp, fp - dense, np.where(mm, dense - fm, 0.0)))
-        grad = np.transpose(grad * mask, layout.axes)
+        grad = np.transpose(grads[k], layout.axes)
         out[1:, k] = grad[chosen] if layout.region_only else grad.ravel()
-    layout.gradients = out
     return out
 
 
 def _light(grads, view, shading):
     """Blinn–Phong headlight along the view direction for index-space gradients ``(..., 3)``:
-    the factor on the straight colour and the specular term added to it (the reference's
-    ``_shade``), both ``(...)`` float32."""
+    the factor on the straight colour and the specular term added to it
+    (:func:`._shading.blinn_phong`), both ``(...)`` float32."""
     normals = _transform(grads, view.inv[:3, :3])  # to world: the inverse transpose
     norm = np.sqrt(np.einsum("...i,...i->...", normals, normals))
     has = norm > 0
     cos = np.abs(_transform(normals, view.light[:, None])[..., 0]) / np.where(has, norm, 1.0)
     cos[~has] = 1.0
-    lit = np.float32(shading.ambient) + np.float32(shading.diffuse) * cos
-    glint = np.where(has, np.float32(shading.specular) * cos ** np.float32(shading.shininess),
-                     np.float32(0.0))
-    return lit, glint
+    return blinn_phong(cos, has, shading)
 
 
 def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
@@ -318,19 +329,18 @@ def _straight_rgb(tf, lut_size):
 
 def _post_table(layout, vevm, with_gradients):
     """Per code, what post-classification interpolates, channels first: the density, the
-    index-space gradient (``with_gradients``) and the region weight (0 for code 0). Cached
-    on the layout."""
-    key = "post_shaded" if with_gradients else "post"
-    table = layout.tables.get(key)
-    if table is None:
+    index-space gradient (``with_gradients``) and the region weight (0 for code 0). Kept
+    (:func:`_kept`)."""
+
+    def make():
         rows = [layout.values32[None]]
         if with_gradients:
             rows.append(_gradients(layout, vevm).T)
         weight = np.ones((1, len(layout.values)), np.float32)
         weight[0, 0] = 0.0
-        table = np.ascontiguousarray(np.concatenate(rows + [weight]), dtype=np.float32)
-        layout.tables[key] = table
-    return table
+        return np.ascontiguousarray(np.concatenate(rows + [weight]), dtype=np.float32)
+
+    return _kept(vevm, layout, "post_shaded" if with_gradients else "post", make)
 
 
 class _Classes:
@@ -338,7 +348,6 @@ class _Classes:
     slice the box of voxels the function does not make transparent."""
 
     def __init__(self, layout, tf, lut_size):
-        self.codes = layout.codes  # (not the layout: it holds this object)
         q = tf.quantize(layout.values[1:], n=lut_size)
         self.rows = np.zeros(len(layout.values), np.int32)
         self.rows[1:] = q + 1
@@ -360,19 +369,27 @@ class _Classes:
             else:
                 self.tight[s] = (a0 + rows[0], a0 + rows[-1] + 1, b0 + cols[0], b0 + cols[-1] + 1)
 
-    @functools.cached_property
-    def slice_rows(self):
-        """Per slice, over its box (as :attr:`_Layout.codes`), the table row of each voxel
-        (int16: ``lut_size < 32767``): unshaded pre-classification gathers colours with one
-        lookup per voxel instead of two."""
-        return [self.rows[codes].astype(np.int16) for codes in self.codes]
+
+def _classes(vevm, layout, tf, lut_size):
+    """The :class:`_Classes` of ``tf`` and ``lut_size`` for ``layout``, kept (:func:`_kept`)."""
+    return _kept(vevm, layout, "classes", lambda: _Classes(layout, tf, lut_size), tf, lut_size)
 
 
-def _classes(layout, tf, lut_size):
-    per_tf = layout.classes.setdefault(tf, {})
-    if lut_size not in per_tf:
-        per_tf[lut_size] = _Classes(layout, tf, lut_size)
-    return per_tf[lut_size]
+def _slice_rows(vevm, layout, classes, tf, lut_size):
+    """Per slice, over its box (as :attr:`_Layout.codes`), the table row of each voxel
+    (int16: ``lut_size < 32767``) for ``classes`` (of ``tf`` and ``lut_size``): unshaded
+    pre-classification gathers colours with one lookup per voxel instead of two. Kept
+    (:func:`_kept`)."""
+    return _kept(vevm, layout, "slice_rows",
+                 lambda: [classes.rows[codes].astype(np.int16) for codes in layout.codes],
+                 tf, lut_size)
+
+
+def _reads_slice_rows(constant, per_voxel, shaded, post):
+    """Whether a view reads :func:`_slice_rows`: the default path, slices only translated
+    (``constant``: orthographic, ``intermediate_scale`` 1), one sample per slice, unshaded
+    pre-classification. One rule for the render and :func:`tables_to_build`."""
+    return constant and per_voxel == 1 and not shaded and not post
 
 
 def _window(codes, box, a0, a1, b0, b1):
@@ -384,17 +401,6 @@ def _window(codes, box, a0, a1, b0, b1):
         out[ia0 - a0:ia1 - a0, ib0 - b0:ib1 - b0] = codes[ia0 - box[0]:ia1 - box[0],
                                                           ib0 - box[2]:ib1 - box[2]]
     return out
-
-
-def _check(vevm, camera, tf, grid_to_world, mode, depth_in, termination, lut_size, xray_scale,
-           xray_offset):
-    """The renderers' shared checks (:func:`._raycast.check_common`) and the LUT size."""
-    checked = check_common(vevm, camera, tf, grid_to_world, mode, depth_in, termination,
-                           xray_scale, xray_offset)
-    if int(lut_size) != lut_size or not 2 <= lut_size < 32767:
-        raise VolumeEVMError(f"lut_size: an integer in [2, 32767), got {lut_size!r}")
-    g, depth_in, termination, xray_scale, xray_offset = checked
-    return g, depth_in, termination, int(lut_size), xray_scale, xray_offset
 
 
 class _View:
@@ -647,7 +653,7 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         Early ray termination for ``"over"``: pixels whose opacity reached it stop receiving
         slices (error at most ``1 - termination`` per pixel); 1.0 composites every slice.
     shading : None, True, dict or Shading
-        Gradient shading for ``"over"`` and ``"under"`` (:class:`._reference.Shading`:
+        Gradient shading for ``"over"`` and ``"under"`` (:class:`._shading.Shading`:
         Blinn–Phong headlight; ignored by ``"xray"`` and ``"mip"``), applied per voxel before
         interpolation (pre-classification): per-voxel gradients (reference's central
         differences) are computed once per principal axis and cached; each view lights them
@@ -705,9 +711,10 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     >>> rgba[..., 3].astype(float).round(6).tolist(), depth.astype(float).round(6).tolist()
     ([[0.75, 0.75], [0.75, 0.75]], [[0.9985, 0.9985], [0.9985, 0.9985]])
     """
-    g, depth_in, termination, lut_size, xray_scale, xray_offset = _check(
-        vevm, camera, tf, grid_to_world, mode, depth_in, termination, lut_size, xray_scale,
-        xray_offset)
+    g, depth_in, compositing = checked_view(vevm, camera, tf, grid_to_world, mode, depth_in,
+                                            termination, xray_scale, xray_offset)
+    if int(lut_size) != lut_size or not 2 <= lut_size < 32767:
+        raise VolumeEVMError(f"lut_size: an integer in [2, 32767), got {lut_size!r}")
     try:
         intermediate_scale = float(intermediate_scale)
     except (TypeError, ValueError):
@@ -721,7 +728,8 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     if classification not in CLASSIFICATIONS:
         raise VolumeEVMError(
             f"classification: one of {CLASSIFICATIONS}, got {classification!r}")
-    shading = check_shading(shading) if mode in ("over", "under") else None
+    shading = checked_shading(shading) if mode in ("over", "under") else None
+    sampling = _Sampling(int(slices_per_voxel), classification, int(lut_size), shading)
     h, w = camera.shape
     rgba_out = np.zeros((h, w, 4), np.float32)
     depth_out = np.full((h, w), BACKGROUND_DEPTH, np.float32)
@@ -732,19 +740,19 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         view = _View(vevm, camera, g, layout, intermediate_scale, axis, step, rays)
         if view.empty:
             continue
-        image, rank, front = _composite(vevm, view, layout, camera, g, tf, mode, depth_in,
-                                        termination, shading, lut_size, xray_scale, xray_offset,
-                                        int(slices_per_voxel), classification)
+        image, rank, front = _composite(vevm, view, layout, tf, compositing, sampling,
+                                        _Clip.of_view(view, camera, g, depth_in))
         _warp(view, camera, image, rank, front, rgba_out, depth_out)
     return rgba_out, depth_out
 
 
 def tables_to_build(vevm, camera, tf, grid_to_world, options):
     """How many principal axes the render would build slice tables for: the axes of its passes
-    (:func:`_passes`) whose layout is not cached on ``vevm`` yet, or lacks what this render
-    reads (the transfer function's classes, or the post-classification table; the gradients
-    with shading); every one with ``skip_empty=False`` (the dense layout is made per render).
-    Changes nothing: it only looks at the caches.
+    (:func:`_passes`) whose layout, or what this render reads beside it (the transfer
+    function's classes and, on the default path, its rows per slice; or the
+    post-classification table; the gradients with shading), is not in ``vevm.cache``
+    (:func:`_key`); every one with ``skip_empty=False`` (the dense layout is made per render).
+    Changes nothing: it only looks at the cache.
 
     ``options`` are the renderer's keywords (``mode`` included).
     """
@@ -757,20 +765,15 @@ def tables_to_build(vevm, camera, tf, grid_to_world, options):
     shaded = mode in ("over", "under") and options.get("shading") not in (None, False)
     post = mode in ("xray", "mip") or options.get("classification", "pre") == "post"
     lut_size = options.get("lut_size", 4096)
-    layouts = _LAYOUTS.get(vevm, {})
-    count = 0
-    for axis in axes:
-        layout = layouts.get(axis)
-        if layout is None:
-            ready = False
-        elif post:
-            ready = ("post_shaded" if shaded else "post") in layout.tables
-        else:
-            classes = layout.classes[tf].get(lut_size) if tf in layout.classes else None
-            ready = classes is not None and (layout.gradients is not None if shaded
-                                             else "slice_rows" in vars(classes))
-        count += not ready
-    return count
+    constant = camera.is_ortho and float(options.get("intermediate_scale", 1.0)) == 1.0
+    if post:
+        parts = ("layout", "post_shaded" if shaded else "post")
+    else:
+        parts = ("layout", "classes") + (("gradients",) if shaded else ()) + (
+            ("slice_rows",) if _reads_slice_rows(constant, options.get("slices_per_voxel", 1),
+                                                 shaded, post) else ())
+    return sum(not all(_key(axis, part, tf, lut_size) in vevm.cache for part in parts)
+               for axis in axes)
 
 
 def _passes(vevm, camera, g):
@@ -828,39 +831,57 @@ def _slab_box(boxes, full, s, s2):
     return (max(u[0], f[0]), min(u[1], f[1]), max(u[2], f[2]), min(u[3], f[3]))
 
 
-def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, shading, lut_size,
-               xray_scale, xray_offset, per_voxel, classification):
-    """The slice loop: returns the intermediate premultiplied RGBA, the front-to-back rank of
-    the depth sample per pixel (``_NEVER`` where none) and, per rank, the slice coordinate of
-    the front end of its samples."""
-    hi, wi = view.size
-    owner, offset = _samples(view.slices, view.step, per_voxel)
-    centre = owner + offset
-    ranks = np.arange(len(owner))
-    if mode == "under":
-        owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
-    # Per-sample scalars as Python floats: the loop reads them one at a time.
-    alpha_s, beta_a, beta_b = (v.tolist() for v in view.slice_maps(owner + offset))
-    o_p, o_q = (int(o) for o in view.origin)
-    k0, kp, kq = (v.tolist() for v in view.depth_coefficients(owner + offset))
-    limit = None if depth_in is None else view.depth_limit(camera, g, depth_in)
-    far_min = camera.clip_end if limit is None else float(limit.min())
-    near = camera.clip_start
-    delta = view.delta / per_voxel
-    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
-    post = mode in ("xray", "mip") or classification == "post"
-    n_slices = len(layout.boxes)
-    table = voxels = classes = lut = None
+@dataclass(frozen=True, slots=True, eq=False)
+class _Sampling:
+    """How a render samples and classifies (checked): ``per_voxel`` samples per voxel slice,
+    ``classification`` (:data:`CLASSIFICATIONS`), ``lut_size`` rows of the classification
+    table, ``shading`` (None: unshaded)."""
+
+    per_voxel: int
+    classification: str
+    lut_size: int
+    shading: Shading
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Tables:
+    """What the samples of a view read (:func:`_tables`).
+
+    ``post``: densities are interpolated, then classified (post-classification, X-ray, MIP);
+    ``boxes``: per slice, the box of its voxels worth sampling; ``ranges``: per slice, the
+    density range, where transparent slabs may be skipped (post-classified over/under), else
+    None; ``lut``: over/under, the classification table, channels first (R, G, B, A, region
+    weight; row 0 for outside voxels: every plane of a slice's samples is contiguous), else
+    None; ``straight``: shaded post-classification, the table's straight colours
+    (:func:`_straight_rgb`); ``gathered``: the slices a sample interpolates
+    (:class:`_Gathered`); ``slice_rows`` and ``pixels``: the default path (orthographic, one
+    sample per translated slice, unshaded pre-classification: colours gathered as 16-byte RGBA
+    pixels of the table, by each voxel's row), else None.
+    """
+
+    post: bool
+    boxes: np.ndarray
+    ranges: np.ndarray
+    lut: np.ndarray
+    straight: np.ndarray
+    gathered: object
+    slice_rows: list
+    pixels: np.ndarray
+
+
+def _tables(vevm, view, layout, tf, mode, sampling, delta):
+    """The :class:`_Tables` of a view whose samples are ``delta`` mm apart."""
+    shading, lut_size = sampling.shading, sampling.lut_size
+    post = mode in ("xray", "mip") or sampling.classification == "post"
+    table = voxels = classes = lut = straight = ranges = slice_rows = pixels = None
     if post:
         table = _post_table(layout, vevm, shading is not None)
         boxes = layout.boxes
         ranges = layout.ranges if mode in ("over", "under") else None
     else:
-        classes = _classes(layout, tf, lut_size)
+        classes = _classes(vevm, layout, tf, lut_size)
         boxes = classes.tight
     if mode in ("over", "under"):
-        # Channels first (R, G, B, A, region weight), row 0 for outside voxels: every plane
-        # of a slice's samples is then contiguous.
         lut = np.zeros((5, lut_size + 1), np.float32)
         lut[:4, 1:] = tf.table(n=lut_size, step_mm=delta).T
         lut[4, 1:] = 1.0
@@ -868,6 +889,32 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
             straight = _straight_rgb(tf, lut_size)
         elif shading is not None:
             voxels = _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading)
+    if _reads_slice_rows(view.constant, sampling.per_voxel, shading is not None, post):
+        slice_rows = _slice_rows(vevm, layout, classes, tf, lut_size)
+        pixels = np.ascontiguousarray(lut[:4].T).view(np.complex128).ravel()
+    return _Tables(post, boxes, ranges, lut, straight,
+                   _Gathered(layout, classes, table, voxels, lut, boxes), slice_rows, pixels)
+
+
+def _composite(vevm, view, layout, tf, compositing, sampling, clip):
+    """The slice loop: returns the intermediate premultiplied RGBA, the front-to-back rank of
+    the depth sample per pixel (``_NEVER`` where none) and, per rank, the slice coordinate of
+    the front end of its samples."""
+    mode = compositing.mode
+    hi, wi = view.size
+    per_voxel = sampling.per_voxel
+    owner, offset = _samples(view.slices, view.step, per_voxel)
+    centre = owner + offset
+    ranks = np.arange(len(owner))
+    if mode == "under":
+        owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
+    # Per-sample scalars as Python floats: the loop reads them one at a time.
+    alpha_s, beta_a, beta_b = (v.tolist() for v in view.slice_maps(owner + offset))
+    k0, kp, kq = (v.tolist() for v in view.depth_coefficients(owner + offset))
+    delta = view.delta / per_voxel
+    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
+    tables = _tables(vevm, view, layout, tf, mode, sampling, delta)
+    n_slices = len(layout.boxes)
     rank_map = np.full((hi, wi), _NEVER, np.int32)
     if mode in ("over", "under"):
         image = np.zeros((4, hi, wi), np.float32)
@@ -875,162 +922,179 @@ def _composite(vevm, view, layout, camera, g, tf, mode, depth_in, termination, s
         image = np.zeros((hi, wi), np.float32)
         if mode == "mip":
             image.fill(_UNSEEN)
-    gathered = _Gathered(layout, classes, table, voxels, lut, boxes)
-    # The default (orthographic, one sample per translated slice, unshaded pre-classification):
-    # colours gathered as 16-byte RGBA pixels of the table, by each voxel's row.
-    translated = view.constant and per_voxel == 1 and lut is not None and not post and (
-        voxels is None)
-    if translated:
-        slice_rows = classes.slice_rows
-        pixels = np.ascontiguousarray(lut[:4].T).view(np.complex128).ravel()
     active = [0, hi, 0, wi]
     for n, s in enumerate(owner):
         t = offset[n]
         s2 = s + (1 if t > 0 else -1) if t != 0 else None
         if s2 is not None and not 0 <= s2 < n_slices:
             s2 = None
-        if post and ranges is not None:
+        if tables.ranges is not None:
             pair = [s] if s2 is None else [s, s2]
-            if tf.transparent_between(ranges[pair, 0].min(), ranges[pair, 1].max()):
+            if tf.transparent_between(tables.ranges[pair, 0].min(),
+                                      tables.ranges[pair, 1].max()):
                 continue
-        box = _slab_box(boxes, layout.boxes, s, s2)
+        box = _slab_box(tables.boxes, layout.boxes, s, s2)
         if box[1] <= box[0] or box[3] <= box[2]:
             continue
-        al, ba, bb = alpha_s[n], beta_a[n], beta_b[n]
-        if translated:
-            rows = _shift(box[0], box[1], ba, o_p, active[0], active[1])
-            cols = _shift(box[2], box[3], bb, o_q, active[2], active[3])
-            if rows is None or cols is None:
+        if tables.pixels is not None:
+            got = _shifted(tables, layout, view, s, box, active, beta_a[n], beta_b[n])
+            if got is None:
                 continue
-            (p0, p1, i0, f), (q0, q1, j0, g) = rows, cols
-            out, inside = _translated(pixels, slice_rows[s], layout.boxes[s],
-                                      (i0, i0 + p1 - p0 + 1, j0, j0 + q1 - q0 + 1), f, g)
-            area = (slice(p0, p1), slice(q0, q1))
-            _clip(inside, k0[n], kp[n], kq[n], area, view.origin, near, far_min, camera.clip_end,
-                  limit)
+            out, inside, area = got
+            clip.apply(inside, k0[n], kp[n], kq[n], area, view.origin)
             # One per-pixel factor: the clamp policy's renormalisation, the depth limits and,
             # front to back, the transparency left in front (zero where terminated).
             factor = _renormaliser(out, inside)
-            c, target = out[:4], image[(slice(None),) + area]
+            c = out[:4]
             hit = _depth.visible(out[3] * factor, units)  # the sample's own opacity
-            if mode == "over":
-                trans = 1.0 - target[3]
-                if termination < 1.0:
-                    np.putmask(trans, target[3] >= termination, 0.0)
-                factor *= trans
-                c *= factor
-                target += c
-                np.copyto(rank_map[area], ranks[n], where=hit & (rank_map[area] == _NEVER))
-                if (n + 1) % _ERT_EVERY == 0:
-                    active = _active_box(image, termination, active)
-                    if active is None:
-                        break
-            else:
-                c *= factor
-                target *= 1.0 - c[3]
-                target += c
-                np.copyto(rank_map[area], ranks[n], where=hit)
-            continue
-        rows = _span(box[0], box[1], al, ba, o_p, active[0], active[1])
-        cols = _span(box[2], box[3], al, bb, o_q, active[2], active[3])
-        if rows is None or cols is None:
-            continue
-        p0, p1, ia, fa = rows
-        q0, q1, ib, fb = cols
-        window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
-        if s2 is None:
-            src = _classified(layout, classes, table, voxels, lut, s, window)
-            region = src[-1] > 0
         else:
-            # Bilinear resampling is linear: blend the two slices voxel by voxel, then resample
-            # once (trilinear). Each voxel slice feeds up to 2k samples: gathered once.
-            mine, other = gathered.get(s, window), gathered.get(s2, window)
-            region = mine[-1] > 0
-            src = mine * np.float32(1.0 - abs(t))
-            src += other * np.float32(abs(t))
-        # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
-        out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
-        sample = _normalise(out, inside)
-        area = (slice(p0, p1), slice(q0, q1))
-        clipped = _clip(inside, k0[n], kp[n], kq[n], area, view.origin, near, far_min,
-                        camera.clip_end, limit)
-        if mode in ("xray", "mip"):
-            value = sample[0]
-            if mode == "xray":
-                np.subtract(value, np.float32(xray_offset), out=value)
-                np.maximum(value, 0, out=value)
-                value *= np.float32(xray_scale * delta)
-                value *= inside
-                # (The ray's own step is ratio times the table's: so are μΔ and the threshold.)
-                hit = _depth.attenuates(value, delta)
-                hit &= rank_map[area] == _NEVER
-                if view.ratio is not None:
-                    value *= view.ratio[area]
-                image[area] += value
-            else:
-                # Ties (within float32 rounding of the renormalised weights) keep the first,
-                # frontmost sample, as the reference does.
-                current = image[area]
-                bar = current + np.float32(_TIE) * np.maximum(np.abs(current), 1)
-                hit = inside & (sample[0] > bar)
-                np.copyto(image[area], sample[0], where=hit)
-            np.copyto(rank_map[area], ranks[n], where=hit)
-            continue
-        if post:
-            c = _post_classify(sample, inside, lut, tf, lut_size, view,
-                               shading, straight if shading is not None else None)
-        else:
-            c = sample
-        if clipped or post:  # (pre: _normalise already made outside samples zero)
-            c *= inside
-        # Before the correction to each ray's step: the threshold scales with the step too.
-        hit = _depth.visible(c[3], units)
-        if view.ratio is not None:
-            _correct(c, view.ratio[area])
-        target = image[(slice(None),) + area]
-        if mode == "over":
-            trans = 1.0 - target[3]
-            if termination < 1.0:  # terminated rays take nothing more
-                np.putmask(trans, target[3] >= termination, 0.0)
-            c *= trans
-            target += c
-            np.copyto(rank_map[area], ranks[n], where=hit & (rank_map[area] == _NEVER))
-            if (n + 1) % _ERT_EVERY == 0:
-                active = _active_box(image, termination, active)
-                if active is None:
-                    break
-        else:
-            keep = 1.0 - c[3]
-            target *= keep
-            target += c
-            np.copyto(rank_map[area], ranks[n], where=hit)
-    if mode == "xray":
-        rgba = np.empty((4, hi, wi), np.float32)
-        rgba[...] = 1.0 - np.exp(-image)
-        image = rgba
-    elif mode == "mip":
-        rgba = np.zeros((4, hi, wi), np.float32)
-        seen = image > _UNSEEN
-        straight = tf.evaluate(image[seen])
-        rgba[3][seen] = straight[:, 3]
-        for ch in range(3):
-            rgba[ch][seen] = straight[:, ch] * straight[:, 3]
-        rank_map[~(seen & _depth.visible(rgba[3], 1.0))] = _NEVER
-        image = rgba
+            got = _resampled(tables.gathered, view, s, s2, t, box, active,
+                             (alpha_s[n], beta_a[n], beta_b[n]))
+            if got is None:
+                continue
+            sample, inside, area = got
+            clipped = clip.apply(inside, k0[n], kp[n], kq[n], area, view.origin)
+            if mode in ("xray", "mip"):
+                _accumulate(image, rank_map, sample[0], inside, area, ranks[n], view,
+                            compositing, delta)
+                continue
+            c = _post_classify(sample, inside, tables, tf, sampling, view) if tables.post \
+                else sample
+            if clipped or tables.post:  # (pre: _normalise already made outside samples zero)
+                c *= inside
+            # Before the correction to each ray's step: the threshold scales with the step too.
+            hit = _depth.visible(c[3], units)
+            if view.ratio is not None:
+                _correct(c, view.ratio[area])
+            factor = None
+        _blend(image, rank_map, c, factor, hit, area, ranks[n], compositing)
+        if mode == "over" and (n + 1) % _ERT_EVERY == 0:
+            active = _active_box(image, compositing.termination, active)
+            if active is None:
+                break
+    if mode in ("xray", "mip"):
+        image = _finished(image, rank_map, mode, tf)
     return image, rank_map, centre - 0.5 * view.step / per_voxel
 
 
-def _post_classify(sample, inside, lut, tf, lut_size, view, shading, straight):
+def _shifted(tables, layout, view, s, box, active, beta_a, beta_b):
+    """The default path's sample of slice ``s``, translated by ``(beta_a, beta_b)``, over
+    ``box`` within the ``active`` part of the intermediate image: ``(interpolated RGBA and
+    region weight, inside, area)``, or None where it misses."""
+    rows = _shift(box[0], box[1], beta_a, int(view.origin[0]), active[0], active[1])
+    cols = _shift(box[2], box[3], beta_b, int(view.origin[1]), active[2], active[3])
+    if rows is None or cols is None:
+        return None
+    (p0, p1, i0, f), (q0, q1, j0, g) = rows, cols
+    out, inside = _translated(tables.pixels, tables.slice_rows[s], layout.boxes[s],
+                              (i0, i0 + p1 - p0 + 1, j0, j0 + q1 - q0 + 1), f, g)
+    return out, inside, (slice(p0, p1), slice(q0, q1))
+
+
+def _resampled(gathered, view, s, s2, t, box, active, maps):
+    """The sample at ``c = s + t`` (``s2``: the other slice it blends, or None) over ``box``
+    within the ``active`` part of the intermediate image, with the slice map ``maps = (α,
+    β_a, β_b)``: ``(normalised channels, inside, area)``, or None where it misses."""
+    alpha, beta_a, beta_b = maps
+    rows = _span(box[0], box[1], alpha, beta_a, int(view.origin[0]), active[0], active[1])
+    cols = _span(box[2], box[3], alpha, beta_b, int(view.origin[1]), active[2], active[3])
+    if rows is None or cols is None:
+        return None
+    p0, p1, ia, fa = rows
+    q0, q1, ib, fb = cols
+    window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
+    if s2 is None:
+        src = _classified(*gathered.args, s, window)
+        region = src[-1] > 0
+    else:
+        # Bilinear resampling is linear: blend the two slices voxel by voxel, then resample
+        # once (trilinear). Each voxel slice feeds up to 2k samples: gathered once.
+        mine, other = gathered.get(s, window), gathered.get(s2, window)
+        region = mine[-1] > 0
+        src = mine * np.float32(1.0 - abs(t))
+        src += other * np.float32(abs(t))
+    # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
+    out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
+    return _normalise(out, inside), inside, (slice(p0, p1), slice(q0, q1))
+
+
+def _accumulate(image, rank_map, value, inside, area, rank, view, compositing, delta):
+    """X-ray: add the optical depth of samples of density ``value`` (``delta`` mm apart) to
+    ``image`` over ``area``; MIP: keep the maximum. The pixels whose depth sample this is take
+    ``rank``."""
+    if compositing.mode == "xray":
+        np.subtract(value, np.float32(compositing.xray_offset), out=value)
+        np.maximum(value, 0, out=value)
+        value *= np.float32(compositing.xray_scale * delta)
+        value *= inside
+        # (The ray's own step is ratio times the table's: so are μΔ and the threshold.)
+        hit = _depth.attenuates(value, delta)
+        hit &= rank_map[area] == _NEVER
+        if view.ratio is not None:
+            value *= view.ratio[area]
+        image[area] += value
+    else:
+        # Ties (within float32 rounding of the renormalised weights) keep the first,
+        # frontmost sample, as the reference does.
+        current = image[area]
+        bar = current + np.float32(_TIE) * np.maximum(np.abs(current), 1)
+        hit = inside & (value > bar)
+        np.copyto(image[area], value, where=hit)
+    np.copyto(rank_map[area], rank, where=hit)
+
+
+def _blend(image, rank_map, c, factor, hit, area, rank, compositing):
+    """Over or under: composite premultiplied samples ``c`` (4, ...), times ``factor`` if
+    given, into ``image`` over ``area``; visible samples (``hit``) give their pixels ``rank``
+    (over: the first, under: the last met, which is the frontmost)."""
+    target = image[(slice(None),) + area]
+    ranks = rank_map[area]
+    if compositing.mode == "over":
+        trans = 1.0 - target[3]
+        if compositing.termination < 1.0:  # terminated rays take nothing more
+            np.putmask(trans, target[3] >= compositing.termination, 0.0)
+        if factor is not None:
+            factor *= trans
+            trans = factor
+        c *= trans
+        target += c
+        np.copyto(ranks, rank, where=hit & (ranks == _NEVER))
+    else:
+        if factor is not None:
+            c *= factor
+        target *= 1.0 - c[3]
+        target += c
+        np.copyto(ranks, rank, where=hit)
+
+
+def _finished(image, rank_map, mode, tf):
+    """X-ray's optical depths or MIP's maxima ``(hi, wi)`` as premultiplied RGBA
+    ``(4, hi, wi)`` (:func:`._modes.finish_mode`); pixels whose maximum is not visible lose
+    their depth sample."""
+    hi, wi = image.shape
+    acc = np.zeros((hi * wi, 4), np.float32)
+    vmax = None
+    if mode == "xray":
+        acc[:, 0] = image.ravel()
+    else:
+        vmax = np.where(image > _UNSEEN, image, -np.inf).ravel()
+    visible = finish_mode(acc, vmax, mode, tf)
+    if visible is not None:
+        rank_map[~visible.reshape(hi, wi)] = _NEVER
+    return acc.reshape(hi, wi, 4).transpose(2, 0, 1)
+
+
+def _post_classify(sample, inside, tables, tf, sampling, view):
     """Premultiplied, step-corrected RGBA (4, ...) of interpolated densities ``sample[0]``
-    (and, with shading, gradients ``sample[1:4]``) through the table ``lut``."""
-    rows = tf.quantize(sample[0], n=lut_size)
+    (and, with shading, gradients ``sample[1:4]``) through the table ``tables.lut``."""
+    rows = tf.quantize(sample[0], n=sampling.lut_size)
     rows += 1
     rows *= inside  # row 0: transparent
-    c = np.take(lut[:4], rows, axis=1)
-    if shading is not None:
+    c = np.take(tables.lut[:4], rows, axis=1)
+    if sampling.shading is not None:
         grads = np.moveaxis(sample[1:4], 0, -1)
-        lit, glint = _light(grads, view, shading)
-        rgb = np.take(straight, rows, axis=1)
+        lit, glint = _light(grads, view, sampling.shading)
+        rgb = np.take(tables.straight, rows, axis=1)
         rgb *= lit
         rgb += glint
         np.minimum(rgb, 1.0, out=rgb)
@@ -1072,22 +1136,39 @@ def _shift(t0, t1, beta, origin, lo, hi):
     return p0 - origin, p1 - origin, p0 + base, np.float32(beta - base)
 
 
-def _clip(inside, k0, kp, kq, area, origin, near, far_min, far, limit):
-    """The depth test on samples ``inside`` over ``area`` of the intermediate image (array
-    indices; ``origin`` added gives the absolute point), whose axial depth is
-    ``k0 + kp p + kq q``: clears those not in ``[near, min(far, limit))``. Only evaluated per
-    pixel where the area's depth range crosses a limit (``far_min``: the smallest); returns
-    whether it did."""
-    p0, p1 = area[0].start + origin[0], area[0].stop + origin[0]
-    q0, q1 = area[1].start + origin[1], area[1].stop + origin[1]
-    corners = [k0 + kp * pp + kq * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
-    if min(corners) >= near and max(corners) < far_min:
-        return False
-    dep = (k0 + kp * np.arange(p0, p1, dtype=np.float64)[:, None]
-           + kq * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
-    inside &= dep >= near
-    inside &= dep < (far if limit is None else limit[area])
-    return True
+@dataclass(frozen=True, slots=True, eq=False)
+class _Clip:
+    """The depth test of a view: a sample counts where its axial depth is in ``[near,
+    min(far, limit))``; ``limit``: ``depth_in`` per intermediate pixel
+    (:meth:`_View.depth_limit`) or None; ``far_min``: the smallest of the far limits."""
+
+    near: float
+    far: float
+    far_min: float
+    limit: np.ndarray
+
+    @classmethod
+    def of_view(cls, view, camera, g, depth_in):
+        """The camera's clip range and ``depth_in`` (None: no geometry) for ``view``."""
+        limit = None if depth_in is None else view.depth_limit(camera, g, depth_in)
+        far_min = camera.clip_end if limit is None else float(limit.min())
+        return cls(camera.clip_start, camera.clip_end, far_min, limit)
+
+    def apply(self, inside, k0, kp, kq, area, origin):
+        """Clear the samples ``inside`` over ``area`` of the intermediate image (array
+        indices; ``origin`` added gives the absolute point), whose axial depth is
+        ``k0 + kp p + kq q``, that fail the test. Only evaluated per pixel where the area's
+        depth range crosses a limit; returns whether it was."""
+        p0, p1 = area[0].start + origin[0], area[0].stop + origin[0]
+        q0, q1 = area[1].start + origin[1], area[1].stop + origin[1]
+        corners = [k0 + kp * pp + kq * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
+        if min(corners) >= self.near and max(corners) < self.far_min:
+            return False
+        dep = (k0 + kp * np.arange(p0, p1, dtype=np.float64)[:, None]
+               + kq * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
+        inside &= dep >= self.near
+        inside &= dep < (self.far if self.limit is None else self.limit[area])
+        return True
 
 
 def _classified(layout, classes, table, voxels, lut, s, window):

@@ -45,8 +45,8 @@ voxels whose whole window is already opaque (``termination``) are not splatted a
 stops once every pixel is. Voxels whose in-sheet neighbourhood (every density a pixel they
 reach can mix; with sub-slabs also their neighbours' in the adjacent slices) is transparent for
 the transfer function (X-ray: does not attenuate) are not splatted either: the image is the
-same. Which voxels those are is per-transfer-function work, cached on the VolumeEVM per axis
-for the last transfer function (frames of an animation share it). Shading (optional) splats
+same. Which voxels those are is per-transfer-function work, kept in the VolumeEVM's cache per
+axis for the last transfer function (frames of an animation share it). Shading (optional) splats
 per-voxel gradients (central differences over region voxels, from the neighbouring sheets) with
 the densities and lights the sheet's samples like the reference does.
 
@@ -98,7 +98,7 @@ IEEE Visualization 1998.
 K. Mueller, T. Möller, R. Crawfis, "Splatting without the blur", IEEE Visualization 1999.
 """
 
-import weakref
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -106,15 +106,17 @@ from .._errors import VolumeEVMError
 from ..model._densities import TABLE_ORDERS
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._raycast import camera_rays, check_common, check_shading, finish_mode
-from ._reference import _shade
+from ._checks import checked_view, positive_integer
+from ._gradients import region_gradients
+from ._modes import finish_mode
+from ._rays import Rays, camera_rays
+from ._shading import Lighting, checked_shading
 
 __all__ = ["render_splat"]
 
 _FOOTPRINT_SIZE = 1024
 _CULL_INVISIBLE = True
 """Drop voxels whose whole neighbourhood is transparent (they cannot change the image)."""
-_CACHE = weakref.WeakKeyDictionary()
 _PAIRS = 1 << 22
 """Voxel-pixel pairs scattered at once (bounds memory)."""
 
@@ -135,28 +137,37 @@ def _section_voxels(section):
 
 def _slabs(vevm, axis):
     """Per slab of the sweep along ``axis``: ``(lo, hi, cells (m, 2) B, C, table offset)``,
-    cached on the VolumeEVM."""
-    entry = _CACHE.setdefault(vevm, {})
-    if axis not in entry:
+    kept in ``vevm.cache`` (:func:`_slabs_key`)."""
+
+    def make():
         out = []
         base = 0
         for slab in vevm.evm.sections(TABLE_ORDERS[axis]):
             cells = _section_voxels(slab.section)
             out.append((slab.lo, slab.hi, cells, base))
             base += len(cells) * (slab.hi - slab.lo)
-        entry[axis] = out
-    return entry[axis]
+        return out
+
+    return vevm.cache.get(_slabs_key(axis), make)
 
 
-def _kept_voxels(vevm, axis, key):
+def _slabs_key(axis):
+    """The ``vevm.cache`` key of the sections of ``axis``: one function for the render and
+    :func:`tables_to_build`, so that the memory check sees the same cache the render uses."""
+    return ("splat", "slabs", axis)
+
+
+def _kept_voxels(vevm, axis, rule):
     """The dict ``a -> indices of slice a's voxels that can change the image`` for the
-    culling rule ``key`` (mode, transfer function's opacity, reach), cached on the VolumeEVM
-    for the last rule per axis: per-transfer-function work, like a classified volume, that
-    frames with the same transfer function share."""
-    entry = _CACHE.setdefault(vevm, {})
-    if entry.get(("kept", axis), (None,))[0] != key:
-        entry[("kept", axis)] = (key, {})
-    return entry[("kept", axis)][1]
+    culling ``rule`` (mode, transfer function's opacity, reach), kept in ``vevm.cache`` for
+    the last rule per axis: per-transfer-function work, like a classified volume, that frames
+    with the same transfer function share. The render fills it a slice at a time."""
+    key = ("splat", "kept", axis)
+    kept_rule, kept = vevm.cache.get(key, lambda: (rule, {}))
+    if kept_rule != rule:
+        vevm.cache.discard(key)
+        _, kept = vevm.cache.get(key, lambda: (rule, {}))
+    return kept
 
 
 def _slices_evm(vevm, axis):
@@ -202,37 +213,23 @@ def _sheets(get, order):
 
 
 def _sheet_gradients(get, a, cells):
-    """Index-space central differences ``(m, 3)`` (A, B, C) at the cells of slice ``a`` over
-    region voxels, one-sided where one neighbour is outside, 0 where both are (the reference's
-    rule), from slices ``a - 1 .. a + 1``."""
+    """Index-space gradients ``(m, 3)`` (A, B, C) at the cells of slice ``a``, the
+    reference's rule (:func:`._gradients.region_gradients`), from slices ``a - 1 .. a + 1``."""
     lo = cells.min(axis=0) - 1
     shape = tuple(cells.max(axis=0) - lo + 2)
-    grids = []
-    for k in (a - 1, a, a + 1):
-        dens = np.zeros(shape)
-        mask = np.zeros(shape, bool)
+    dens = np.zeros((3,) + shape)
+    mask = np.zeros((3,) + shape, bool)
+    for j, k in enumerate((a - 1, a, a + 1)):
         got = get(k)
         if got is not None:
             c, d = got
             c = c - lo
             fits = np.all((c >= 0) & (c < shape), axis=1)
-            at = (c[fits, 0], c[fits, 1])
-            dens[at] = d[fits]
-            mask[at] = True
-        grids.append((dens, mask))
-    at = (cells[:, 0] - lo[0], cells[:, 1] - lo[1])
-    f0 = grids[1][0][at]
-    out = np.empty((len(cells), 3))
-    pairs = [(grids[2][0][at], grids[2][1][at], grids[0][0][at], grids[0][1][at])]
-    for ax in (0, 1):
-        plus = (at[0] + (ax == 0), at[1] + (ax == 1))
-        minus = (at[0] - (ax == 0), at[1] - (ax == 1))
-        pairs.append((grids[1][0][plus], grids[1][1][plus], grids[1][0][minus],
-                      grids[1][1][minus]))
-    for j, (fp, mp, fm, mm) in enumerate(pairs):
-        out[:, j] = np.where(mp & mm, 0.5 * (fp - fm),
-                             np.where(mp, fp - f0, np.where(mm, f0 - fm, 0.0)))
-    return out
+            dens[j, c[fits, 0], c[fits, 1]] = d[fits]
+            mask[j, c[fits, 0], c[fits, 1]] = True
+    grads = np.empty((3, 1, shape[0] - 2, shape[1] - 2))
+    region_gradients(dens, mask, grads)
+    return grads[:, 0, cells[:, 0] - lo[0] - 1, cells[:, 1] - lo[1] - 1].T
 
 
 def _sheet_neighbours(get, a, cells, dens):
@@ -316,7 +313,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         ``"over"``: pixels whose opacity reaches it take no more splats, and voxels whose
         window is all such pixels are skipped (error at most ``1 - termination``); 1 = off.
     shading : None, True, dict or Shading
-        Gradient shading for over/under (:class:`._reference.Shading`, the reference's
+        Gradient shading for over/under (:class:`._shading.Shading`, the reference's
         Blinn–Phong headlight): per-voxel central differences over region voxels (from the
         neighbouring sheets), splatted with the densities and normalised the same way.
     kernel_sigma, kernel_radius : float
@@ -350,9 +347,9 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     depth : (H, W) ndarray of np.float32
         Axial depth (Blender units) of the first visible sheet; 1e10 where none.
     """
-    g, depth_in, termination, xray_scale, xray_offset = check_common(
-        vevm, camera, tf, grid_to_world, mode, depth_in, termination, xray_scale, xray_offset)
-    shading = check_shading(shading) if mode in ("over", "under") else None
+    g, depth_in, compositing = checked_view(vevm, camera, tf, grid_to_world, mode, depth_in,
+                                            termination, xray_scale, xray_offset)
+    shading = checked_shading(shading) if mode in ("over", "under") else None
     try:
         sigma, radius = float(kernel_sigma), float(kernel_radius)
     except (TypeError, ValueError):
@@ -360,34 +357,31 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     if not (np.isfinite(sigma) and np.isfinite(radius) and sigma > 0 and radius >= 0.9):
         raise VolumeEVMError(f"kernel_sigma/kernel_radius: need sigma > 0 and radius >= 0.9 "
                              f"voxels, got {kernel_sigma!r}, {kernel_radius!r}")
-    max_px = int(max_footprint_px)
-    if max_px < 1:
-        raise VolumeEVMError(f"max_footprint_px: must be >= 1, got {max_footprint_px!r}")
+    max_px = positive_integer("max_footprint_px", max_footprint_px)
     try:
         blend = float(blend)
     except (TypeError, ValueError):
         blend = np.nan
     if not 0 <= blend < 1:
         raise VolumeEVMError(f"blend: must be in [0, 1), got {blend!r}")
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise VolumeEVMError(f"substeps: must be an integer >= 1, got {substeps!r}")
+    substeps = positive_integer("substeps", substeps)
     h, w = camera.shape
     depth = np.full(h * w, BACKGROUND_DEPTH, np.float32)
     if vevm.evm.is_empty():
         return np.zeros((h, w, 4), np.float32), depth.reshape(h, w)
 
-    r = camera_rays(camera, g, vevm.shape, depth_in)
     inv = np.linalg.inv(g)
     view, cam_i = _view(vevm, camera, inv)
+    splat_view = _SplatView(camera, g, inv, camera_rays(camera, g, vevm.shape, depth_in), view,
+                            cam_i, Lighting.of_view(shading, g))
+    kernel = _Kernel(sigma, radius, max_px, 1 if mode == "mip" else substeps)
     weights = _family_weights(view * np.asarray(vevm.spacing, dtype=np.float64), blend)
     out = None
     for axis in np.argsort(-weights, kind="stable"):  # ties: the lower axis first
         if weights[axis] == 0:
             break
-        acc, dep = _render_axis(vevm, camera, tf, g, inv, r, int(axis), view, cam_i, mode,
-                                skip_empty, termination, shading, sigma, radius, max_px,
-                                1 if mode == "mip" else int(substeps), xray_scale,
-                                xray_offset)
+        acc, dep = _render_axis(vevm, int(axis), splat_view, kernel, compositing, tf,
+                                skip_empty)
         if out is None:  # the dominant family gives the depth
             out, depth = acc * np.float32(weights[axis]), dep
         else:
@@ -398,7 +392,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
 def tables_to_build(vevm, camera, tf, grid_to_world, options):
     """How many sheet families (principal axes) the render would build tables for: the axes
     the view blends (:func:`_family_weights`) whose sections (:func:`_slabs`, made with the
-    axis's densities table) are not cached on ``vevm`` yet; every one with ``skip_empty=False``
+    axis's densities table) are not in ``vevm.cache`` yet; every one with ``skip_empty=False``
     (the dense slices are made per render). Changes nothing: it only looks at the caches.
 
     ``options`` are the renderer's keywords (``mode`` included); ``tf`` is unused (the culled
@@ -412,8 +406,7 @@ def tables_to_build(vevm, camera, tf, grid_to_world, options):
     axes = np.flatnonzero(weights > 0)
     if not options.get("skip_empty", True):
         return len(axes)
-    entry = _CACHE.get(vevm, {})
-    return sum(int(axis) not in entry for axis in axes)
+    return sum(_slabs_key(int(axis)) not in vevm.cache for axis in axes)
 
 
 def _view(vevm, camera, inv):
@@ -444,119 +437,197 @@ def _family_weights(view, blend):
     return weights / weights.sum()
 
 
-def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empty,
-                 termination, shading, sigma, radius, max_px, substeps, xray_scale, xray_offset):
-    """Composite the sheets along ``axis`` (arguments as :func:`render_splat`, checked;
-    ``r``: :func:`camera_rays`, ``view``/``cam_i``: index-space view and camera position).
-    Returns ``(rgba (H, W, 4), depth (H, W))``."""
+@dataclass(frozen=True, slots=True, eq=False)
+class _Kernel:
+    """The voxels' footprints: a Gaussian of ``sigma`` voxels truncated at ``radius`` voxels,
+    windows of at most ``max_px`` pixels half-width, ``substeps`` sub-slabs per sheet."""
+
+    sigma: float
+    radius: float
+    max_px: int
+    substeps: int
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _SplatView:
+    """What the sheet families of a view share: the ``camera``, ``g`` (grid to world) and its
+    inverse ``inv``, the pixel ``rays`` (:func:`._rays.camera_rays`), the index-space
+    ``view`` direction and camera position ``cam_i`` (None when orthographic, :func:`_view`),
+    and the ``lighting`` (None: unshaded)."""
+
+    camera: object
+    g: np.ndarray
+    inv: np.ndarray
+    rays: Rays
+    view: np.ndarray
+    cam_i: np.ndarray
+    lighting: Lighting
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Image:
+    """What a sheet family composites into, flat per pixel: premultiplied RGBA ``acc``
+    (H·W, 4), the axial ``depth``, ``done`` (pixels that take no more contributions), MIP's
+    maxima ``vmax`` (empty for the other modes)."""
+
+    acc: np.ndarray
+    depth: np.ndarray
+    done: np.ndarray
+    vmax: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Colouring:
+    """Over and under: the classification table ``lut`` (straight RGBA, ``lo``, rows per data
+    unit), the transfer function's ``unit_length_mm``, the ``lighting`` (None: unshaded) and
+    the world ray direction of every pixel, ``dirs``."""
+
+    lut: tuple
+    unit_length_mm: float
+    lighting: Lighting
+    dirs: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Sheet:
+    """The voxels of a sheet to splat, one row each: ``cells`` (B, C), densities ``dens``,
+    the densities at the same cells in the neighbouring slices ``nb`` ((2, m); None without
+    sub-slabs), pixel positions ``uv`` and those of the neighbours one voxel along B and C
+    (``uvb``, ``uvc``), the unit view direction ``u`` (index space) and the half-widths of
+    each footprint's window in pixels, ``hwid`` (m, 2)."""
+
+    cells: np.ndarray
+    dens: np.ndarray
+    nb: np.ndarray
+    uv: np.ndarray
+    uvb: np.ndarray
+    uvc: np.ndarray
+    u: np.ndarray
+    hwid: np.ndarray
+
+    def take(self, keep):
+        """The voxels ``keep`` (a mask or indices)."""
+        return _Sheet(self.cells[keep], self.dens[keep],
+                      None if self.nb is None else self.nb[:, keep], self.uv[keep],
+                      self.uvb[keep], self.uvc[keep], self.u[keep], self.hwid[keep])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Projection:
+    """How the voxels of the sheets along ``axes[0]`` reach the image: ``axes`` (A, B, C as
+    grid axes), the ``view``, ``fwd_i`` (the camera's forward direction in index space) and,
+    orthographic, ``ortho``: the projection, affine in index space (rows: pixel u, v and depth
+    of the index origin, then per unit of x, y, z; None for perspective)."""
+
+    view: _SplatView
+    axes: tuple
+    fwd_i: np.ndarray
+    ortho: np.ndarray
+
+    @classmethod
+    def of_view(cls, view, axes):
+        """The projection of ``view`` for the sheet family of ``axes``."""
+        camera, g = view.camera, view.g
+        ortho = None
+        if camera.is_ortho:
+            corners = np.vstack([g[:3, 3], g[:3, 3] + g[:3, :3].T])
+            uv0, depth0 = camera.project(corners)
+            ortho = np.column_stack([uv0, depth0])
+            ortho[1:] -= ortho[0]
+        return cls(view, axes, camera.forward @ view.inv[:3, :3].T, ortho)
+
+    def project(self, a, cells):
+        """The voxels ``cells`` of sheet ``a`` in the image: pixel positions ``uv``, depths,
+        the positions of their neighbours one voxel along B and C (``uvb``, ``uvc``), the
+        image motion per unit of B and C (``jb``, ``jc``) and the view direction (index
+        space); orthographic: one row of motion and direction for all voxels."""
+        axis, b_ax, c_ax = self.axes
+        vox = np.empty((len(cells), 3), np.float64)
+        vox[:, axis] = a
+        vox[:, b_ax] = cells[:, 0]
+        vox[:, c_ax] = cells[:, 1]
+        if self.ortho is not None:
+            uvd = vox @ self.ortho[1:] + self.ortho[0]
+            uv, vdepth = uvd[:, :2], uvd[:, 2]
+            jb, jc = self.ortho[1 + b_ax, None, :2], self.ortho[1 + c_ax, None, :2]
+            return uv, vdepth, uv + jb, uv + jc, jb, jc, self.fwd_i[None, :]
+        g, camera = self.view.g, self.view.camera
+        world = vox @ g[:3, :3].T + g[:3, 3]
+        uv, vdepth = camera.project(world)
+        uvb, _ = camera.project(world + g[:3, b_ax])
+        uvc, _ = camera.project(world + g[:3, c_ax])
+        return uv, vdepth, uvb, uvc, uvb - uv, uvc - uv, vox - self.view.cam_i
+
+    def place(self, a, cells, dens, nb, kernel):
+        """The :class:`_Sheet` of the voxels of sheet ``a`` in front of the camera whose
+        footprints the image can show, and ``reach``: offsets reach a sub-sample's footprint
+        if they lie within this of the crossing point; None if there are none."""
+        axis, b_ax, c_ax = self.axes
+        n = len(cells)
+        uv, vdepth, uvb, uvc, jb, jc, dirs = self.project(a, cells)
+        u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        uA = np.abs(u[:, axis])
+        # Footprint window: the kernel's in-plane ellipse mapped by the local projection, moved
+        # along the ray's drift by up to ``shift`` (the slab's outermost sub-sample).
+        shift = (1 - 1 / kernel.substeps) / 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            slope_b = np.abs(u[:, b_ax]) / uA
+            slope_c = np.abs(u[:, c_ax]) / uA
+            ext_b = kernel.radius * np.sqrt(1 + slope_b ** 2) + shift * slope_b
+            ext_c = kernel.radius * np.sqrt(1 + slope_c ** 2) + shift * slope_c
+            hwid = np.abs(jb) * ext_b[:, None] + np.abs(jc) * ext_c[:, None]
+        ok = (np.isfinite(uv).all(axis=1) & (vdepth > 0) & (uA > 1e-6)
+              & np.isfinite(hwid).all(axis=1))
+        sheet = _Sheet(cells, dens, nb, uv, uvb, uvc, np.broadcast_to(u, (n, 3)),
+                       np.broadcast_to(hwid, (n, 2)))
+        if not ok.all():
+            sheet = sheet.take(ok)
+        if len(sheet.cells) == 0:
+            return None
+        u = sheet.u
+        reach = kernel.radius + shift * float(np.max(np.hypot(u[:, b_ax], u[:, c_ax])
+                                                     / np.abs(u[:, axis])))
+        return sheet, reach
+
+
+def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
+    """Composite the sheets along ``axis`` (checked arguments as :func:`render_splat` gives
+    them). Returns ``(rgba (H, W, 4), depth (H, W))``."""
+    camera = view.camera
+    mode, termination = compositing.mode, compositing.termination
+    substeps = kernel.substeps
     h, w = camera.shape
     npix = h * w
-    depth = np.full(npix, BACKGROUND_DEPTH, np.float32)
-    spacing = np.asarray(vevm.spacing, dtype=np.float64)
-    o, d, t0, t1 = r["o"], r["d"], r["t0"], r["t1"]
     b_ax, c_ax = ["xyz".index(ch) for ch in TABLE_ORDERS[axis][1:]]
-
-    # Per pixel (as (H, W) images): where the ray crosses plane A = a (B = B0 + a·B1, C
-    # likewise), its parameter there (t = tA + a·iA), the mm per unit of A, its axial depth
-    # a0 + kz·t, and the clipped ray range [t0, t1].
-    reach = t1 > t0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        iA = 1.0 / d[:, axis]
-    reach &= np.isfinite(iA)
-    iA = np.where(reach, iA, 0.0)
-    img = {
-        "B1": d[:, b_ax] * iA,
-        "C1": d[:, c_ax] * iA,
-        "tA": -o[:, axis] * iA,
-        "iA": iA,
-        "span": np.abs(iA),  # ray parameter per unit of A
-        "t0": np.where(reach, t0, 0.0),
-        "t1": np.where(reach, t1, 0.0),
-        "mm": np.linalg.norm(d * spacing, axis=1) * np.abs(iA),
-        "a0": r["a0"],
-        "kz": r["kz"],
-    }
-    img["B0"] = o[:, b_ax] - o[:, axis] * img["B1"]
-    img["C0"] = o[:, c_ax] - o[:, axis] * img["C1"]
-    # Drift per unit of path along the ray's own direction (offsets count along the ray).
-    img["dB"] = img["B1"] * np.sign(iA)
-    img["dC"] = img["C1"] * np.sign(iA)
+    img, entered = _crossings(view.rays, axis, b_ax, c_ax, vevm.spacing)
     img = {k: v.reshape(h, w) for k, v in img.items()}
-
-    # Sheet order: outward from the camera, the side the view faces first (front to back for
-    # every ray that sees a sheet; rays see no sheet behind their start).
-    n_a = vevm.shape[axis]
-    if camera.is_ortho:
-        order = np.arange(n_a) if view[axis] > 0 else np.arange(n_a)[::-1]
-    else:
-        ca = cam_i[axis]
-        ahead = np.arange(n_a) if view[axis] > 0 else np.arange(n_a)[::-1]
-        is_ahead = (ahead - ca) * np.sign(view[axis]) >= 0
-        order = np.concatenate([ahead[is_ahead], ahead[~is_ahead][::-1]])
-    if mode == "under":
-        order = order[::-1]
     get = (_slices_evm if skip_empty else _slices_dense)(vevm, axis)
-    sheets = _sheets(get, order)
+    sheets = _sheets(get, _sheet_order(vevm.shape[axis], axis, view, mode))
 
-    ftab, fscale = _footprint_table(sigma, radius)
-    if mode == "xray":
-        lut = None
-    else:
+    ftab, fscale = _footprint_table(kernel.sigma, kernel.radius)
+    colouring = None
+    if mode != "xray":
         lo, hi = tf.value_range
         hi = hi if hi > lo else lo + 1.0
-        lut = (np.asarray(tf.straight_table(lo, hi, 4096), dtype=np.float32), lo,
+        lut = (np.asarray(tf.straight_table(lo=lo, hi=hi, n=4096), dtype=np.float32), lo,
                4095.0 / (hi - lo))
+        colouring = _Colouring(lut, tf.unit_length_mm, view.lighting, view.rays.dirs)
     acc = np.zeros((h, w, 4), np.float32)
-    depth = depth.reshape(h, w)
-    done = ~reach.reshape(h, w)  # pixels that take no more contributions
+    depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)
+    done = ~entered.reshape(h, w)  # pixels that take no more contributions
     # Flat views of the images for scattered updates.
-    acc_f, depth_f, done_f = acc.reshape(-1, 4), depth.reshape(-1), done.reshape(-1)
+    out = _Image(acc.reshape(-1, 4), depth.reshape(-1), done.reshape(-1),
+                 np.full(npix if mode == "mip" else 0, -np.inf, np.float32))
     mm_f, a0_f, kz_f = img["mm"].ravel(), img["a0"].ravel(), img["kz"].ravel()
-    dirs_f = r["dirs"]
-    inv_t = inv[:3, :3].T  # index-space gradients to world normals
-    vmax_f = np.full(npix if mode == "mip" else 0, -np.inf, np.float32)  # MIP's maxima
-    unit = tf.unit_length_mm if lut is not None else 1.0
     cull = None
     if _CULL_INVISIBLE and mode != "mip":
-        # Every pixel a voxel reaches takes its density from voxels at most 2·radius·√3
-        # in-plane voxels from it (the footprint's ellipse for the most oblique view).
-        reach_vox = int(np.ceil(2 * radius * np.sqrt(3.0)))
-        if mode == "xray":
-            key = ("xray", reach_vox, substeps > 1, xray_scale, xray_offset)
-
-            def visible(cells, lo_, hi_):
-                hi = _neighbourhood(cells, hi_, reach_vox, np.maximum, -np.inf)
-                return (hi > xray_offset) & (xray_scale > 0)
-        else:
-            margin = 1.0 / lut[2]  # one lookup-table step: the table is interpolated
-            key = ("tf", reach_vox, substeps > 1, margin, tf.points[:, [0, 4]].tobytes())
-
-            def visible(cells, lo_, hi_):
-                lo_ = _neighbourhood(cells, lo_, reach_vox, np.minimum, np.inf)
-                hi_ = _neighbourhood(cells, hi_, reach_vox, np.maximum, -np.inf)
-                return ~tf.transparent_between(lo_ - margin, hi_ + margin)
-        kept = _kept_voxels(vevm, axis, key) if skip_empty else {}
-
-        def cull(a, cells, dens):
-            """Indices of the sheet's voxels to splat. Sub-slabs interpolate towards the
-            neighbouring slices, so a voxel's samples lie between its density and theirs."""
-            if a not in kept:
-                lo_ = hi_ = dens
-                if substeps > 1:
-                    nb = _sheet_neighbours(get, a, cells, dens)
-                    lo_ = np.minimum(dens, nb.min(axis=0))
-                    hi_ = np.maximum(dens, nb.max(axis=0))
-                kept[a] = np.flatnonzero(visible(cells, lo_, hi_)).astype(np.int32)
-            return kept[a]
-    fwd_i = camera.forward @ inv[:3, :3].T
+        rule, visible = _cull_rule(kernel, compositing, tf, colouring)
+        cull = _culler(get, _kept_voxels(vevm, axis, rule) if skip_empty else {}, visible,
+                       substeps)
+    projection = _Projection.of_view(view, (axis, b_ax, c_ax))
     if camera.is_ortho:
-        # An orthographic projection is affine in index space: rows (pixel u, v, depth) of
-        # the index origin, then per unit of x, y, z.
-        corners = np.vstack([g[:3, 3], g[:3, 3] + g[:3, :3].T])
-        uv0, depth0 = camera.project(corners)
-        ortho = np.column_stack([uv0, depth0])
-        ortho[1:] -= ortho[0]
-        ortho_offsets = {}
+        ortho_offsets = {}  # the same footprint for every voxel and sheet
+        fwd_i = projection.fwd_i
         drift = (fwd_i[[b_ax, c_ax]] / abs(fwd_i[axis])).astype(np.float32)  # dB/dA, dC/dA
     for a, cells, dens in sheets:
         live_rows = np.flatnonzero(~done.all(axis=1))
@@ -570,53 +641,14 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
                 continue
         # Off the sheet's plane the density is linear along A towards the neighbouring slice.
         nb = _sheet_neighbours(get, a, cells, dens) if substeps > 1 else None
-        n = len(cells)
-        vox = np.empty((n, 3), np.float64)
-        vox[:, axis] = a
-        vox[:, b_ax] = cells[:, 0]
-        vox[:, c_ax] = cells[:, 1]
-        # Pixel position, the image motion per unit of B and C (jb, jc), and the view
-        # direction: one row for all voxels in orthographic views.
-        if camera.is_ortho:
-            uvd = vox @ ortho[1:] + ortho[0]
-            uv, vdepth = uvd[:, :2], uvd[:, 2]
-            jb, jc = ortho[1 + b_ax, None, :2], ortho[1 + c_ax, None, :2]
-            uvb, uvc = uv + jb, uv + jc
-            dirs = fwd_i[None, :]
-        else:
-            world = vox @ g[:3, :3].T + g[:3, 3]
-            uv, vdepth = camera.project(world)
-            uvb, _ = camera.project(world + g[:3, b_ax])
-            uvc, _ = camera.project(world + g[:3, c_ax])
-            jb, jc = uvb - uv, uvc - uv
-            dirs = vox - cam_i
-        u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-        uA = np.abs(u[:, axis])
-        # Footprint window: the kernel's in-plane ellipse mapped by the local projection, moved
-        # along the ray's drift by up to ``shift`` (the slab's outermost sub-sample).
-        shift = (1 - 1 / substeps) / 2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            slope_b = np.abs(u[:, b_ax]) / uA
-            slope_c = np.abs(u[:, c_ax]) / uA
-            ext_b = radius * np.sqrt(1 + slope_b ** 2) + shift * slope_b
-            ext_c = radius * np.sqrt(1 + slope_c ** 2) + shift * slope_c
-            hwid = np.abs(jb) * ext_b[:, None] + np.abs(jc) * ext_c[:, None]
-        ok = (np.isfinite(uv).all(axis=1) & (vdepth > 0) & (uA > 1e-6)
-              & np.isfinite(hwid).all(axis=1))
-        u, hwid = np.broadcast_to(u, (n, 3)), np.broadcast_to(hwid, (n, 2))
-        if not ok.all():
-            cells, dens, uv, u, hwid = cells[ok], dens[ok], uv[ok], u[ok], hwid[ok]
-            uvb, uvc = uvb[ok], uvc[ok]
-            nb = None if nb is None else nb[:, ok]
-        if len(cells) == 0:
+        placed = projection.place(a, cells, dens, nb, kernel)
+        if placed is None:
             continue
-        # Offsets reach a sub-sample's footprint if they lie within this of the crossing point.
-        reach = radius + shift * float(np.max(np.hypot(u[:, b_ax], u[:, c_ax])
-                                              / np.abs(u[:, axis])))
-        hu = int(min(np.ceil(hwid[:, 0].max()) + 1, max_px + 1))
-        hv = int(min(np.ceil(hwid[:, 1].max()) + 1, max_px + 1))
-        col = np.floor(uv[:, 0]).astype(np.int64)
-        row = np.floor(uv[:, 1]).astype(np.int64)
+        sheet, reach = placed
+        hu = int(min(np.ceil(sheet.hwid[:, 0].max()) + 1, kernel.max_px + 1))
+        hv = int(min(np.ceil(sheet.hwid[:, 1].max()) + 1, kernel.max_px + 1))
+        col = np.floor(sheet.uv[:, 0]).astype(np.int64)
+        row = np.floor(sheet.uv[:, 1]).astype(np.int64)
         # The sheet's window in the image, cut to the pixels still taking contributions.
         c0 = max(int(col.min()) - hu, int(live_cols[0]))
         c1 = min(int(col.max()) + hu + 1, int(live_cols[-1]) + 1)
@@ -639,19 +671,18 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
             cb = np.clip(col + hu + 1 - c0, 0, bw)
             keep = (sat[rb, cb] - sat[ra, cb] - sat[rb, ca] + sat[ra, ca]) > 0
             if not keep.all():
-                cells, dens, u, col, row = cells[keep], dens[keep], u[keep], col[keep], row[keep]
-                uv, uvb, uvc = uv[keep], uvb[keep], uvc[keep]
-                nb = None if nb is None else nb[:, keep]
-            if len(cells) == 0:
+                sheet, col, row = sheet.take(keep), col[keep], row[keep]
+            if len(sheet.cells) == 0:
                 continue
-        if camera.is_ortho:  # the same footprint for every voxel and sheet
+        cells, dens, nb, uv, u = sheet.cells, sheet.dens, sheet.nb, sheet.uv, sheet.u
+        if camera.is_ortho:
             if (hu, hv) not in ortho_offsets:
-                ortho_offsets[hu, hv] = _window_offsets(uv, uvb, uvc, u[:, b_ax], u[:, c_ax],
-                                                        hu, hv, reach, False)
+                ortho_offsets[hu, hv] = _window_offsets(uv, sheet.uvb, sheet.uvc, u[:, b_ax],
+                                                        u[:, c_ax], hu, hv, reach, False)
             offsets = ortho_offsets[hu, hv]
         else:
-            offsets = _window_offsets(uv, uvb, uvc, u[:, b_ax], u[:, c_ax], hu, hv, reach,
-                                      True)
+            offsets = _window_offsets(uv, sheet.uvb, sheet.uvc, u[:, b_ax], u[:, c_ax], hu, hv,
+                                      reach, True)
         # Per window pixel: the crossing point, the drift, and the part of the slab
         # a - 0.5 .. a + 0.5 the ray travels (box, clip range, depth_in) as offsets from the
         # plane along the ray.
@@ -671,7 +702,8 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
         grid[..., 1] = s1
         if camera.is_ortho:
             pixel[-1] = 0  # where pairs outside the window go (their sums are dropped)
-            kinv = np.linalg.inv(np.column_stack([jb[0], jc[0]]))
+            ortho = projection.ortho
+            kinv = np.linalg.inv(np.column_stack([ortho[1 + b_ax, :2], ortho[1 + c_ax, :2]]))
             centre = np.column_stack([col + 0.5 - uv[:, 0], row + 0.5 - uv[:, 1]])
             affine = (centre @ kinv.T, offsets @ kinv.T, drift)
         else:
@@ -681,7 +713,7 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
             grid[..., 5] = img["dC"][win]
             pixel[-1] = (0, 0, _FAR, _FAR, 0, 0)  # where pairs outside the window go
             affine = None
-        grads = None if shading is None else _sheet_gradients(get, a, cells)
+        grads = None if view.lighting is None else _sheet_gradients(get, a, cells)
         bounds = np.linspace(-0.5, 0.5, substeps + 1)
         # Every ray crossing the sheet runs along +A (or every one along -A): the sheet lies on
         # one side of the camera.
@@ -709,49 +741,149 @@ def _render_axis(vevm, camera, tf, g, inv, r, axis, view, cam_i, mode, skip_empt
             value = (WD[sees] / W[sees]).astype(np.float32)
             length = (L[sees] * mm_f[q]).astype(np.float32)
             first_depth = a0_f[q] + kz_f[q] * (ta.ravel()[sees] + S[sees] * span.ravel()[sees])
-            if mode == "xray":
-                mu = np.float32(xray_scale) * np.maximum(value - np.float32(xray_offset), 0)
-                tau = mu * length
-                acc_f[q, 0] += tau
-                hit = _depth.attenuates(tau, length) & (depth_f[q] == BACKGROUND_DEPTH)
-                depth_f[q[hit]] = first_depth[hit]
-                continue
-            if mode == "mip":
-                better = value > vmax_f[q]
-                vmax_f[q[better]] = value[better]
-                depth_f[q[better]] = first_depth[better]
-                continue
-            tab, lo, scale = lut
-            x = np.clip((value - np.float32(lo)) * np.float32(scale), 0, len(tab) - 1)
-            i = np.minimum(x.astype(np.int64), len(tab) - 2)
-            f = (x - i)[:, None]
-            st = tab[i] + f * (tab[i + 1] - tab[i])
-            units = length / np.float32(unit)
-            alpha = 1 - np.power(1 - st[:, 3], units)
-            rgb = st[:, :3]
-            if shading is not None:
+            grad = None
+            if G is not None:
                 grad = np.empty((len(q), 3))
                 grad[:, [axis, b_ax, c_ax]] = G[sees] / W[sees][:, None]
-                rgb = _shade(rgb, grad, inv_t, dirs_f[q], shading).astype(np.float32)
-            c = rgb * alpha[:, None]
-            hit = _depth.visible(alpha, units)
-            if mode == "over":
-                trans = 1 - acc_f[q, 3]
-                acc_f[q, :3] += trans[:, None] * c
-                acc_f[q, 3] += trans * alpha
-                first = hit & (depth_f[q] == BACKGROUND_DEPTH)
-                depth_f[q[first]] = first_depth[first]
-                if termination < 1:
-                    done_f[q] |= acc_f[q, 3] >= termination
-            else:  # under: back to front
-                keep = 1 - alpha
-                acc_f[q, :3] = c + keep[:, None] * acc_f[q, :3]
-                acc_f[q, 3] = alpha + keep * acc_f[q, 3]
-                depth_f[q[hit]] = first_depth[hit]
-    visible = finish_mode(acc_f, vmax_f, mode, tf)
+            _composite_samples(out, q, value, length, first_depth, grad, compositing, colouring)
+    visible = finish_mode(out.acc, out.vmax, mode, tf)
     if visible is not None:
-        depth_f[~visible] = BACKGROUND_DEPTH
+        out.depth[~visible] = BACKGROUND_DEPTH
     return acc, depth
+
+
+def _crossings(rays, axis, b_ax, c_ax, spacing):
+    """Per pixel: where its ray crosses the plane ``A = a`` (``B = B0 + a·B1``, ``C``
+    likewise), its parameter there (``t = tA + a·iA``), the drift per unit of path along the
+    ray's own direction (``dB``, ``dC``: offsets count along the ray), the mm per unit of
+    ``A``, its axial depth ``a0 + kz·t`` and the clipped ray range ``[t0, t1]``; and which
+    rays reach the volume at all."""
+    o, d = rays.o, rays.d
+    reach = rays.t1 > rays.t0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iA = 1.0 / d[:, axis]
+    reach &= np.isfinite(iA)
+    iA = np.where(reach, iA, 0.0)
+    img = {
+        "B1": d[:, b_ax] * iA,
+        "C1": d[:, c_ax] * iA,
+        "tA": -o[:, axis] * iA,
+        "iA": iA,
+        "span": np.abs(iA),  # ray parameter per unit of A
+        "t0": np.where(reach, rays.t0, 0.0),
+        "t1": np.where(reach, rays.t1, 0.0),
+        "mm": rays.mm_per_t(np.asarray(spacing, dtype=np.float64)) * np.abs(iA),
+        "a0": rays.a0,
+        "kz": rays.kz,
+    }
+    img["B0"] = o[:, b_ax] - o[:, axis] * img["B1"]
+    img["C0"] = o[:, c_ax] - o[:, axis] * img["C1"]
+    img["dB"] = img["B1"] * np.sign(iA)
+    img["dC"] = img["C1"] * np.sign(iA)
+    return img, reach
+
+
+def _sheet_order(n_a, axis, view, mode):
+    """The slices along ``axis`` in compositing order: outward from the camera, the side the
+    view faces first (front to back for every ray that sees a sheet; rays see no sheet behind
+    their start); reversed for ``"under"``."""
+    ahead = np.arange(n_a) if view.view[axis] > 0 else np.arange(n_a)[::-1]
+    if view.cam_i is None:
+        order = ahead
+    else:
+        is_ahead = (ahead - view.cam_i[axis]) * np.sign(view.view[axis]) >= 0
+        order = np.concatenate([ahead[is_ahead], ahead[~is_ahead][::-1]])
+    return order[::-1] if mode == "under" else order
+
+
+def _cull_rule(kernel, compositing, tf, colouring):
+    """Which voxels cannot change the image: ``(rule, visible)``, the rule's key (what the
+    kept voxels depend on) and ``visible(cells, lo, hi)``, whether the voxels of a sheet whose
+    samples lie between densities ``lo`` and ``hi`` may be seen."""
+    # Every pixel a voxel reaches takes its density from voxels at most 2·radius·√3
+    # in-plane voxels from it (the footprint's ellipse for the most oblique view).
+    reach_vox = int(np.ceil(2 * kernel.radius * np.sqrt(3.0)))
+    if compositing.mode == "xray":
+        xray_scale, xray_offset = compositing.xray_scale, compositing.xray_offset
+        rule = ("xray", reach_vox, kernel.substeps > 1, xray_scale, xray_offset)
+
+        def visible(cells, lo_, hi_):
+            hi = _neighbourhood(cells, hi_, reach_vox, np.maximum, -np.inf)
+            return (hi > xray_offset) & (xray_scale > 0)
+    else:
+        margin = 1.0 / colouring.lut[2]  # one lookup-table step: the table is interpolated
+        rule = ("tf", reach_vox, kernel.substeps > 1, margin, tf.points[:, [0, 4]].tobytes())
+
+        def visible(cells, lo_, hi_):
+            lo_ = _neighbourhood(cells, lo_, reach_vox, np.minimum, np.inf)
+            hi_ = _neighbourhood(cells, hi_, reach_vox, np.maximum, -np.inf)
+            return ~tf.transparent_between(lo_ - margin, hi_ + margin)
+    return rule, visible
+
+
+def _culler(get, kept, visible, substeps):
+    """``cull(a, cells, dens)``: the indices of sheet ``a``'s voxels to splat, by
+    :func:`_cull_rule`'s ``visible``, remembered in ``kept`` per slice."""
+
+    def cull(a, cells, dens):
+        """Sub-slabs interpolate towards the neighbouring slices, so a voxel's samples lie
+        between its density and theirs."""
+        if a not in kept:
+            lo_ = hi_ = dens
+            if substeps > 1:
+                nb = _sheet_neighbours(get, a, cells, dens)
+                lo_ = np.minimum(dens, nb.min(axis=0))
+                hi_ = np.maximum(dens, nb.max(axis=0))
+            kept[a] = np.flatnonzero(visible(cells, lo_, hi_)).astype(np.int32)
+        return kept[a]
+
+    return cull
+
+
+def _composite_samples(out, q, value, length, first_depth, grad, compositing, colouring):
+    """Composite one sub-slab's samples into the pixels ``q`` (flat) of ``out``: densities
+    ``value`` over ``length`` mm of the ray in the sheet's cells, starting at axial depth
+    ``first_depth``; ``grad`` the gradients (index space) with shading, else None."""
+    mode = compositing.mode
+    acc_f, depth_f = out.acc, out.depth
+    if mode == "xray":
+        mu = np.float32(compositing.xray_scale) * np.maximum(
+            value - np.float32(compositing.xray_offset), 0)
+        tau = mu * length
+        acc_f[q, 0] += tau
+        hit = _depth.attenuates(tau, length) & (depth_f[q] == BACKGROUND_DEPTH)
+        depth_f[q[hit]] = first_depth[hit]
+        return
+    if mode == "mip":
+        better = value > out.vmax[q]
+        out.vmax[q[better]] = value[better]
+        depth_f[q[better]] = first_depth[better]
+        return
+    tab, lo, scale = colouring.lut
+    x = np.clip((value - np.float32(lo)) * np.float32(scale), 0, len(tab) - 1)
+    i = np.minimum(x.astype(np.int64), len(tab) - 2)
+    f = (x - i)[:, None]
+    st = tab[i] + f * (tab[i + 1] - tab[i])
+    units = length / np.float32(colouring.unit_length_mm)
+    alpha = 1 - np.power(1 - st[:, 3], units)
+    rgb = st[:, :3]
+    if grad is not None:
+        rgb = colouring.lighting.shade(rgb, grad, colouring.dirs[q]).astype(np.float32)
+    c = rgb * alpha[:, None]
+    hit = _depth.visible(alpha, units)
+    if mode == "over":
+        trans = 1 - acc_f[q, 3]
+        acc_f[q, :3] += trans[:, None] * c
+        acc_f[q, 3] += trans * alpha
+        first = hit & (depth_f[q] == BACKGROUND_DEPTH)
+        depth_f[q[first]] = first_depth[first]
+        if compositing.termination < 1:
+            out.done[q] |= acc_f[q, 3] >= compositing.termination
+    else:  # under: back to front
+        keep = 1 - alpha
+        acc_f[q, :3] = c + keep[:, None] * acc_f[q, :3]
+        acc_f[q, 3] = alpha + keep * acc_f[q, 3]
+        depth_f[q[hit]] = first_depth[hit]
 
 
 def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale,

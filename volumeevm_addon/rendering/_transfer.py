@@ -32,7 +32,7 @@ Conventions
   missed between samples.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 
@@ -59,8 +59,8 @@ def opacity_correction(alpha, step_mm, unit_length_mm=1.0):
         Opacity in ``[0, 1]`` accumulated over ``unit_length_mm``.
     step_mm : ndarray or float
         Segment length(s) in mm, ``>= 0``; broadcast against ``alpha``.
-    unit_length_mm : float
-        The reference length Δ0 in mm.
+    unit_length_mm : float, optional
+        The reference length Δ0 in mm (default 1).
 
     Returns
     -------
@@ -120,6 +120,7 @@ class TransferFunction:
         colour in ``[0, 1]``; ``alpha`` in ``[0, 1]`` per ``unit_length_mm`` of path.
     unit_length_mm : float, optional
         Reference length Δ0 (mm) over which ``alpha`` is accumulated. Default 1 mm.
+        Keyword-only, like ``name``.
     name : str, optional
         A label (the preset name for presets).
 
@@ -139,6 +140,7 @@ class TransferFunction:
     """
 
     points: np.ndarray
+    _: KW_ONLY
     unit_length_mm: float = 1.0
     name: str = ""
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -157,6 +159,35 @@ class TransferFunction:
 
         Each list is piecewise linear on its own; the result has a control point at every value
         of either list (so it is the same function), with the other quantity interpolated there.
+        Colour and opacity are often edited apart (Blender's colour ramp, VTK's two functions).
+
+        Parameters
+        ----------
+        color_points : (M, 4) array_like
+            Rows ``(value, r, g, b)``, values strictly increasing, colour in ``[0, 1]``.
+        opacity_points : (K, 2) array_like
+            Rows ``(value, alpha)``, values strictly increasing, ``alpha`` in ``[0, 1]`` per
+            ``unit_length_mm``.
+        unit_length_mm : float, optional
+            Reference length of the opacities (default 1 mm).
+        name : str, optional
+            A label.
+
+        Returns
+        -------
+        TransferFunction
+
+        Raises
+        ------
+        VolumeEVMError
+            For lists that are not numeric, of the wrong shape, empty, not finite or whose
+            values do not increase, naming the list; and as :class:`TransferFunction`.
+
+        Examples
+        --------
+        >>> tf = TransferFunction.from_points([(0, 1, 1, 1), (100, 1, 0, 0)], [(50, 0.5)])
+        >>> tf.points.tolist()
+        [[0.0, 1.0, 1.0, 1.0, 0.5], [50.0, 1.0, 0.5, 0.5, 0.5], [100.0, 1.0, 0.0, 0.0, 0.5]]
         """
         try:
             c = np.array(color_points, dtype=np.float64)
@@ -195,8 +226,24 @@ class TransferFunction:
         data_range : (float, float), optional
             ``(lo, hi)`` of the data, required for ``"mri"`` and ``"microscopy"``, ignored for
             the CT presets.
-        unit_length_mm : float
+        unit_length_mm : float, optional
             Reference length of the opacities (default 1 mm).
+
+        Returns
+        -------
+        TransferFunction
+            Named ``name``.
+
+        Raises
+        ------
+        VolumeEVMError
+            For an unknown ``name`` (the message lists :data:`PRESETS`), or a missing or bad
+            ``data_range`` where the preset needs one.
+
+        Examples
+        --------
+        >>> TransferFunction.preset("mri", data_range=(0, 400)).value_range
+        (0.0, 400.0)
         """
         pts = _preset_points(name, data_range)
         return cls(pts, unit_length_mm=unit_length_mm, name=name)
@@ -212,12 +259,18 @@ class TransferFunction:
 
         Parameters
         ----------
-        values : ndarray
+        values : array_like
             Data values, any shape.
 
         Returns
         -------
         (..., 4) ndarray of np.float64
+            Interpolated between control points, held constant beyond the first and last.
+
+        Raises
+        ------
+        VolumeEVMError
+            If a value is NaN.
         """
         v = np.asarray(values, dtype=np.float64)
         if np.isnan(v).any():
@@ -229,8 +282,10 @@ class TransferFunction:
         return out
 
     def transparent_between(self, lo, hi):
-        """True where the opacity is 0 for every value in ``[lo, hi]`` (exact: the maximum of a
-        piecewise-linear function on an interval is at an end or a control point inside).
+        """True where the opacity is 0 for every value in ``[lo, hi]``.
+
+        Exact: the maximum of a piecewise-linear function on an interval is at an end or a
+        control point inside. Renderers skip blocks whose density range is transparent.
 
         Parameters
         ----------
@@ -254,17 +309,22 @@ class TransferFunction:
 
         Parameters
         ----------
-        densities : ndarray
+        densities : array_like
             Data values, any shape.
         step_mm : float or ndarray
-            Segment length(s) in mm, broadcast against ``densities``.
-        dtype : dtype
+            Segment length(s) in mm, ``>= 0``, broadcast against ``densities``.
+        dtype : dtype, optional
             Output type (``np.float32``; the reference renderer asks for ``np.float64``).
 
         Returns
         -------
         (..., 4) ndarray
             ``(r·a', g·a', b·a', a')`` with ``a' = 1 - (1 - alpha) ** (step_mm / unit_length_mm)``.
+
+        Raises
+        ------
+        VolumeEVMError
+            If ``step_mm`` is negative or not finite, or a density is NaN.
         """
         s = _check_step(step_mm)
         rgba = self.evaluate(densities)
@@ -288,9 +348,29 @@ class TransferFunction:
             raise VolumeEVMError(f"n: a table needs at least 2 rows, got {n}")
         return lo, hi, n
 
-    def straight_table(self, lo=None, hi=None, n=4096):
-        """Straight RGBA (alpha per ``unit_length_mm``) at ``n`` equally spaced values of
-        ``[lo, hi]``: row ``i`` is the value ``lo + i·(hi - lo)/(n - 1)``. Cached; read-only."""
+    def straight_table(self, *, lo=None, hi=None, n=4096):
+        """Straight RGBA (alpha per ``unit_length_mm``) at ``n`` equally spaced values.
+
+        The colour table of pre-classifying renderers, which correct opacity per sample later.
+        Cached per ``(lo, hi, n)``, so every view of a render shares one.
+
+        Parameters
+        ----------
+        lo, hi : float, optional
+            Value range of the table; both or neither (default: the control points' range).
+        n : int, optional
+            Number of rows, >= 2 (default 4096).
+
+        Returns
+        -------
+        (n, 4) ndarray of np.float64
+            Read-only; row ``i`` is the value ``lo + i·(hi - lo)/(n - 1)``.
+
+        Raises
+        ------
+        VolumeEVMError
+            For only one of ``lo``/``hi``, ``lo >= hi``, non-finite ends or ``n < 2``.
+        """
         lo, hi, n = self._range(lo, hi, n)
         key = (lo, hi, n)
         tab = self._cache.get(key)
@@ -300,33 +380,46 @@ class TransferFunction:
             self._cache[key] = tab
         return tab
 
-    def table(self, lo=None, hi=None, n=4096, *, step_mm=None, dtype=np.float32):
+    def table(self, *, lo=None, hi=None, n=4096, step_mm=None, dtype=np.float32):
         """Premultiplied RGBA lookup table for samples of ``step_mm`` mm.
+
+        All parameters are keyword-only: ``lo``, ``hi`` and ``n`` must be the same in
+        :meth:`quantize`, which finds a density's row.
 
         Parameters
         ----------
-        lo, hi : float, optional
-            Value range of the table (default: the control points' range).
-        n : int
-            Number of rows (default 4096).
+        lo, hi, n : optional
+            The values of the rows, as for :meth:`straight_table` (default: 4096 rows over
+            the control points' range).
         step_mm : float, optional
-            Segment length in mm (default ``unit_length_mm``: no correction).
-        dtype : dtype
-            Output type.
+            Segment length in mm, ``>= 0`` (default ``unit_length_mm``: no correction).
+        dtype : dtype, optional
+            Output type (default ``np.float32``).
 
         Returns
         -------
         (n, 4) ndarray
             Index it with :meth:`quantize` (``np.take(table, idx, axis=0)``).
+
+        Raises
+        ------
+        VolumeEVMError
+            For a bad range or ``n`` (:meth:`straight_table`) or a negative ``step_mm``.
+
+        Examples
+        --------
+        >>> tf = TransferFunction([(0, 1, 1, 1, 0.0), (10, 1, 1, 1, 0.5)])
+        >>> tf.table(n=3, step_mm=2.0, dtype=np.float64)[:, 3].tolist()
+        [0.0, 0.4375, 0.75]
         """
-        tab = self.straight_table(lo, hi, n)
+        tab = self.straight_table(lo=lo, hi=hi, n=n)
         s = self.unit_length_mm if step_mm is None else float(_check_step(step_mm))
         out = np.empty_like(tab)
         out[:, 3] = opacity_correction(tab[:, 3], s, self.unit_length_mm)
         out[:, :3] = tab[:, :3] * out[:, 3:4]
         return out.astype(dtype, copy=False)
 
-    def preintegrated_table(self, lo=None, hi=None, n=256, *, step_mm, dtype=np.float32):
+    def preintegrated_table(self, *, lo=None, hi=None, n=256, step_mm, dtype=np.float32):
         """Premultiplied RGBA of ray segments of ``step_mm`` mm along which the density runs
         linearly from ``s_f`` to ``s_b`` (pre-integrated classification).
 
@@ -346,18 +439,24 @@ class TransferFunction:
         Parameters
         ----------
         lo, hi : float, optional
-            Density range (default: the control points' range).
-        n : int
-            Rows and columns (default 256).
+            Density range of rows and columns (default: the control points' range).
+        n : int, optional
+            Rows and columns, >= 2 (default 256).
         step_mm : float
-            Segment length in mm, > 0.
-        dtype : dtype
-            Output type.
+            Segment length in mm, > 0 (required, keyword-only like the others).
+        dtype : dtype, optional
+            Output type (default ``np.float32``).
 
         Returns
         -------
         (n, n, 4) ndarray
             Read-only; rows ``s_f``, columns ``s_b``.
+
+        Raises
+        ------
+        VolumeEVMError
+            For a bad range or ``n`` (:meth:`straight_table`), or a ``step_mm`` that is not a
+            finite number > 0.
         """
         lo, hi, n = self._range(lo, hi, n)
         d = float(_check_step(step_mm))
@@ -384,15 +483,39 @@ class TransferFunction:
                 out[i, j, :3] = c[rows, starts]
                 out[i, j, 3] = 1.0 - t[rows, starts]
             diag = np.arange(n)
-            out[diag, diag] = self.table(lo, hi, n, step_mm=d, dtype=np.float64)
+            out[diag, diag] = self.table(lo=lo, hi=hi, n=n, step_mm=d, dtype=np.float64)
             tab = out.astype(dtype)
             tab.setflags(write=False)
             self._cache[key] = tab
         return tab
 
-    def quantize(self, densities, lo=None, hi=None, n=4096):
-        """Row of :meth:`table` for each density: ``rint((d - lo)/(hi - lo)·(n - 1))`` clipped to
-        ``[0, n - 1]``; ``np.int32`` of the same shape as ``densities``."""
+    def quantize(self, densities, *, lo=None, hi=None, n=4096):
+        """Row of :meth:`table` for each density: ``rint((d - lo)/(hi - lo)·(n - 1))`` clipped.
+
+        Parameters
+        ----------
+        densities : array_like
+            Data values, any shape.
+        lo, hi, n : optional
+            The table's range and size, as given to :meth:`table` (keyword-only).
+
+        Returns
+        -------
+        ndarray of np.int32
+            Same shape as ``densities``, in ``[0, n - 1]``: densities beyond the range take the
+            end rows, where the function is constant when the range is the default.
+
+        Raises
+        ------
+        VolumeEVMError
+            For a bad range or ``n`` (:meth:`straight_table`), or a NaN density.
+
+        Examples
+        --------
+        >>> tf = TransferFunction([(0, 1, 1, 1, 0.0), (10, 1, 1, 1, 0.5)])
+        >>> tf.quantize([-5.0, 4.9, 5.1, 99.0], n=3).tolist()
+        [0, 1, 1, 2]
+        """
         lo, hi, n = self._range(lo, hi, n)
         d = np.asarray(densities, dtype=np.float64)
         if np.isnan(d).any():
