@@ -68,7 +68,14 @@ def default_cache_dir():
 def set_kernel_cache_dir(path):
     """Keep compiled kernels in the folder ``path`` (made when first written).
 
-    Call it before the first kernel runs: kernels already loaded keep their folder.
+    Call it before the first kernel runs: kernels already loaded keep their folder. Blender's
+    side calls it at registration with the extension's user folder, so that compiled code never
+    lands in the add-on's own (possibly read-only, replaced on update) folder.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The folder; a subfolder per import name and kernel version is made inside it.
 
     Raises
     ------
@@ -81,10 +88,20 @@ def set_kernel_cache_dir(path):
 
 
 def set_kernel_threads(count):
-    """Run kernels on up to ``count`` threads at once; ``None`` (the default) means one per
-    core. Returns the previous setting, so that a caller can restore it.
+    """Run kernels on up to ``count`` threads at once.
 
-    Results never depend on the count: it changes only the speed.
+    Results never depend on the count: it changes only the speed. Blender's side passes its
+    render threads setting.
+
+    Parameters
+    ----------
+    count : int or None
+        Threads to use; ``None`` (the default) means one per core.
+
+    Returns
+    -------
+    int or None
+        The previous setting, so that a caller can restore it.
 
     Raises
     ------
@@ -99,9 +116,16 @@ def set_kernel_threads(count):
 
 
 def set_kernel_compile_hook(hook):
-    """Call ``hook(name)`` just before a kernel is first loaded or compiled in this session
-    (``None`` removes it). It runs on the thread calling the kernel (a worker of
-    :func:`parallel_map`, maybe several at once), before the wait.
+    """Call ``hook(name)`` just before a kernel is first loaded or compiled in this session.
+
+    It runs on the thread calling the kernel (a worker of :func:`parallel_map`, maybe several
+    at once), before the wait: a hook should only set a progress message such as "preparing
+    renderer (first use only)".
+
+    Parameters
+    ----------
+    hook : callable or None
+        Called with the kernel's name; ``None`` removes the hook.
 
     Raises
     ------
@@ -114,7 +138,13 @@ def set_kernel_compile_hook(hook):
 
 
 def kernel_threads():
-    """The number of threads kernels run on (:func:`set_kernel_threads`, else the cores)."""
+    """The number of threads kernels run on.
+
+    Returns
+    -------
+    int
+        The count given to :func:`set_kernel_threads`, else the cores this process may use.
+    """
     if _settings["threads"] is not None:
         return _settings["threads"]
     cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
