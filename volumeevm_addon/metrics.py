@@ -16,6 +16,8 @@ that shows banding (wood grain) of ray sampling.
 
 import numpy as np
 
+from ._errors import VolumeEVMError
+
 __all__ = ["image_errors", "rmse", "luminance", "popping_index", "temporal_errors", "bias_jump",
            "spectral_peak"]
 
@@ -27,7 +29,7 @@ def _pair(image, reference):
     a = np.asarray(image, dtype=np.float64)
     b = np.asarray(reference, dtype=np.float64)
     if a.shape != b.shape:
-        raise ValueError(f"image shape {a.shape} differs from reference shape {b.shape}")
+        raise VolumeEVMError(f"image shape {a.shape} differs from reference shape {b.shape}")
     return a, b
 
 
@@ -46,7 +48,7 @@ def rmse(image, reference):
 
     Raises
     ------
-    ValueError
+    VolumeEVMError
         When ``image`` and ``reference`` differ in shape.
 
     Examples
@@ -76,7 +78,7 @@ def image_errors(image, reference):
 
     Raises
     ------
-    ValueError
+    VolumeEVMError
         If the two arrays differ in shape.
 
     Examples
@@ -195,7 +197,7 @@ def bias_jump(angles, images, references, at=45.0, width=5.0):
 
     Raises
     ------
-    ValueError
+    VolumeEVMError
         When no angle lies within ``width`` before or after ``at``.
     """
     angles = np.asarray(angles, dtype=np.float64)
@@ -204,7 +206,7 @@ def bias_jump(angles, images, references, at=45.0, width=5.0):
     before = (angles >= at - width) & (angles < at)
     after = (angles > at) & (angles <= at + width)
     if not before.any() or not after.any():
-        raise ValueError(f"bias_jump needs angles on both sides of {at}")
+        raise VolumeEVMError(f"bias_jump needs angles on both sides of {at}")
     return float(signed[after].mean() - signed[before].mean())
 
 

@@ -33,7 +33,7 @@ ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 
 def _axes(order):
     if order not in ORDERS:
-        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+        raise VolumeEVMError(f"order must be one of {ORDERS}, got {order!r}")
     return ["xyz".index(a) for a in order]
 
 
@@ -383,14 +383,14 @@ class EVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             If ``shape`` does not have 3 entries.
         VolumeEVMError
             When the grid would need more memory than is available.
         """
         shape = tuple(int(s) for s in shape)
         if len(shape) != 3:
-            raise ValueError(f"shape must have 3 entries, got {shape}")
+            raise VolumeEVMError(f"shape must have 3 entries, got {shape}")
         # The prefix-XOR grid, the boolean result and two int64 copies of the vertices.
         check_memory(2 * int(np.prod([s + 1 for s in shape], dtype=np.float64)) + 48 * len(self),
                      "making the voxel mask", source=f"EVM grid {shape}",
@@ -462,7 +462,7 @@ class EVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             For an order not in :data:`ORDERS`.
         """
         if order not in self._keys:
@@ -489,7 +489,7 @@ class EVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             For an order not in :data:`ORDERS`.
         """
         columns = _sweep.unpack(self.keys(order), 3)
@@ -514,7 +514,7 @@ class EVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             For an order not in :data:`ORDERS`.
         """
         columns = _sweep.unpack(self.keys(order), 3)
@@ -542,7 +542,7 @@ class EVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             For an order not in :data:`ORDERS`.
         """
         planes = list(self.planes(order))
@@ -688,7 +688,7 @@ class EVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             For an order not in :data:`ORDERS`.
         """
         if order not in self._boxes:

@@ -8,6 +8,7 @@ again: dragging the last tool of a stack costs one Boolean, not the whole stack.
 
 from dataclasses import KW_ONLY, dataclass
 
+from .._errors import VolumeEVMError
 from ._evm import EVM
 
 OPERATIONS = ("cut", "keep", "add", "largest")
@@ -35,7 +36,7 @@ class ToolOperation:
 
     Raises
     ------
-    ValueError
+    VolumeEVMError
         For an unknown operation, a tool given to "largest" or none to another operation.
     TypeError
         If ``tool`` is not an :class:`EVM`.
@@ -49,11 +50,11 @@ class ToolOperation:
 
     def __post_init__(self):
         if self.operation not in OPERATIONS:
-            raise ValueError(f"operation must be one of {OPERATIONS}, got {self.operation!r}")
+            raise VolumeEVMError(f"operation must be one of {OPERATIONS}, got {self.operation!r}")
         if self.operation == "largest" and self.tool is not None:
-            raise ValueError("operation 'largest' takes no tool")
+            raise VolumeEVMError("operation 'largest' takes no tool")
         if self.operation != "largest" and self.tool is None:
-            raise ValueError(f"operation {self.operation!r} needs a tool")
+            raise VolumeEVMError(f"operation {self.operation!r} needs a tool")
         if self.tool is not None and not isinstance(self.tool, EVM):
             raise TypeError(f"tool must be an EVM, got {type(self.tool).__name__}")
 

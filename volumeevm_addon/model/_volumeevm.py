@@ -267,13 +267,13 @@ class VolumeEVM:
 
         Raises
         ------
-        ValueError
+        VolumeEVMError
             If ``axis`` is not 0, 1 or 2.
         VolumeEVMError
             When the transient grid would need more memory than is available.
         """
         if axis not in (0, 1, 2):
-            raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+            raise VolumeEVMError(f"axis must be 0, 1 or 2, got {axis!r}")
         if axis not in self._tables:
             axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
             dense, mask = self._scatter(0)
