@@ -1,8 +1,9 @@
-"""Blender operators, one module per user task, and the Python API for scripts (``api``).
+"""Blender operators, one module per user task; only operator classes (and the File > Import
+entry) live here.
 
-``CLASSES`` lists every class to register, in order. Long work runs as jobs (``_jobs``);
-VolumeEVM files beside the .blend are handled by ``sidecar``; CAD tool stacks by ``tools``;
-the volume render composited into the scene by ``dvr`` (job) and ``render`` (operators).
+Each operator reads its properties and Blender state, calls one function of the Blender side
+(``blender/``: jobs, tool stack, render) and reports. ``CLASSES`` lists every class to register,
+in order.
 """
 
 from . import build, import_volume, mesh, render, tools

@@ -3,39 +3,11 @@
 import bpy
 from bpy.props import BoolProperty, FloatProperty
 
-from . import _jobs, api
+from ..blender import jobs, volumes
+from ..blender.objects import active_volume, poll_volume
 
 
-def poll_volume(cls, context, *, built):
-    """The volume an operator acts on (``built``: with its VolumeEVM), or None with the poll
-    message saying why the button is disabled."""
-    obj = active_volume(context)
-    if obj is None:
-        cls.poll_message_set("Select a volume object (File > Import > Volume (VolumeEVM))")
-        return None
-    if built and not obj.volumeevm.vevm_path:
-        cls.poll_message_set("No VolumeEVM built yet: build one first")
-        return None
-    if _jobs.CURRENT is not None:
-        cls.poll_message_set(f"Busy: {_jobs.CURRENT.label}")
-        return None
-    return obj
-
-
-def active_volume(context):
-    """The volume object of the active object, or None."""
-    obj = context.active_object
-    if obj is None:
-        return None
-    s = obj.volumeevm
-    if s.role == "VOLUME":
-        return obj
-    if s.role == "SURFACE" and s.volume is not None:
-        return s.volume
-    return None
-
-
-class VOLUMEEVM_OT_build_vevm(_jobs.JobOperator, bpy.types.Operator):
+class VOLUMEEVM_OT_build_vevm(jobs.JobOperator, bpy.types.Operator):
     """Build the VolumeEVM (extreme vertices + densities) of the voxels whose density is at
     least the threshold (and at most the upper bound), and keep it beside the .blend"""
 
@@ -60,8 +32,8 @@ class VOLUMEEVM_OT_build_vevm(_jobs.JobOperator, bpy.types.Operator):
     def job(self, context):
         obj = active_volume(context)
         if self.use_settings:
-            return api.build_job(obj)
-        return api.build_job(obj, self.threshold, self.upper if self.use_upper else None)
+            return volumes.build_job(obj)
+        return volumes.build_job(obj, self.threshold, self.upper if self.use_upper else None)
 
     def finished(self, context, vevm):
         r = vevm.size_report()

@@ -1,7 +1,6 @@
 """File > Import > Volume (VolumeEVM), the sidebar's Import button and drag-and-drop."""
 
 import os
-from pathlib import Path
 
 import bpy
 from bpy.props import (
@@ -14,8 +13,8 @@ from bpy.props import (
 )
 from bpy_extras.io_utils import ImportHelper
 
+from ..blender import jobs, volumes
 from ..volumeevm_addon import SUPPORTED_EXTENSIONS
-from . import _jobs, api
 
 _RAW_ENDINGS = (".raw", ".bin")
 
@@ -24,7 +23,7 @@ def _is_raw(path):
     return str(path).lower().endswith(_RAW_ENDINGS)
 
 
-class VOLUMEEVM_OT_import_volume(_jobs.JobOperator, bpy.types.Operator, ImportHelper):
+class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHelper):
     """Import a volume (NumPy, raw, NRRD, NIfTI, DICOM series, TIFF stack, VolPack .den) as a
     VolumeEVM volume object. For DICOM pick one file of the series or the folder"""
 
@@ -92,8 +91,8 @@ class VOLUMEEVM_OT_import_volume(_jobs.JobOperator, bpy.types.Operator, ImportHe
         source = self._source()
         if not source:
             raise OSError("no file or folder chosen")
-        return api.import_job(context, source, name=self.name or None,
-                              **self._options(source))
+        return volumes.import_job(context, source, name=self.name or None,
+                                  **self._options(source))
 
     def finished(self, context, obj):
         s = obj.volumeevm

@@ -2,11 +2,11 @@
 
 import bpy
 
-from . import _jobs, api
-from .build import active_volume, poll_volume
+from ..blender import jobs, volumes
+from ..blender.objects import active_volume, poll_volume
 
 
-class VOLUMEEVM_OT_make_mesh(_jobs.JobOperator, bpy.types.Operator):
+class VOLUMEEVM_OT_make_mesh(jobs.JobOperator, bpy.types.Operator):
     """Make (or refresh) the surface mesh of the active volume's VolumeEVM: exact voxel
     boundary, merged rectangles, in millimetres (1 mm = 0.001 units)"""
 
@@ -19,7 +19,7 @@ class VOLUMEEVM_OT_make_mesh(_jobs.JobOperator, bpy.types.Operator):
         return poll_volume(cls, context, built=True) is not None
 
     def job(self, context):
-        return api.mesh_job(context, active_volume(context))
+        return volumes.mesh_job(context, active_volume(context))
 
     def finished(self, context, surface):
         mesh = surface.data

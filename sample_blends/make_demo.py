@@ -31,7 +31,8 @@ def say(text):
 
 
 def load_extension():
-    """The extension package from this source tree (Blender names it bl_ext.<repo>.volumeevm)."""
+    """The extension package from this source tree, imported once as ``volumeevm`` (installed,
+    Blender names it ``bl_ext.<repo>.volumeevm``). The Blender tests load it with this too."""
     if PACKAGE not in sys.modules:
         spec = importlib.util.spec_from_file_location(
             PACKAGE, REPO / "__init__.py", submodule_search_locations=[str(REPO)])
@@ -174,7 +175,8 @@ def main(argv):
     ext = load_extension()
     ext.register()
     try:
-        api = ext.operators.api
+        from volumeevm.blender import api  # the script API, as a script imports it
+
         scene = bpy.context.scene
         say(f"importing {SAMPLE.name}")
         volume = api.import_volume(SAMPLE)
@@ -205,8 +207,7 @@ def main(argv):
         surface.hide_render = True
         settings = scene.volumeevm_render
         settings.volume = volume
-        render_ops = ext.operators.render
-        render_ops.set_transfer_function(settings, skull_transfer_function())
+        api.set_transfer_function(settings, skull_transfer_function())
         settings.method = "raycast"
         settings.mode = "over"
         settings.shading = True

@@ -1,32 +1,27 @@
 """Helpers for the Blender tests: load the extension from the source tree, reset Blender.
 
 The repository root is the extension package; tests import it under the name ``volumeevm``
-(installed, Blender names it ``bl_ext.<repo>.volumeevm``; the code uses relative imports only).
+(installed, Blender names it ``bl_ext.<repo>.volumeevm``; the code uses relative imports only),
+with the demo script's loader (``sample_blends/make_demo.py``), so both load it the same way.
 """
 
-import importlib.util
+import importlib
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE = "volumeevm"
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the CT head
 CT_BONE_HU = 300.0
 
 
 def addon():
     """The extension package loaded from the source tree (imported once)."""
-    if PACKAGE not in sys.modules:
-        spec = importlib.util.spec_from_file_location(
-            PACKAGE, REPO / "__init__.py", submodule_search_locations=[str(REPO)])
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[PACKAGE] = module
-        spec.loader.exec_module(module)
-    return sys.modules[PACKAGE]
+    from sample_blends.make_demo import load_extension  # the repo root is on sys.path
+
+    return load_extension()
 
 
 def reset_blender():
@@ -49,10 +44,24 @@ def mesh_arrays(mesh):
     return co.reshape(-1, 3), indices, starts, totals
 
 
+def assert_surface_is(surface, vevm):
+    """The Blender surface mesh equals the core's mesh of ``vevm`` exactly (x 0.001); returns
+    the core's polygons."""
+    verts_mm, polys = vevm.mesh()
+    co, indices, starts, totals = mesh_arrays(surface.data)
+    np.testing.assert_array_equal(co, (verts_mm * 0.001).astype(np.float32))
+    np.testing.assert_array_equal(indices, polys.indices)
+    np.testing.assert_array_equal(starts, polys.starts)
+    np.testing.assert_array_equal(totals, polys.sizes)
+    return polys
+
+
 @pytest.fixture(scope="module")
 def ext():
-    """The extension from the source tree, registered for the test module that imports this."""
+    """The extension from the source tree, registered for the test module that imports this,
+    with its script API (``blender.api``) imported as a script imports it."""
     module = addon()
+    importlib.import_module(f"{module.__name__}.blender.api")
     module.register()
     yield module
     module.unregister()
@@ -94,4 +103,4 @@ def core(ext):
 @pytest.fixture
 def api(ext):
     """The extension's script API."""
-    return ext.operators.api
+    return ext.blender.api

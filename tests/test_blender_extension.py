@@ -47,7 +47,7 @@ result["evs"] = settings.ev_count
 result["polygons"] = len(surface.data.polygons)
 result["vertices"] = len(surface.data.vertices)
 # The scripting API of the installed package (as README's headless examples use it).
-from bl_ext.vevm_test.volumeevm.operators import api
+from bl_ext.vevm_test.volumeevm.blender import api
 vol = api.import_volume(volume, name="by_api")
 vevm = api.build(vol, threshold)
 surface = api.make_mesh(vol)
@@ -104,7 +104,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
 
     with zipfile.ZipFile(archive) as z:
         names = set(z.namelist())
-    for needed in ("blender_manifest.toml", "__init__.py", "operators/api.py", "ui/panels.py",
+    for needed in ("blender_manifest.toml", "__init__.py", "blender/api.py", "ui/panels.py",
                    "volumeevm_addon/__init__.py", "volumeevm_addon/readers/__init__.py",
                    "volumeevm_addon/model/_evm.py", "volumeevm_addon/rendering/_render.py",
                    "volumeevm_addon/phantoms.py", "volumeevm_addon/metrics.py"):

@@ -21,7 +21,7 @@ import re
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import api, ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
+from blender_helpers import addon, api, ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
 from test_blender_render import add_camera, cycles, settings_for
 from test_blender_tools import box_object
 from test_blender_ui import _Context, _driver, _ticks
@@ -65,13 +65,13 @@ def scene_state(api):
                              _plain(obj.parent) if obj.parent else None, settings)
     meshes = {m.name: (len(m.vertices), len(m.polygons)) for m in bpy.data.meshes}
     active = bpy.context.view_layer.objects.active
-    sidecars = sorted(p.name for p in api.sidecar.session_dir().glob("*.vevm"))
+    sidecars = sorted(p.name for p in addon().blender.sidecar.session_dir().glob("*.vevm"))
     return blocks, objects, meshes, active.name if active else None, sidecars
 
 
 @pytest.fixture
 def jobs(ext):
-    return ext.operators._jobs
+    return ext.blender.jobs
 
 
 @pytest.fixture
@@ -104,21 +104,21 @@ def _assert_ended(jobs, capsys):
 # ---------------------------------------------------------------------------- synchronous path
 @pytest.mark.parametrize("operator", ["import", "build", "mesh"])
 def test_unexpected_error_in_a_step_ends_the_job_scene_unchanged(
-        api, jobs, skull, monkeypatch, capsys, operator):
+        ext, api, jobs, skull, monkeypatch, capsys, operator):
     if operator == "import":
         _imported(api, skull)  # something in the scene to keep
-        monkeypatch.setattr(api, "read_volume", _bug)
+        monkeypatch.setattr(ext.blender.volumes, "read_volume", _bug)
         run = lambda: bpy.ops.volumeevm.import_volume(filepath=skull)  # noqa: E731
         label = "Import ct_skull_cgal"
     elif operator == "build":
         _imported(api, skull)
-        monkeypatch.setattr(api.VolumeEVM, "from_volume", _bug)
+        monkeypatch.setattr(ext.volumeevm_addon.VolumeEVM, "from_volume", _bug)
         run = lambda: bpy.ops.volumeevm.build_vevm(  # noqa: E731
             use_settings=False, threshold=SKULL_THRESHOLD)
         label = "Build VolumeEVM of ct_skull_cgal"
     else:
         _meshed(api, skull)
-        monkeypatch.setattr(api.VolumeEVM, "mesh", _bug)
+        monkeypatch.setattr(ext.volumeevm_addon.VolumeEVM, "mesh", _bug)
         run = bpy.ops.volumeevm.make_mesh
         label = "Mesh of ct_skull_cgal"
     before = scene_state(api)
@@ -132,16 +132,16 @@ def test_unexpected_error_in_a_step_ends_the_job_scene_unchanged(
 
 
 @pytest.mark.parametrize("where", ["import", "build", "mesh"])
-def test_commit_failing_half_way_is_undone(api, jobs, skull, monkeypatch, capsys, where):
+def test_commit_failing_half_way_is_undone(ext, api, jobs, skull, monkeypatch, capsys, where):
     """The commit (or ``finished`` after it) raises after writing into Blender: all undone."""
     if where == "import":  # after the new object was linked and selected
         _imported(api, skull)
-        monkeypatch.setattr(api._runtime, "forget_except", _bug)
+        monkeypatch.setattr(ext.blender.runtime, "forget_except", _bug)
         run = lambda: bpy.ops.volumeevm.import_volume(filepath=skull)  # noqa: E731
     elif where == "build":  # a rebuild, after the settings and sidecar were written
         obj = _meshed(api, skull)
         assert obj.volumeevm.vevm_path
-        monkeypatch.setattr(api._runtime, "put_volume", _bug)
+        monkeypatch.setattr(ext.blender.runtime, "put_volume", _bug)
         run = lambda: bpy.ops.volumeevm.build_vevm(use_settings=False, threshold=4.0)  # noqa: E731
     else:  # a new mesh for an existing surface, then the summary fails
         _meshed(api, skull)
@@ -156,10 +156,10 @@ def test_commit_failing_half_way_is_undone(api, jobs, skull, monkeypatch, capsys
     assert run() == {"FINISHED"}
 
 
-def test_script_api_raises_and_leaves_the_scene_unchanged(api, jobs, skull, monkeypatch):
+def test_script_api_raises_and_leaves_the_scene_unchanged(ext, api, jobs, skull, monkeypatch):
     _imported(api, skull)
     before = scene_state(api)
-    monkeypatch.setattr(api._runtime, "forget_except", _bug)
+    monkeypatch.setattr(ext.blender.runtime, "forget_except", _bug)
     with pytest.raises(ZeroDivisionError, match="a bug"):
         api.import_volume(skull)
     assert scene_state(api) == before and jobs.CURRENT is None
@@ -173,11 +173,12 @@ def test_modal_job_error_clears_marker_and_timer(ext, api, jobs, skull, monkeypa
     if where == "job":
         make_job = _bug
     else:
-        make_job = lambda: api.build_job(obj, SKULL_THRESHOLD)  # noqa: E731
+        make_job = lambda: ext.blender.volumes.build_job(  # noqa: E731
+            obj, SKULL_THRESHOLD)
         if where == "step":
-            monkeypatch.setattr(api.VolumeEVM, "from_volume", _bug)
+            monkeypatch.setattr(ext.volumeevm_addon.VolumeEVM, "from_volume", _bug)
         else:
-            monkeypatch.setattr(api._runtime, "put_volume", _bug)
+            monkeypatch.setattr(ext.blender.runtime, "put_volume", _bug)
     before = scene_state(api)
     context = _Context()
     op = _driver(ext, make_job)
@@ -195,7 +196,7 @@ def test_modal_job_error_clears_marker_and_timer(ext, api, jobs, skull, monkeypa
     assert scene_state(api) == before
     # The panel is usable again: the next job runs from the timer and commits.
     monkeypatch.undo()
-    op = _driver(ext, lambda: api.build_job(obj, SKULL_THRESHOLD))
+    op = _driver(ext, lambda: ext.blender.volumes.build_job(obj, SKULL_THRESHOLD))
     context = _Context()
     assert op.start(context) == {"RUNNING_MODAL"}
     assert _ticks(op, context) == {"FINISHED"}
@@ -214,22 +215,24 @@ def _middle_box(obj):
 
 
 @pytest.mark.parametrize("where", ["voxelize", "write"])
-def test_tool_error_leaves_no_busy_flag_and_no_entry(api, skull, monkeypatch, capsys, where):
+def test_tool_error_leaves_no_busy_flag_and_no_entry(ext, api, skull, monkeypatch, capsys,
+                                                     where):
     obj = _meshed(api, skull)
     box = _middle_box(obj)
     obj.volumeevm.tool_object = box
     bpy.context.view_layer.objects.active = obj
     # "write": the entry is stored, then making the surface's new mesh fails.
-    monkeypatch.setattr(api, "voxelize_tool" if where == "voxelize" else "_write_surface", _bug)
+    monkeypatch.setattr(ext.blender.tool_stack,
+                        "voxelize_tool" if where == "voxelize" else "_write_surface", _bug)
     before = scene_state(api)
     with pytest.raises(RuntimeError, match=f"Cut: {UNEXPECTED}"):
         bpy.ops.volumeevm.tool_cut()
-    assert not api.is_busy()
+    assert not ext.blender.tool_stack.is_busy()
     assert "ZeroDivisionError: a bug" in capsys.readouterr().err
     assert scene_state(api) == before and len(obj.volumeevm.tools) == 0
     monkeypatch.undo()
     assert bpy.ops.volumeevm.tool_cut() == {"FINISHED"}
-    assert len(obj.volumeevm.tools) == 1 and not api.is_busy()
+    assert len(obj.volumeevm.tools) == 1 and not ext.blender.tool_stack.is_busy()
 
 
 def _cutter(api, skull):
@@ -251,14 +254,14 @@ def _assert_same_geometry(surface, geometry):
         np.testing.assert_array_equal(now, before)
 
 
-def test_fill_mesh_failing_half_way_keeps_the_old_surface(api, skull, monkeypatch, capsys):
+def test_fill_mesh_failing_half_way_keeps_the_old_surface(ext, api, skull, monkeypatch, capsys):
     """A bug inside ``fill_mesh`` after it added vertices: the surface keeps its old geometry,
     from the live refresh (depsgraph handler) and from the Refresh operator alike."""
     obj, box = _cutter(api, skull)
-    surface = api.own_surface(obj)
+    surface = ext.blender.objects.own_surface(obj)
     geometry = _geometry(surface)
     signature = surface.volumeevm.stack_signature
-    real_fill = api.fill_mesh
+    real_fill = ext.blender.meshes.fill_mesh
     calls = []
 
     def fill_half_then_bug(mesh, co, polys):
@@ -268,14 +271,15 @@ def test_fill_mesh_failing_half_way_keeps_the_old_surface(api, skull, monkeypatc
             raise ZeroDivisionError("a bug")
         real_fill(mesh, co, polys)  # putting the old geometry back
 
-    monkeypatch.setattr(api, "fill_mesh", fill_half_then_bug)
+    monkeypatch.setattr(ext.blender.meshes, "fill_mesh", fill_half_then_bug)
     box.location.x += 0.01  # the live refresh: a new result to write
     before = scene_state(api)
     bpy.context.view_layer.update()
     # The new geometry was tried, then the old one put back.
     assert len(calls) == 2 and calls[0] != calls[1] == len(geometry[0])
     _assert_same_geometry(surface, geometry)
-    assert surface.volumeevm.stack_signature == signature and not api.is_busy()
+    assert (surface.volumeevm.stack_signature == signature
+            and not ext.blender.tool_stack.is_busy())
     assert "unexpected error while refreshing" in api.stack_state(obj).problem
     assert "ZeroDivisionError: a bug" in capsys.readouterr().err
     assert scene_state(api) == before
@@ -283,7 +287,7 @@ def test_fill_mesh_failing_half_way_keeps_the_old_surface(api, skull, monkeypatc
     calls.clear()
     with pytest.raises(RuntimeError, match=f"Refresh: {UNEXPECTED}"):
         bpy.ops.volumeevm.tool_refresh()
-    assert len(calls) == 2 and not api.is_busy()
+    assert len(calls) == 2 and not ext.blender.tool_stack.is_busy()
     _assert_same_geometry(surface, geometry)
     assert scene_state(api) == before
     monkeypatch.undo()
@@ -297,16 +301,16 @@ def _entries(obj):
 
 
 @pytest.mark.parametrize("change", ["remove", "move"])
-def test_failing_refresh_after_remove_or_move_keeps_the_entries(api, skull, monkeypatch, capsys,
-                                                                change):
+def test_failing_refresh_after_remove_or_move_keeps_the_entries(ext, api, skull, monkeypatch,
+                                                                capsys, change):
     obj, _box = _cutter(api, skull)
     api.add_tool(obj, None, "largest")
     obj.volumeevm.tool_index = 0
     entries = _entries(obj)
     assert len(entries) == 2
-    geometry = _geometry(api.own_surface(obj))
+    geometry = _geometry(ext.blender.objects.own_surface(obj))
     before = scene_state(api)
-    monkeypatch.setattr(api, "_write_surface", _bug)  # after the stack was evaluated again
+    monkeypatch.setattr(ext.blender.tool_stack, "_write_surface", _bug)  # after the evaluation
     if change == "remove":
         run = lambda: bpy.ops.volumeevm.tool_remove(index=0)  # noqa: E731
         label = "Remove Tool Entry"
@@ -317,8 +321,8 @@ def test_failing_refresh_after_remove_or_move_keeps_the_entries(api, skull, monk
         run()
     assert "ZeroDivisionError: a bug" in capsys.readouterr().err
     assert _entries(obj) == entries and obj.volumeevm.tool_index == 0
-    assert scene_state(api) == before and not api.is_busy()
-    _assert_same_geometry(api.own_surface(obj), geometry)
+    assert scene_state(api) == before and not ext.blender.tool_stack.is_busy()
+    _assert_same_geometry(ext.blender.objects.own_surface(obj), geometry)
     monkeypatch.undo()
     assert run() == {"FINISHED"}
     expected = entries[1:] if change == "remove" else entries[::-1]
@@ -354,7 +358,7 @@ def test_render_failing_after_images_or_files_leaves_them_as_they_were(
     """The render's commit (or its report) fails after the images were filled, or after the
     EXR was written: the existing images keep their names, sizes and pixels, a replaced file
     is the old one again and no new file is left."""
-    dvr = ext.operators.dvr
+    dvr = ext.blender.dvr
     obj = _imported(api, skull)
     api.build(obj, SKULL_THRESHOLD)
     scene = bpy.context.scene
@@ -376,7 +380,7 @@ def test_render_failing_after_images_or_files_leaves_them_as_they_were(
         exr_file.write_bytes(b"the old EXR")
     settings_for(scene, obj, tmp_path, use_exr=True, exr_path=str(exr_file), use_png=True,
                  png_path=str(png_file), overwrite=True)
-    target = {"exr": (dvr.exr, "write_exr"), "png": (dvr, "write_png"),
+    target = {"exr": (dvr.exr, "write_exr"), "png": (ext.blender.images, "write_png"),
               "finished": (bpy.types.VOLUMEEVM_OT_render_dvr, "finished")}[where]
     monkeypatch.setattr(*target, _bug)
     images, files, before = _images(), _files(tmp_path), scene_state(api)

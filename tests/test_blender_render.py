@@ -21,13 +21,13 @@ CENTRE = Vector((0.124, 0.124, 0.115))  # middle of the skull's grid (Blender un
 
 @pytest.fixture
 def dvr(ext):
-    return ext.operators.dvr
+    return ext.blender.dvr
 
 
 @pytest.fixture
 def skull(ext):
     """The sample skull as a volume object with its VolumeEVM (the region >= 2.9)."""
-    api = ext.operators.api
+    api = ext.blender.api
     vol = api.import_volume(SKULL)
     api.build(vol, SKULL_THRESHOLD)
     return vol
@@ -133,8 +133,8 @@ def test_opaque_silhouette_equals_surface_mesh_render(ext, dvr, skull, case):
     if "placement" in spec:  # the volume object moved, turned and scaled (surface follows)
         skull.location, skull.rotation_euler, scale = spec["placement"]
         skull.scale = (scale, scale, scale)
-    surface = ext.operators.api.make_mesh(skull)
-    mesh_pass = dvr.render_scene(scene)  # the surface mesh by Cycles
+    surface = ext.blender.api.make_mesh(skull)
+    mesh_pass = ext.blender.scene.render_scene(scene)  # the surface mesh by Cycles
     w = spec["size"][0] * spec["percentage"] // 100
     h = spec["size"][1] * spec["percentage"] // 100
     assert mesh_pass.rgba.shape == (h, w, 4)
@@ -185,8 +185,8 @@ def test_volume_in_front_veils_a_plane_behind_it(ext, dvr, skull):
     # The plane lies behind the whole volume: the DVR is the same as with no scene at all.
     from volumeevm.volumeevm_addon import render
 
-    cam = ext.operators.camera.camera_from_blender(scene)
-    alone, alone_depth = render(ext.operators.api.get_vevm(skull), cam, bone_tf(),
+    cam = ext.blender.camera.camera_from_blender(scene)
+    alone, alone_depth = render(ext.blender.api.get_vevm(skull), cam, bone_tf(),
                                 method="raycast", matrix_world=np.array(skull.matrix_world))
     np.testing.assert_allclose(result.dvr_rgba, alone, atol=1e-6)
     plane_colour = result.scene.rgba
@@ -233,13 +233,13 @@ def test_operator_end_to_end(ext, dvr, skull, tmp_path):
     composite = np.flipud(pixels.reshape(40, 60, 4))
     assert np.isfinite(composite).all()
     # Equal to the core render over the scene render (rays stopped at the scene depth).
-    tf = ext.operators.render.transfer_function(s)
-    options = dvr.method_options("raycast", 1.0, skull.volumeevm.spacing)
+    tf = ext.blender.transfer.transfer_function(s)
+    options = ext.volumeevm_addon.method_options("raycast", 1.0, skull.volumeevm.spacing)
     expected = dvr.render_dvr(skull, tf, method="raycast", image_name="check", options=options)
     from volumeevm.volumeevm_addon import render
 
-    cam = ext.operators.camera.camera_from_blender(scene)
-    core, core_depth = render(ext.operators.api.get_vevm(skull), cam, tf, method="raycast",
+    cam = ext.blender.camera.camera_from_blender(scene)
+    core, core_depth = render(ext.blender.api.get_vevm(skull), cam, tf, method="raycast",
                               depth_in=expected.scene.depth,
                               matrix_world=np.array(skull.matrix_world),
                               step_mm=0.5 * min(skull.volumeevm.spacing), termination=0.99)
@@ -298,7 +298,7 @@ def test_transfer_function_from_the_ramp(ext, skull):
     s = scene.volumeevm_render
     s.volume = skull
     s.preset = "mri"
-    tf = ext.operators.render.transfer_function(s)
+    tf = ext.blender.transfer.transfer_function(s)
     from volumeevm.volumeevm_addon import TransferFunction
 
     hi = skull.volumeevm.value_max
@@ -306,7 +306,7 @@ def test_transfer_function_from_the_ramp(ext, skull):
     values = np.linspace(-1.0, hi + 1.0, 101)
     np.testing.assert_allclose(tf.evaluate(values), want.evaluate(values), atol=1e-5)
     s.unit_length_mm = 2.0
-    assert ext.operators.render.transfer_function(s).unit_length_mm == 2.0
+    assert ext.blender.transfer.transfer_function(s).unit_length_mm == 2.0
 
 
 # ---------------------------------------------------------------------------- compositor
@@ -321,7 +321,7 @@ def test_compositor_setup_and_f12_include_the_dvr(ext, dvr, skull, tmp_path):
     assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
     assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
     assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}  # again: nothing duplicated
-    render_ops = ext.operators.render
+    render_ops = ext.blender.compositor
     if hasattr(scene, "compositing_node_group"):
         tree = scene.compositing_node_group
         output = [n for n in tree.nodes if n.bl_idname == "NodeGroupOutput"]
@@ -335,7 +335,7 @@ def test_compositor_setup_and_f12_include_the_dvr(ext, dvr, skull, tmp_path):
     over = tree.nodes[render_ops.NODE_OVER]
     assert tree.nodes[render_ops.NODE_IMAGE].image.name == f"{dvr.DEFAULT_IMAGE} DVR"
     assert output[0].inputs[0].links[0].from_node == over
-    background, foreground = render_ops._over_sockets(over)
+    background, foreground = render_ops.over_sockets(over)
     source = background.links[0].from_node
     while source.bl_idname == "NodeReroute":  # 4.5's default tree routes through one
         source = source.inputs[0].links[0].from_node
@@ -393,7 +393,7 @@ def test_render_panel_draws_and_the_job_runs_from_the_modal_driver(ext, dvr, sku
     assert any(name == "operator" and args[0] == "volumeevm.render_dvr" for name, args, _ in calls)
     assert len([name for name, _, _ in calls if name == "progress"]) == 8  # the histogram
     # The UI path: scene pass on the main thread, the volume render in the worker thread.
-    tf = ext.operators.render.transfer_function(scene.volumeevm_render)
+    tf = ext.blender.transfer.transfer_function(scene.volumeevm_render)
     op = _driver(ext, lambda: dvr.render_dvr_job(scene, skull, tf, method="shear_warp"))
     context = _Context()
     assert op.start(context) == {"RUNNING_MODAL"}
@@ -427,7 +427,7 @@ def test_animation_renders_every_frame_and_f12_warns_of_a_stale_dvr(ext, dvr, sk
     assert (frames[0] > 0.5).any() and not np.array_equal(frames[0], frames[1])
     # Each frame's image equals a single render at that frame.
     scene.frame_set(2)
-    single = dvr.render_dvr(skull, ext.operators.render.transfer_function(scene.volumeevm_render),
+    single = dvr.render_dvr(skull, ext.blender.transfer.transfer_function(scene.volumeevm_render),
                             method="raycast", image_name="single")
     np.testing.assert_allclose(frames[1], single.rgba[..., 3], atol=1e-6)
     # F12 with the compositor: quiet when the DVR matches the view, a warning when it does not.
@@ -450,7 +450,7 @@ def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):
     cycles(scene, (48, 36))
     s = settings_for(scene, skull, tmp_path)
     s.xray_scale = 0.01
-    ui = ext.ui.render_panel
+    ui = ext.ui.props
     for method, *_ in ui.METHOD_ITEMS:
         for mode, *_ in ui.MODE_ITEMS:
             s.method, s.mode = method, mode
@@ -463,7 +463,7 @@ def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):
 
 def test_the_tool_stack_result_is_rendered(ext, dvr, skull):
     """A volume with CAD tools renders the stack's result, not the bare VolumeEVM."""
-    api = ext.operators.api
+    api = ext.blender.api
     scene = bpy.context.scene
     add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
     cycles(scene, (48, 40))
@@ -482,7 +482,7 @@ def test_the_tool_stack_result_is_rendered(ext, dvr, skull):
     cut = dvr.render_dvr(skull, bone_tf())
     from volumeevm.volumeevm_addon import render
 
-    cam = ext.operators.camera.camera_from_blender(scene)
+    cam = ext.blender.camera.camera_from_blender(scene)
     want, _ = render(result, cam, bone_tf(), method="raycast",
                      matrix_world=np.array(skull.matrix_world))
     np.testing.assert_allclose(cut.dvr_rgba, want, atol=1e-6)
@@ -499,29 +499,34 @@ def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dv
     scene = bpy.context.scene
     s = scene.volumeevm_render
     assert s.resolution == "auto"
-    assert [item[0] for item in ext.ui.render_panel.RESOLUTION_ITEMS] == ["auto", "full"]
+    assert [item[0] for item in ext.ui.props.RESOLUTION_ITEMS] == ["auto", "full"]
     add_camera(scene, (0.124, -0.6, 0.115), ortho=True)  # ortho scale 0.36 BU
     cycles(scene, (38, 30))  # 9.5 mm pixels, 3.9 mm voxels
-    vevm = ext.operators.api.get_vevm(skull)
+    vevm = ext.blender.api.get_vevm(skull)
     spacing = skull.volumeevm.spacing
     settings_for(scene, skull, tmp_path, resolution="full")
     assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
-    assert not vevm._levels  # Full: no coarser level built
+
+    def levels():
+        """The factors of the coarser levels kept in the VolumeEVM's cache."""
+        return [key[1] for key in vevm.cache.keys() if key[0] == "level"]
+
+    assert not levels()  # Full: no coarser level built
     s.resolution = "auto"
     assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
-    assert list(vevm._levels) == [2]
+    assert levels() == [2]
     images = {}
     for level in ("full", "auto"):
-        options = dvr.method_options("raycast", 1.0, spacing, level=level)
+        options = ext.volumeevm_addon.method_options("raycast", 1.0, spacing, level=level)
         images[level] = dvr.render_dvr(skull, bone_tf(), options=options).dvr_rgba
-    assert list(vevm._levels) == [2]
+    assert levels() == [2]
     assert vevm.level(2).voxel_count < vevm.voxel_count / 4
     from volumeevm.volumeevm_addon.metrics import rmse
 
     error = rmse(images["auto"], images["full"])
     assert 1e-4 < error < 0.14, error
     with pytest.raises(ext.volumeevm_addon.VolumeEVMError, match="level"):
-        dvr.method_options("raycast", 1.0, spacing, level="half")
+        ext.volumeevm_addon.method_options("raycast", 1.0, spacing, level="half")
 
 
 def test_method_settings_reach_the_core(ext, dvr, skull, tmp_path):
@@ -532,16 +537,17 @@ def test_method_settings_reach_the_core(ext, dvr, skull, tmp_path):
     cycles(scene, (24, 20))
     s = settings_for(scene, skull, tmp_path, method="shear_warp", slices_per_voxel=2,
                      classification="post", jitter=True, preintegrate=True)
-    options = ext.operators.render._job_arguments(bpy.context, s)[2]["options"]
+    options = ext.blender.dvr.job_arguments(bpy.context, s)[2]["options"]
     assert options["slices_per_voxel"] == 2 and options["classification"] == "post"
     assert "jitter" not in options and "preintegrate" not in options
     s.method = "raycast"
-    options = ext.operators.render._job_arguments(bpy.context, s)[2]["options"]
+    options = ext.blender.dvr.job_arguments(bpy.context, s)[2]["options"]
     assert options["jitter"] is True and options["preintegrate"] is True
     assert "slices_per_voxel" not in options
     spacing = skull.volumeevm.spacing
-    assert dvr.method_options("splat", 3.0, spacing)["substeps"] == 3  # quality = sub-slabs
-    assert dvr.method_options("splat", 0.5, spacing)["substeps"] == 1
+    # quality = sub-slabs
+    assert ext.volumeevm_addon.method_options("splat", 3.0, spacing)["substeps"] == 3
+    assert ext.volumeevm_addon.method_options("splat", 0.5, spacing)["substeps"] == 1
     images = []
     for on in (True, False):
         s.jitter = s.preintegrate = on

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from mathutils import Matrix
 from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
+    CT_BONE_HU, api, assert_surface_is, core, ct_crop_npy, ext, fresh, mesh_arrays)
 
 BACKGROUND = -5000  # below every CT value: marks voxels outside the region in to_dense
 
@@ -97,16 +97,6 @@ def expected_tool(core, vevm, vol_obj, tool_obj):
     mask = core.voxelize_mesh(co.reshape(-1, 3).astype(np.float64), faces.reshape(-1, 3),
                               vevm.shape, to_grid)
     return core.EVM.from_mask(mask), mask
-
-
-def assert_surface_is(surface, vevm):
-    """The Blender surface mesh equals the core's mesh of ``vevm`` exactly (x 0.001)."""
-    verts_mm, polys = vevm.mesh()
-    co, indices, starts, totals = mesh_arrays(surface.data)
-    np.testing.assert_array_equal(co, (verts_mm * 0.001).astype(np.float32))
-    np.testing.assert_array_equal(indices, polys.indices)
-    np.testing.assert_array_equal(starts, polys.starts)
-    np.testing.assert_array_equal(totals, polys.sizes)
 
 
 def assert_same_vevm(a, b):
@@ -360,7 +350,7 @@ def test_handler_never_raises(ext, api, core, data_dir, volume, monkeypatch):
     def broken(*_args):
         raise ZeroDivisionError("a bug")
 
-    monkeypatch.setattr(api, "refresh_quietly", broken)
+    monkeypatch.setattr(ext.blender.tool_stack, "refresh_quietly", broken)
     nut.location.x += 0.004
     bpy.context.view_layer.update()  # the handler catches it
     assert api.stack_state(vol).problem == ("unexpected error while refreshing: "
@@ -437,7 +427,7 @@ def test_apply_new_sidecar_undo_and_reopen(tmp_path, ext, api, core, data_dir, v
     assert vol.volumeevm.vevm_path == old_path and len(vol.volumeevm.tools) == 2
     # The undo_post handler re-synced the runtime stack to the restored base path, and the
     # mesh Blender restored matches the restored stack (nothing to rewrite).
-    state = ext.operators._runtime.stack_state(vol.volumeevm.uid, name)
+    state = ext.blender.runtime.stack_state(vol.volumeevm.uid, name)
     assert state.base_path == str(Path(old_path)) and state.problem == ""
     assert surface_of(vol).volumeevm.stack_signature != ""
     assert_surface_is(surface_of(vol), expected)

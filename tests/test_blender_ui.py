@@ -161,7 +161,7 @@ def texts(calls):
 
 
 def test_panels_draw_every_state(ext, data_dir, tmp_path):
-    api = ext.operators.api
+    api = ext.blender.api
     context = bpy.context
     assert "Select or import a volume" in texts(draw_all(ext, context))
 
@@ -234,7 +234,7 @@ class _Event:
 
 
 def _driver(ext, make_job):
-    class Driver(ext.operators._jobs.JobOperator):
+    class Driver(ext.blender.jobs.JobOperator):
         reports = []
 
         def job(self, context):
@@ -257,12 +257,12 @@ def _ticks(op, context, limit=200):
 
 
 def test_modal_driver_runs_steps_in_a_thread_and_commits(ext, data_dir):
-    api, jobs = ext.operators.api, ext.operators._jobs
+    api, jobs = ext.blender.api, ext.blender.jobs
     obj = api.import_volume(data_dir / SKULL)
     threads = []
 
     def make_job():
-        job = api.build_job(obj, 2.9)
+        job = ext.blender.volumes.build_job(obj, 2.9)
 
         def steps():
             threads.append(threading.current_thread().name)
@@ -286,7 +286,7 @@ def test_modal_driver_runs_steps_in_a_thread_and_commits(ext, data_dir):
 
 
 def test_modal_driver_escape_leaves_scene_unchanged(ext, data_dir):
-    api, jobs = ext.operators.api, ext.operators._jobs
+    api, jobs = ext.blender.api, ext.blender.jobs
     obj = api.import_volume(data_dir / SKULL)
     release = threading.Event()
 
@@ -311,9 +311,9 @@ def test_modal_driver_escape_leaves_scene_unchanged(ext, data_dir):
 
 
 def test_modal_driver_reports_errors(ext, data_dir):
-    api, jobs = ext.operators.api, ext.operators._jobs
+    api, jobs = ext.blender.api, ext.blender.jobs
     obj = api.import_volume(data_dir / SKULL)
-    op = _driver(ext, lambda: api.build_job(obj, 1000.0))
+    op = _driver(ext, lambda: ext.blender.volumes.build_job(obj, 1000.0))
     context = _Context()
     assert op.start(context) == {"RUNNING_MODAL"}
     assert _ticks(op, context) == {"CANCELLED"}

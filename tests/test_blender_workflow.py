@@ -13,7 +13,7 @@ import bpy
 import numpy as np
 import pytest
 from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, CT_CROP, REPO, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
+    CT_BONE_HU, CT_CROP, REPO, api, assert_surface_is, core, ct_crop_npy, ext, fresh)
 
 SKULL_THRESHOLD = 2.9  # CGAL meshes this skull at 2.9
 
@@ -44,12 +44,7 @@ def _only(objects, role):
 
 
 def _assert_mesh_equals_core(surface, vevm):
-    verts_mm, polys = vevm.mesh()
-    co, indices, starts, totals = mesh_arrays(surface.data)
-    np.testing.assert_array_equal(co, (verts_mm * 0.001).astype(np.float32))
-    np.testing.assert_array_equal(indices, polys.indices)
-    np.testing.assert_array_equal(starts, polys.starts)
-    np.testing.assert_array_equal(totals, polys.sizes)
+    polys = assert_surface_is(surface, vevm)
     assert len(surface.data.polygons) == len(polys)
     smooth = np.ones(len(polys), bool)
     surface.data.polygons.foreach_get("use_smooth", smooth)
@@ -63,12 +58,12 @@ def test_register_unregister_twice(ext):
         assert not hasattr(bpy.types.Scene, "volumeevm")
         assert not hasattr(bpy.types.Object, "volumeevm")
         assert not hasattr(bpy.types, "VOLUMEEVM_OT_build_vevm")
-        assert ext.operators.sidecar.on_load_post not in bpy.app.handlers.load_post
+        assert ext.blender.sidecar.on_load_post not in bpy.app.handlers.load_post
         ext.register()
         assert hasattr(bpy.types.Scene, "volumeevm")
         assert hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
         assert hasattr(bpy.types, "VOLUMEEVM_PT_main")
-        assert ext.operators.sidecar.on_load_post in bpy.app.handlers.load_post
+        assert ext.blender.sidecar.on_load_post in bpy.app.handlers.load_post
 
 
 def test_poll_messages_say_why(ext):
@@ -153,15 +148,15 @@ def test_api_gives_the_operators_result(data_dir, api, core):
     _assert_mesh_equals_core(twin_surface, core.VolumeEVM.from_volume(core.read_volume(path), 4.0))
 
 
-def test_cancelled_job_changes_nothing(data_dir, api):
+def test_cancelled_job_changes_nothing(ext, data_dir, api):
     obj = api.import_volume(data_dir / "ct_skull_cgal.npy")
     api.build(obj, SKULL_THRESHOLD)
     before = (obj.volumeevm.vevm_path, obj.volumeevm.voxel_count, obj.volumeevm.threshold)
-    job = api.build_job(obj, 1.0)
+    job = ext.blender.volumes.build_job(obj, 1.0)
     assert next(job.steps)[1] == "building EVM"
     job.steps.close()  # what Esc does: the generator stops, commit never runs
     assert (obj.volumeevm.vevm_path, obj.volumeevm.voxel_count, obj.volumeevm.threshold) == before
-    surface_job = api.mesh_job(bpy.context, obj)
+    surface_job = ext.blender.volumes.mesh_job(bpy.context, obj)
     next(surface_job.steps)
     surface_job.steps.close()
     assert obj.volumeevm.surface is None and len(bpy.data.objects) == 1
@@ -184,8 +179,8 @@ def test_sidecar_beside_blend_found_after_reopen(tmp_path, data_dir, api, core, 
 
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["ct_skull_cgal"]
-    assert ext.operators._runtime.status(obj.volumeevm.uid) == ""
-    assert ext.operators.sidecar.resolve(obj) == sidecar_file
+    assert ext.blender.runtime.status(obj.volumeevm.uid) == ""
+    assert ext.blender.sidecar.resolve(obj) == sidecar_file
     found = api.get_vevm(obj)
     np.testing.assert_array_equal(found.evm.vertices, vevm.evm.vertices)
     np.testing.assert_array_equal(found.table(), vevm.table())
@@ -193,7 +188,7 @@ def test_sidecar_beside_blend_found_after_reopen(tmp_path, data_dir, api, core, 
     _assert_mesh_equals_core(surface, vevm)
 
     # The dense volume is gone after reopening: Build re-reads the source file.
-    assert ext.operators._runtime.volume(obj.volumeevm.uid) is None
+    assert ext.blender.runtime.volume(obj.volumeevm.uid) is None
     bpy.context.view_layer.objects.active = obj
     assert bpy.ops.volumeevm.build_vevm(use_settings=False, threshold=3.5) == {"FINISHED"}
     assert obj.volumeevm.voxel_count == core.VolumeEVM.from_volume(
@@ -254,7 +249,7 @@ def test_corrupt_sidecar_reported_after_reopen(tmp_path, data_dir, api, ext):
     sidecar_file.write_bytes(sidecar_file.read_bytes()[:500])
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["ct_skull_cgal"]
-    assert "not a readable VolumeEVM file" in ext.operators._runtime.status(obj.volumeevm.uid)
+    assert "not a readable VolumeEVM file" in ext.blender.runtime.status(obj.volumeevm.uid)
     bpy.context.view_layer.objects.active = obj
     with pytest.raises(RuntimeError, match="not a readable VolumeEVM file"):
         bpy.ops.volumeevm.make_mesh()
@@ -321,6 +316,6 @@ def test_background_progress_lines(capfd, data_dir):
 
 
 def test_nothing_written_into_the_addon_folder():
-    shipped = [REPO / "operators", REPO / "ui", REPO / "volumeevm_addon"]
+    shipped = [REPO / "blender", REPO / "operators", REPO / "ui", REPO / "volumeevm_addon"]
     assert [p for folder in shipped for p in folder.rglob("*.vevm")] == []
     assert list(REPO.glob("*.vevm")) == []

@@ -1,8 +1,9 @@
-"""User interface: property groups (``props``) and the sidebar panels (``panels``).
+"""User interface: the property groups (``props``), the sidebar panels (``panels``, with the one
+histogram drawer) and the Render section (``render_panel``).
 
-``CLASSES`` lists the classes to register: property groups, UI lists, panels.
+``CLASSES`` lists the classes to register, in order: property groups, UI lists, panels.
 """
 
-from . import panels, props
+from . import panels, props, render_panel
 
-CLASSES = [*props.CLASSES, *panels.LISTS, *panels.CLASSES]
+CLASSES = [*props.CLASSES, *panels.LISTS, *panels.CLASSES, *render_panel.CLASSES]

@@ -1,14 +1,16 @@
-"""The 3D view sidebar tab "VolumeEVM", and the job progress bar in the status bar."""
+"""The 3D view sidebar tab "VolumeEVM", the job progress bar in the status bar, and the one
+histogram drawer (the Histogram panel's, and the Render panel's beside the transfer function).
+"""
 
 import math
 
 import bpy
 import numpy as np
 
-from ..operators import _jobs, _runtime, api
-from ..operators.build import active_volume
+from ..blender import jobs, runtime, tool_stack
+from ..blender.objects import active_volume
 
-#: Histogram rows drawn in the sidebar (the stored bins are summed in groups).
+#: Histogram rows drawn in the Histogram panel (the stored bins are summed in groups).
 HISTOGRAM_ROWS = 16
 
 
@@ -28,7 +30,7 @@ def _fmt(value):
 
 def draw_progress(layout):
     """Draw the running job's progress bar; True if a job runs."""
-    job = _jobs.CURRENT
+    job = jobs.CURRENT
     if job is None:
         return False
     layout.progress(factor=job.fraction, type="BAR", text=f"{job.label}: {job.text}")
@@ -56,7 +58,7 @@ class VOLUMEEVM_PT_main(_Sidebar, bpy.types.Panel):
             layout.label(text="Select or import a volume", icon="INFO")
             return
         layout.label(text=obj.name, icon="MESH_CUBE")
-        problem = _runtime.status(obj.volumeevm.uid)
+        problem = runtime.status(obj.volumeevm.uid)
         if problem:
             box = layout.box()
             box.label(text="VolumeEVM problem:", icon="ERROR")
@@ -101,7 +103,7 @@ class VOLUMEEVM_PT_volume(_VolumeSubpanel, bpy.types.Panel):
         units = f" {s.units}" if s.units else ""
         col.label(text=f"Values: {_fmt(s.value_min)} .. {_fmt(s.value_max)}{units}")
         col.label(text=f"Type: {s.dtype}, dense {human_bytes(s.dense_bytes or _dense(s))}")
-        if _runtime.volume(s.uid) is None:
+        if runtime.volume(s.uid) is None:
             col.label(text="Not in memory: Build re-reads the source", icon="FILE_REFRESH")
         col.prop(s, "source_path", text="")
 
@@ -125,26 +127,38 @@ class VOLUMEEVM_PT_histogram(_VolumeSubpanel, bpy.types.Panel):
 
     def draw(self, context):
         s = active_volume(context).volumeevm
-        counts = np.asarray(s.histogram, np.float64)
-        if counts.sum() == 0:
-            self.layout.label(text="No histogram")
-            return
-        counts = counts.reshape(HISTOGRAM_ROWS, -1).sum(axis=1)
-        heights = np.log1p(counts) if context.scene.volumeevm.histogram_log else counts
-        heights = heights / heights.max()
-        edges = np.linspace(s.value_min, s.value_max, HISTOGRAM_ROWS + 1)
         upper = s.upper if s.use_upper else math.inf
-        col = self.layout.column(align=True)
-        for i in range(HISTOGRAM_ROWS):
-            row = col.row(align=True)
-            row.scale_y = 0.7
-            lo, hi = edges[i], edges[i + 1]
-            inside = hi > s.threshold and lo <= upper
-            marker = lo <= s.threshold < hi or (i == HISTOGRAM_ROWS - 1 and s.threshold >= hi)
-            row.label(text="", icon="TRIA_RIGHT" if marker else
-                      ("CHECKMARK" if inside else "BLANK1"))
-            row.progress(factor=float(heights[i]), type="BAR",
-                         text=f"{_fmt(lo)}: {int(counts[i])}")
+        if not draw_histogram(self.layout, context, s, HISTOGRAM_ROWS, low=s.threshold,
+                              high=upper, marker=s.threshold):
+            self.layout.label(text="No histogram")
+
+
+def draw_histogram(layout, context, s, rows, *, low, high, marker=None):
+    """Draw a volume's stored histogram (``s`` is its ``volumeevm``) as ``rows`` bars.
+
+    The stored bins are summed in groups; each bar says its lowest density and its voxels. A
+    bar whose range meets ``[low, high]`` is ticked, the bar holding ``marker`` (the threshold)
+    is pointed at. Bars are on a log scale when the scene's ``histogram_log`` is on (CT is
+    mostly air). Returns False, drawing nothing, when the volume has no histogram.
+    """
+    counts = np.asarray(s.histogram, np.float64)
+    if counts.sum() == 0:
+        return False
+    counts = counts.reshape(rows, -1).sum(axis=1)
+    heights = np.log1p(counts) if context.scene.volumeevm.histogram_log else counts
+    heights = heights / heights.max()
+    edges = np.linspace(s.value_min, s.value_max, rows + 1)
+    col = layout.column(align=True)
+    for i in range(rows):
+        row = col.row(align=True)
+        row.scale_y = 0.7
+        lo, hi = edges[i], edges[i + 1]
+        inside = hi > low and lo <= high
+        pointed = marker is not None and (lo <= marker < hi or (i == rows - 1 and marker >= hi))
+        row.label(text="", icon="TRIA_RIGHT" if pointed else
+                  ("CHECKMARK" if inside else "BLANK1"))
+        row.progress(factor=float(heights[i]), type="BAR", text=f"{_fmt(lo)}: {int(counts[i])}")
+    return True
 
 
 class VOLUMEEVM_PT_build(_VolumeSubpanel, bpy.types.Panel):
@@ -205,10 +219,6 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
                               f"{len(mesh.polygons):,} faces")
 
 
-_OPERATION_ICONS = {"CUT": "REMOVE", "KEEP": "SELECT_INTERSECT", "ADD": "ADD",
-                    "LARGEST": "STICKY_UVS_LOC", "CLIP": "MOD_WIREFRAME"}
-
-
 class VOLUMEEVM_UL_tools(bpy.types.UIList):
     """The tool stack of a volume: entries apply from top to bottom."""
 
@@ -218,7 +228,8 @@ class VOLUMEEVM_UL_tools(bpy.types.UIList):
         row.prop(item, "enabled", text="")
         sub = row.row(align=True)
         sub.active = item.enabled
-        sub.label(text=api.TOOL_LABELS[item.operation], icon=_OPERATION_ICONS[item.operation])
+        kind = tool_stack.KINDS[item.operation]
+        sub.label(text=kind.label, icon=kind.icon)
         if item.operation != "LARGEST":
             sub.prop(item, "tool", text="")
         if item.operation == "ADD":
@@ -250,16 +261,16 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
             return
         layout.prop(s, "tool_object", text="Tool")
         if s.tool_object is not None:
-            problem = api.tool_problem(obj, s.tool_object)
+            problem = tool_stack.tool_problem(obj, s.tool_object)
             if problem:
                 layout.label(text=problem, icon="ERROR")
         grid = layout.grid_flow(columns=2, align=True)
-        grid.operator("volumeevm.tool_cut", icon=_OPERATION_ICONS["CUT"])
-        grid.operator("volumeevm.tool_keep", icon=_OPERATION_ICONS["KEEP"])
-        grid.operator("volumeevm.tool_clip", icon=_OPERATION_ICONS["CLIP"])
-        grid.operator("volumeevm.tool_largest", icon=_OPERATION_ICONS["LARGEST"])
+        for kind in tool_stack.TOOL_KINDS:
+            if kind.identifier != "ADD":
+                grid.operator(f"volumeevm.tool_{kind.name}", icon=kind.icon)
+        add = tool_stack.KINDS["ADD"]
         row = layout.row(align=True)
-        row.operator("volumeevm.tool_add", icon=_OPERATION_ICONS["ADD"])  # uses the settings
+        row.operator(f"volumeevm.tool_{add.name}", icon=add.icon)  # uses the settings below
         row.prop(s, "tool_use_density", text="", icon="DRIVER_DISTANCE")
         sub = row.row(align=True)
         sub.active = s.tool_use_density
@@ -276,7 +287,7 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
         row.operator("volumeevm.tool_refresh", icon="FILE_REFRESH")
         row.operator("volumeevm.tool_apply", icon="CHECKMARK")
 
-        state = _runtime.stack_state(s.uid, obj.name)
+        state = runtime.stack_state(s.uid, obj.name)
         if state is None:
             return
         if state.timing.get("total_s") is not None:
@@ -293,7 +304,7 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
 
 def draw_status(self, context):
     """Status-bar progress of a running job."""
-    if _jobs.CURRENT is not None:
+    if jobs.CURRENT is not None:
         draw_progress(self.layout.row())
 
 

@@ -1,9 +1,14 @@
-"""Settings stored in the .blend: ``Scene.volumeevm`` and ``Object.volumeevm``.
+"""Settings stored in the .blend: ``Scene.volumeevm``, ``Scene.volumeevm_render`` and
+``Object.volumeevm``.
 
-Only small values live here (sizes, spacing, thresholds, counts, a 32-bin histogram, paths).
-Bulk data never goes into ID properties: the dense volume stays in a runtime cache in Python
-(``operators/_runtime.py``) and the VolumeEVM in a ``.vevm`` sidecar file beside the .blend
-(``operators/sidecar.py``).
+Only small values live here (sizes, spacing, thresholds, counts, a 32-bin histogram, paths,
+render settings). Bulk data never goes into ID properties: the dense volume stays in a runtime
+cache in Python (``blender/runtime.py``) and the VolumeEVM in a ``.vevm`` sidecar file beside
+the .blend (``blender/sidecar.py``).
+
+The enums' identifiers come from one place each: the core's ``METHODS``, ``MODES``, ``LEVELS``
+and ``PRESETS``, the tool stack's ``TOOL_KINDS`` (only shear-warp's two classifications are
+listed here); the names and descriptions shown in the sidebar are written here.
 """
 
 import bpy
@@ -19,8 +24,26 @@ from bpy.props import (
     StringProperty,
 )
 
-from ..operators import api
-from ..operators.api import HISTOGRAM_BINS
+from ..blender import tool_stack
+from ..blender.dvr import DEFAULT_IMAGE
+from ..blender.objects import render_volume
+from ..blender.transfer import load_preset
+from ..blender.volumes import HISTOGRAM_BINS
+from ..volumeevm_addon import LEVELS, METHODS, MODES, PRESETS
+
+
+def enum_items(names, texts):
+    """Blender enum items for the core's ``names``, with the sidebar's ``texts``
+    (``{name: (label, description)}``, in the order the sidebar lists them).
+
+    Raises
+    ------
+    RuntimeError
+        If ``texts`` does not name exactly ``names`` (the core added or dropped one).
+    """
+    if set(names) != set(texts):
+        raise RuntimeError(f"enum texts {sorted(texts)} do not match the names {sorted(names)}")
+    return tuple((name, *texts[name]) for name in texts)
 
 
 class VolumeEVMSceneSettings(bpy.types.PropertyGroup):
@@ -34,13 +57,8 @@ class VolumeEVMSceneSettings(bpy.types.PropertyGroup):
 
 
 #: Tool operations of the stack: (identifier, name, description).
-TOOL_OPERATIONS = (
-    ("CUT", "Cut", "Remove the material inside the tool"),
-    ("KEEP", "Keep Inside", "Keep only the material inside the tool"),
-    ("ADD", "Add", "Add the tool's inside as material with a density"),
-    ("LARGEST", "Keep Largest Part", "Keep only the largest face-connected part"),
-    ("CLIP", "Clip to Box", "Keep only the material inside the tool's bounding box"),
-)
+TOOL_OPERATION_ITEMS = tuple((kind.identifier, kind.label, kind.description)
+                             for kind in tool_stack.TOOL_KINDS)
 
 
 def is_mesh_object(settings, obj):
@@ -49,13 +67,14 @@ def is_mesh_object(settings, obj):
 
 
 def _entry_changed(entry, context):
-    api.entry_changed(entry.id_data)
+    tool_stack.entry_changed(entry.id_data)
 
 
 class VolumeEVMToolEntry(bpy.types.PropertyGroup):
     """One entry of a volume's tool stack (``Object.volumeevm.tools``).
 
-    Changing a field (in the sidebar or from a script) re-evaluates the stack at once.
+    Changing a field (in the sidebar or from a script) marks the stack for a refresh
+    (:func:`..blender.tool_stack.entry_changed`).
     """
 
     tool: PointerProperty(
@@ -63,7 +82,7 @@ class VolumeEVMToolEntry(bpy.types.PropertyGroup):
         description="The closed mesh object that cuts, keeps or adds material",
         update=_entry_changed,
     )
-    operation: EnumProperty(name="Operation", items=TOOL_OPERATIONS, default="CUT",
+    operation: EnumProperty(name="Operation", items=TOOL_OPERATION_ITEMS, default="CUT",
                             update=_entry_changed)
     enabled: BoolProperty(name="Enabled", default=True, update=_entry_changed,
                           description="Apply this entry (disabled entries are skipped)")
@@ -187,4 +206,124 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     )
 
 
-CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMObjectSettings]
+METHOD_ITEMS = enum_items(METHODS, {
+    "raycast": ("Ray Casting", "Trilinear ray casting with the EVM as space-leaping structure"),
+    "shear_warp": ("Shear-Warp", "Sheared slices, one intermediate image, one 2D warp (fast)"),
+    "splat": ("Splatting", "Voxel footprints, sheet by sheet along the principal axis"),
+    "raycast_navigate": ("Ray Casting (Navigation)", "Ray casting that finds every density "
+                         "through the EVM (the report's slow baseline)"),
+    "reference": ("Reference", "Dense float64 ray caster with a tiny step (accuracy oracle, "
+                  "slow)"),
+})
+MODE_ITEMS = enum_items(MODES, {
+    "over": ("Over", "Emission-absorption, front to back with early ray termination"),
+    "under": ("Under", "Emission-absorption, back to front"),
+    "xray": ("X-Ray", "Attenuation: exp of minus the summed density"),
+    "mip": ("MIP", "Maximum intensity along each ray, classified by the transfer function"),
+})
+RESOLUTION_ITEMS = enum_items(LEVELS, {
+    "auto": ("Auto", "Render a volume much finer than the image's pixels from a coarser level "
+                     "whose voxels are still no wider than a pixel (faster, less aliasing)"),
+    "full": ("Full", "Render every voxel of the VolumeEVM"),
+})
+#: Shear-warp's ``classification`` option.
+CLASSIFICATION_ITEMS = (
+    ("pre", "Pre-Classified", "Classify and shade voxels, then interpolate colours (VolPack's "
+                              "order; fastest)"),
+    ("post", "Post-Classified", "Interpolate densities, then classify and shade each sample "
+                                "(the reference's order; sharper transfer functions)"),
+)
+PRESET_ITEMS = enum_items(PRESETS, {
+    "ct_bone": ("CT Bone", "Bone, in Hounsfield units"),
+    "ct_skin": ("CT Skin", "Skin surface over faint bone, in Hounsfield units"),
+    "ct_vessels": ("CT Vessels", "Contrast-filled vessels red, bone faint, in Hounsfield units"),
+    "mri": ("MRI", "Grey ramp over the data's range"),
+    "microscopy": ("Microscopy", "Green fluorescence ramp over the data's range"),
+})
+
+
+def _is_volume(settings, obj):
+    return obj.volumeevm.role == "VOLUME"
+
+
+def _preset_changed(settings, context):
+    load_preset(settings, settings.preset, render_volume(context, settings))
+
+
+class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
+    """Settings of Render VolumeEVM (``Scene.volumeevm_render``): method, mode, quality and
+    resolution level of the volume render; the transfer function as a colour ramp whose
+    positions map onto a value range in the data's units; outputs."""
+
+    volume: PointerProperty(name="Volume", type=bpy.types.Object, poll=_is_volume,
+                            description="The volume to render (empty: the active volume)")
+    method: EnumProperty(name="Method", items=METHOD_ITEMS, default="raycast")
+    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="over")
+    quality: FloatProperty(
+        name="Quality", default=1.0, min=0.05, soft_max=4.0, max=16.0,
+        description="Sampling density relative to the method's default: samples per voxel "
+                    "along rays (ray casting, reference), intermediate pixels per voxel "
+                    "(shear-warp), sub-slabs per sheet (splatting, rounded)")
+    resolution: EnumProperty(
+        name="Resolution", items=RESOLUTION_ITEMS, default="auto",
+        description="Resolution level of the volume render (the reference always renders every "
+                    "voxel)")
+    slices_per_voxel: IntProperty(
+        name="Slices per Voxel", default=1, min=1, max=4,
+        description="Shear-warp: samples per voxel slice along each ray (interpolated between "
+                    "slices); 2 removes the jump in brightness when a turning camera passes "
+                    "45 degrees to the volume's axes, at about twice the time")
+    classification: EnumProperty(name="Classification", items=CLASSIFICATION_ITEMS,
+                                 default="pre", description="Shear-warp: when the transfer "
+                                 "function is applied")
+    jitter: BoolProperty(
+        name="Jitter", default=False,
+        description="Ray casting: offset each ray's samples by a fixed fraction of a step, "
+                    "trading wood-grain banding at coarse steps for fine noise")
+    preintegrate: BoolProperty(
+        name="Pre-Integrated", default=False,
+        description="Ray casting: classify whole segments between samples from a table, so "
+                    "narrow transfer-function peaks are not missed at coarse steps")
+    shading: BoolProperty(name="Shading", default=False,
+                          description="Gradient shading (Blinn-Phong, light from the camera)")
+    termination: FloatProperty(
+        name="Early Termination", default=0.99, min=0.5, max=1.0,
+        description="Rays stop once this opaque (over mode); 1 composites every sample")
+    xray_scale: FloatProperty(
+        name="X-Ray Scale", default=0.01, min=0.0, soft_max=1.0, precision=4,
+        description="X-ray attenuation per mm of ray per data unit above the offset")
+    xray_offset: FloatProperty(
+        name="X-Ray Offset", default=0.0, precision=3,
+        description="Density of zero attenuation (data units, e.g. -1000 for CT air)")
+    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="ct_bone",
+                         update=_preset_changed,
+                         description="Load a preset into the colour ramp and value range")
+    ramp: PointerProperty(name="Transfer Function", type=bpy.types.Texture,
+                          description="Blend texture whose colour ramp is the transfer function")
+    value_lo: FloatProperty(name="Low", default=-1024.0, precision=3,
+                            description="Data value at the ramp's left end (data units)")
+    value_hi: FloatProperty(name="High", default=3071.0, precision=3,
+                            description="Data value at the ramp's right end (data units)")
+    unit_length_mm: FloatProperty(
+        name="Opacity Length", default=1.0, min=1e-4, soft_max=100.0, unit="NONE",
+        description="The ramp's alpha is the opacity over this many mm of ray")
+    image_name: StringProperty(name="Image", default=DEFAULT_IMAGE,
+                               description="Image datablock of the composite (the volume alone "
+                                           "goes to '<Image> DVR')")
+    hide_surface: BoolProperty(
+        name="Hide Surface", default=True,
+        description="Leave the volume's own surface mesh out of the scene render (the volume "
+                    "render shows the volume)")
+    use_exr: BoolProperty(name="EXR", default=False, description="Write R, G, B, A, Z to EXR")
+    exr_path: StringProperty(name="EXR File", subtype="FILE_PATH", default="//volumeevm.exr",
+                             options={"PATH_SUPPORTS_BLEND_RELATIVE"})
+    use_png: BoolProperty(name="PNG", default=False,
+                          description="Write a PNG (through the scene's view transform)")
+    png_path: StringProperty(name="PNG File", subtype="FILE_PATH", default="//volumeevm.png",
+                             options={"PATH_SUPPORTS_BLEND_RELATIVE"})
+    overwrite: BoolProperty(name="Overwrite", default=False,
+                            description="Replace existing files (off: refuse)")
+
+
+CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMObjectSettings,
+           VolumeEVMRenderSettings]

@@ -27,7 +27,7 @@ from pathlib import Path
 import bpy
 
 from ..volumeevm_addon import VolumeEVM, VolumeEVMError, write_atomically
-from . import _runtime
+from . import runtime
 
 _session_dir = None
 _counter = itertools.count(1)
@@ -108,10 +108,10 @@ def load_vevm(obj):
     if path is None:
         raise VolumeEVMError(
             f"{obj.name}: VolumeEVM file {settings.vevm_path!r} not found; build it again")
-    cached = _runtime.vevm(path)
+    cached = runtime.vevm(path)
     if cached is None:
         cached = VolumeEVM.load(path)
-        _runtime.put_vevm(path, cached)
+        runtime.put_vevm(path, cached)
     return cached
 
 
@@ -119,7 +119,7 @@ def save_new(uid, vevm):
     """Write a new VolumeEVM to a fresh session file and cache it; returns the path."""
     path = new_temp_path(uid)
     vevm.save(path)
-    _runtime.put_vevm(path, vevm)
+    runtime.put_vevm(path, vevm)
     return path
 
 
@@ -152,24 +152,24 @@ def on_save_pre(filepath, *_args):
         settings = obj.volumeevm
         source = resolve(obj)
         if source is None:
-            _runtime.set_status(settings.uid, f"VolumeEVM file {settings.vevm_path!r} not found "
-                                              f"when saving; build it again")
+            runtime.set_status(settings.uid, f"VolumeEVM file {settings.vevm_path!r} not found "
+                                             f"when saving; build it again")
             continue
         target = _free_target(obj, filepath)
         try:
             if not (target.exists() and os.path.samefile(source, target)):
                 _copy_atomic(source, target)
         except OSError as error:
-            _runtime.set_status(settings.uid, f"could not write the VolumeEVM beside the .blend: "
-                                              f"{error}")
+            runtime.set_status(settings.uid, f"could not write the VolumeEVM beside the .blend: "
+                                             f"{error}")
             print(f"[volumeevm] {obj.name}: could not write {target}: {error}")
             continue
-        cached = _runtime.vevm(source)
+        cached = runtime.vevm(source)
         if cached is not None:
-            _runtime.put_vevm(target, cached)
+            runtime.put_vevm(target, cached)
         _pending[obj.name] = settings.vevm_path
         settings.vevm_path = bpy.path.relpath(str(target), start=start)
-        _runtime.set_status(settings.uid, "")
+        runtime.set_status(settings.uid, "")
 
 
 @bpy.app.handlers.persistent
@@ -189,7 +189,7 @@ def on_save_post(filepath, *_args):
 @bpy.app.handlers.persistent
 def on_load_post(*_args):
     """Find every volume object's VolumeEVM again after a .blend is opened."""
-    _runtime.clear()
+    runtime.clear()
     for obj in bpy.data.objects:
         settings = obj.volumeevm
         if settings.role != "VOLUME" or not settings.vevm_path:
@@ -197,7 +197,7 @@ def on_load_post(*_args):
         try:
             load_vevm(obj)
         except VolumeEVMError as error:
-            _runtime.set_status(settings.uid, str(error))
+            runtime.set_status(settings.uid, str(error))
             print(f"[volumeevm] {error}")
 
 

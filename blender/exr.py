@@ -30,7 +30,8 @@ def write_exr(path, rgba, depth=None, *, overwrite=False):
     if core.openexr_module() is not None:
         return core.write_exr(path, rgba, depth, overwrite=overwrite)
     channels = core.exr_channels(rgba, depth)
-    return core.write_atomically(path, lambda temporary: _write_oiio(temporary, channels), overwrite=overwrite)
+    return core.write_atomically(path, lambda temporary: _write_oiio(temporary, channels),
+                                 overwrite=overwrite)
 
 
 def _write_oiio(path, channels):

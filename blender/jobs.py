@@ -12,8 +12,8 @@ A :class:`Job` has two parts:
 A job either completes or leaves the scene as it was. ``commit`` (and the operator's
 ``finished``) run inside :func:`transaction`: if anything raises there, the datablocks made
 meanwhile are removed, the selection and active object are put back and the changes to existing
-data that the commit registered (:func:`assign`, :func:`on_undo`) are undone; what the commit
-replaces is dropped only once the job succeeded (:func:`on_success`).
+data that the commit registered (:func:`assign`, :func:`assign_item`, :func:`on_undo`) are
+undone; what the commit replaces is dropped only once the job succeeded (:func:`on_success`).
 
 :func:`run` drains a job and commits it (printing ``[volumeevm] 42% building EVM`` lines under
 ``bpy.app.background``). :class:`JobOperator` is the operator mix-in: ``execute()`` runs the job
@@ -185,6 +185,15 @@ def assign(struct, **values):
             old = old[:]
         on_undo(functools.partial(setattr, struct, name, old))
         setattr(struct, name, value)
+
+
+def assign_item(block, key, value):
+    """Set a custom property of a datablock; put back (or removed) if the transaction fails."""
+    if key in block:
+        on_undo(functools.partial(block.__setitem__, key, block[key]))
+    else:
+        on_undo(functools.partial(block.pop, key))
+    block[key] = value
 
 
 def _advance(steps):

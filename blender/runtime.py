@@ -11,7 +11,7 @@
   cached result after every entry, the voxelized tools keyed by what they were made from, the
   last result, the last refresh's timing and any problem.
   Keyed by ``(uid, object name)`` (a duplicated volume keeps the uid but has its own stack).
-  Undo and redo re-sync it from the object's properties (``operators/tools.py``).
+  Undo and redo re-sync it from the object's properties (``tool_stack.py``).
 """
 
 import uuid

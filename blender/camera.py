@@ -1,6 +1,6 @@
 """Blender side of the camera: build the core's :class:`Camera` record from a scene's camera.
 
-No operator classes live here; renderers' operators call :func:`camera_from_blender`.
+The DVR job (:mod:`.dvr`) calls :func:`camera_from_blender`; the core never sees a Blender type.
 """
 
 import numpy as np

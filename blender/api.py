@@ -1,0 +1,50 @@
+"""The Python API for scripts: the functions the operators run, in one short import.
+
+::
+
+    import bpy
+    from bl_ext.user_default.volumeevm.blender import api   # installed extension
+    vol = api.import_volume("/data/head.nrrd")
+    api.build(vol, threshold=300.0)                 # data units (HU for CT)
+    surface = api.make_mesh(vol)
+
+CAD tools (a non-destructive stack per volume object, see :func:`add_tool`)::
+
+    api.add_tool(vol, drill, "cut")                 # any closed mesh object; also "keep", "add",
+    api.add_tool(vol, None, "largest")              # "largest" (no tool), "clip" (tool's box)
+    drill.location.x += 0.01; api.evaluate(vol)     # or any depsgraph update (handler)
+    api.apply_stack(vol)                            # the result becomes the VolumeEVM
+
+Direct volume rendering into the scene::
+
+    from bl_ext.user_default.volumeevm.volumeevm_addon import TransferFunction
+    result = api.render_dvr(vol, TransferFunction.preset("ct_bone"), exr_path="//head.exr")
+    api.setup_compositor(bpy.context.scene, result.dvr_image)   # F12 includes it
+
+Errors: bad input raises :class:`VolumeEVMError` (and ``OSError`` for unreadable files). Whatever
+the error, ``import_volume``, ``build``, ``make_mesh``, ``add_tool`` and ``render_dvr`` leave the
+scene as it was. Under ``blender --background`` progress lines ``[volumeevm] 42% building EVM``
+are printed. Each function is documented where it lives: :mod:`.volumes` (import, build, mesh),
+:mod:`.tool_stack` (CAD tools), :mod:`.dvr` (rendering), :mod:`.transfer` (the Render
+settings' transfer function), :mod:`.compositor` (F12).
+"""
+
+from .compositor import setup_compositor
+from .dvr import DVRResult, render_dvr, render_dvr_animation
+from .objects import get_vevm, volume_object
+from .tool_stack import (
+    add_tool,
+    apply_stack,
+    evaluate,
+    move_tool,
+    remove_tool,
+    stack_state,
+    tool_problem,
+)
+from .transfer import load_preset, set_transfer_function, transfer_function
+from .volumes import build, get_volume, import_volume, make_mesh
+
+__all__ = ["import_volume", "build", "make_mesh", "volume_object", "get_vevm", "get_volume",
+           "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
+           "stack_state", "render_dvr", "render_dvr_animation", "DVRResult",
+           "transfer_function", "set_transfer_function", "load_preset", "setup_compositor"]

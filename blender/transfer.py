@@ -1,0 +1,127 @@
+"""The transfer function as a colour ramp in the Render settings (``Scene.volumeevm_render``).
+
+The ramp is a Blend texture's ``color_ramp``: element position ``p`` stands for the value
+``lo + p (hi - lo)`` in the data's own units (``value_lo``, ``value_hi``), its colour for the
+straight colour and its alpha for the opacity per ``unit_length_mm`` mm of ray.
+:func:`transfer_function` reads it as the core's :class:`TransferFunction`;
+:func:`set_transfer_function` and :func:`load_preset` write one into it.
+"""
+
+import bpy
+import numpy as np
+
+from ..volumeevm_addon import PRESETS, TransferFunction, VolumeEVMError
+from .objects import render_volume
+
+#: The Hounsfield range the CT presets are written for; mapped onto non-HU data's range.
+CT_RANGE = (-1024.0, 3071.0)
+RAMP_NAME = "VolumeEVM Transfer Function"
+
+
+def ensure_ramp(settings):
+    """The settings' colour-ramp texture (made, with the settings' preset, if missing)."""
+    if settings.ramp is None:
+        _new_ramp(settings)
+        load_preset(settings, settings.preset, render_volume(bpy.context, settings))
+    return settings.ramp
+
+
+def _new_ramp(settings):
+    texture = bpy.data.textures.new(RAMP_NAME, "BLEND")
+    texture.use_color_ramp = True
+    settings.ramp = texture
+    return texture
+
+
+def transfer_function(settings):
+    """The :class:`TransferFunction` of the settings' colour ramp over ``[value_lo, value_hi]``.
+
+    Positions that coincide (a step) are moved apart by 1e-6 of the range; colours are clamped
+    to ``[0, 1]``. The ramp's interpolation is taken as linear whatever it shows.
+
+    Raises
+    ------
+    VolumeEVMError
+        No ramp yet, or a value range that is empty or not finite.
+    """
+    texture = settings.ramp
+    if texture is None or texture.color_ramp is None:
+        raise VolumeEVMError("no transfer function yet: load a preset in the Render panel")
+    lo, hi = float(settings.value_lo), float(settings.value_hi)
+    if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+        raise VolumeEVMError(f"transfer function range: need low < high, got {lo} .. {hi}")
+    elements = texture.color_ramp.elements
+    positions = np.empty(len(elements), np.float64)
+    elements.foreach_get("position", positions)
+    colours = np.empty(len(elements) * 4, np.float32)
+    elements.foreach_get("color", colours)
+    colours = np.clip(colours.reshape(-1, 4).astype(np.float64), 0.0, 1.0)
+    order = np.argsort(positions, kind="stable")
+    positions, colours = positions[order], colours[order]
+    nudge = np.arange(len(positions)) * 1e-6  # strictly increasing even for equal positions
+    values = lo + (positions + nudge) * (hi - lo)
+    points = np.column_stack([values, colours])
+    return TransferFunction(points, unit_length_mm=settings.unit_length_mm, name=settings.preset)
+
+
+def load_preset(settings, name, vol_obj=None):
+    """Write preset ``name`` into the settings' ramp and value range.
+
+    CT presets are in Hounsfield units; for a volume whose units are not HU they are stretched
+    from :data:`CT_RANGE` onto the volume's value range. ``mri`` and ``microscopy`` take the
+    volume's value range (0 .. 1 without a volume).
+
+    Raises
+    ------
+    VolumeEVMError
+        ``name`` is not one of :data:`~volumeevm_addon.PRESETS`.
+    """
+    if name not in PRESETS:
+        raise VolumeEVMError(f"preset must be one of {PRESETS}, got {name!r}")
+    data_range = (0.0, 1.0)
+    units = ""
+    if vol_obj is not None:
+        s = vol_obj.volumeevm
+        units = s.units
+        if s.value_max > s.value_min:
+            data_range = (float(s.value_min), float(s.value_max))
+    tf = TransferFunction.preset(name, data_range=data_range)
+    points = np.array(tf.points, np.float64)
+    if name.startswith("ct_") and vol_obj is not None and units != "HU":
+        (a, b), (c, d) = CT_RANGE, data_range
+        points[:, 0] = c + (points[:, 0] - a) * (d - c) / (b - a)
+    set_transfer_function(settings, TransferFunction(points, name=name))
+    if settings.preset != name:
+        settings.preset = name
+
+
+def set_transfer_function(settings, tf):
+    """Write ``tf`` into the settings' colour ramp, value range and opacity length.
+
+    Raises
+    ------
+    VolumeEVMError
+        ``tf`` has more control points than a ramp holds (32).
+    """
+    points = np.asarray(tf.points, np.float64)
+    if len(points) > 32:
+        raise VolumeEVMError(f"tf: a colour ramp holds 32 points, the function has {len(points)}")
+    lo, hi = float(points[0, 0]), float(points[-1, 0])
+    if hi <= lo:
+        hi = lo + 1.0
+    texture = settings.ramp if settings.ramp is not None else _new_ramp(settings)
+    ramp = texture.color_ramp
+    ramp.interpolation = "LINEAR"
+    ramp.color_mode = "RGB"
+    elements = ramp.elements
+    while len(elements) > 1:
+        elements.remove(elements[-1])
+    elements[0].position = 0.0
+    for _ in range(len(points) - 1):
+        elements.new(1.0)
+    positions = (points[:, 0] - lo) / (hi - lo)
+    for element, position, row in zip(elements, positions, points):
+        element.position = float(position)
+        element.color = tuple(float(v) for v in row[1:5])
+    settings.value_lo, settings.value_hi = lo, hi
+    settings.unit_length_mm = tf.unit_length_mm

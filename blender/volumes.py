@@ -1,0 +1,302 @@
+"""Import a volume, build its VolumeEVM, make its surface mesh: the jobs and their script calls.
+
+Each task is a job (:mod:`.jobs`): the operators run it from a modal timer, the script functions
+(:func:`import_volume`, :func:`build`, :func:`make_mesh`) run it to its end, so a script and a
+button give the same objects.
+
+- ``import_volume`` makes a *volume object*: a wire box around the grid, in physical
+  millimetres scaled by :data:`BLENDER_UNITS_PER_MM` (1 mm = 0.001 BU), LPS axes = Blender X, Y, Z,
+  object matrix identity. The dense array stays in a runtime cache (not in the .blend).
+- ``build`` makes the VolumeEVM of ``threshold <= density (<= upper)`` and keeps it in a sidecar
+  ``.vevm`` file (see :mod:`.sidecar`).
+- ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
+  child of the volume object with identity matrices, so moving the box moves the surface.
+
+Whatever the error, they leave the scene as it was.
+"""
+
+import functools
+import json
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ..volumeevm_addon import (
+    BLENDER_UNITS_PER_MM,
+    VolumeEVM,
+    VolumeEVMError,
+    density_histogram,
+    index_to_physical,
+    otsu_threshold,
+    read_volume,
+)
+from . import jobs, runtime, sidecar
+from .meshes import fill_mesh, wire_mesh
+from .objects import attach_surface, link, volume_object
+from .tool_stack import refresh_quietly
+
+_COMPOUND_ENDINGS = (".nii.gz",)
+
+#: Histogram bins kept on a volume object (bpy.props vectors hold at most 32 items).
+HISTOGRAM_BINS = 32
+
+
+def default_name(path):
+    """Object name for a volume read from ``path`` (file stem, or the folder's name)."""
+    if not isinstance(path, (str, Path)):
+        path = Path(list(path)[0]).parent
+    path = Path(path)
+    name = path.name
+    for ending in _COMPOUND_ENDINGS:
+        if name.lower().endswith(ending):
+            return name[: -len(ending)] or "Volume"
+    return (path.stem if path.suffix else name) or "Volume"
+
+
+def get_volume(obj):
+    """The dense volume of a volume object (runtime cache, else re-read from its source)."""
+    obj = volume_object(obj)
+    return jobs.drain(_read_steps(obj.volumeevm.uid, *_source_of(obj)), verbose=False)
+
+
+def _source_of(obj):
+    settings = obj.volumeevm
+    return settings.source_path, json.loads(settings.reader_options or "{}")
+
+
+def _grid_box(shape, spacing, origin, orientation):
+    """The 8 corners of the grid (lattice -0.5 .. shape - 0.5) in Blender units, and 12 edges."""
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.float64)
+    corners = corners * np.asarray(shape, np.float64) - 0.5
+    matrix = index_to_physical(spacing, origin, orientation)
+    points = (corners @ matrix[:3, :3].T + matrix[:3, 3]) * BLENDER_UNITS_PER_MM
+    edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+    return points, np.array(edges, np.int32)
+
+
+# ---------------------------------------------------------------------------- import
+def _read_steps(uid, path, options):
+    """Steps: the cached volume of ``uid`` or a fresh read of ``path``."""
+    vol = runtime.volume(uid)
+    if vol is None:
+        if not path:
+            raise VolumeEVMError("the volume has no source file to read it again from")
+        yield 0.0, f"reading {Path(str(path)).name}"
+        vol = read_volume(path, **options)
+    return vol
+
+
+def _import_steps(path, options):
+    yield 0.0, f"reading {default_name(path)}"
+    vol = read_volume(path, **options)
+    yield 0.7, "histogram"
+    counts, lo, hi = density_histogram(vol.array, bins=HISTOGRAM_BINS)
+    threshold = otsu_threshold(vol.array)
+    return vol, counts, lo, hi, threshold
+
+
+def import_job(context, path, *, name=None, **reader_options):
+    """The import job: read ``path`` and make a volume object (see :func:`import_volume`)."""
+    if isinstance(path, (str, Path)):
+        source = str(Path(path))
+    else:
+        files = [str(p) for p in path]
+        if not files:
+            raise VolumeEVMError("no files given")
+        path, source = files, str(Path(files[0]).parent)
+    json.dumps(reader_options)  # options must be plain values (they are stored as JSON)
+    name = name or default_name(path)
+
+    def commit(result):
+        vol, counts, lo, hi, threshold = result
+        mesh = bpy.data.meshes.new(name)
+        wire_mesh(mesh, *_grid_box(vol.shape, vol.spacing, vol.origin, vol.orientation))
+        obj = bpy.data.objects.new(name, mesh)
+        obj.display_type = "WIRE"
+        obj.hide_render = True
+        s = obj.volumeevm
+        s.role = "VOLUME"
+        s.uid = runtime.new_uid()
+        s.source_path = source
+        s.reader_options = json.dumps(reader_options)
+        s.shape = vol.shape
+        s.spacing = vol.spacing
+        s.origin = vol.origin
+        s.orientation = np.asarray(vol.orientation, np.float64).ravel().tolist()
+        s.spacing_known = vol.spacing_known
+        s.units = vol.units
+        s.dtype = str(vol.array.dtype)
+        s.value_min, s.value_max = lo, hi
+        s.histogram = counts.tolist()
+        s.threshold = threshold
+        s.upper = hi
+        link(context, obj)
+        runtime.put_volume(s.uid, vol)
+        runtime.forget_except({o.volumeevm.uid for o in bpy.data.objects})
+        return obj
+
+    return jobs.Job(f"Import {name}", _import_steps(path, reader_options), commit)
+
+
+def import_volume(path, *, name=None, **reader_options):
+    """Read a volume file (or DICOM folder / list of files) and make a volume object.
+
+    Parameters
+    ----------
+    path : str, Path or sequence of str
+        A file with a supported extension, a DICOM folder, or the files of one DICOM series.
+    name : str, optional
+        Object name (default: the file's stem).
+    **reader_options
+        Passed to :func:`volumeevm_addon.read_volume` (raw: ``shape``, ``dtype``, ...).
+
+    Returns
+    -------
+    bpy.types.Object
+        The volume object (wire box, ``obj.volumeevm.role == "VOLUME"``), active and selected.
+
+    Raises
+    ------
+    VolumeEVMError
+        An unsupported or unreadable volume, bad reader options (``OSError`` for a file that
+        cannot be read at all).
+    """
+    return jobs.run(import_job(bpy.context, path, name=name, **reader_options))
+
+
+# ---------------------------------------------------------------------------- build
+def _build_steps(uid, path, options, threshold, upper):
+    vol = yield from _read_steps(uid, path, options)
+    yield 0.3, "building EVM"
+    vevm = VolumeEVM.from_volume(vol, threshold, upper)
+    yield 0.9, "saving VolumeEVM"
+    return vol, vevm
+
+
+def build_job(obj, threshold=None, upper=None):
+    """The build job (see :func:`build`)."""
+    obj = volume_object(obj)
+    s = obj.volumeevm
+    if threshold is None:
+        threshold = s.threshold
+        upper = s.upper if s.use_upper else None
+    threshold = float(threshold)
+    upper = None if upper is None else float(upper)
+    if upper is not None and upper < threshold:
+        raise VolumeEVMError(f"{obj.name}: upper bound {upper} is below the threshold {threshold}")
+    name, uid = obj.name, s.uid
+    path, options = _source_of(obj)
+
+    def commit(result):
+        vol, vevm = result
+        target = bpy.data.objects.get(name)
+        if target is None:
+            raise VolumeEVMError(f"{name}: the volume object was deleted while building")
+        report = vevm.size_report()
+        file = sidecar.save_new(uid, vevm)
+        jobs.on_undo(functools.partial(file.unlink, missing_ok=True))
+        values = dict(threshold=threshold, use_upper=upper is not None,
+                      built_threshold=threshold, built_use_upper=upper is not None,
+                      built_upper=upper if upper is not None else 0.0,
+                      voxel_count=vevm.voxel_count, ev_count=len(vevm.evm),
+                      vevm_bytes=report["total_bytes"], dense_bytes=report["dense_bytes"],
+                      vevm_path=str(file))
+        if upper is not None:
+            values["upper"] = upper
+        jobs.assign(target.volumeevm, **values)
+        jobs.on_undo(functools.partial(runtime.set_status, uid, runtime.status(uid)))
+        runtime.set_status(uid, "")
+        runtime.put_volume(uid, vol)
+        return vevm
+
+    return jobs.Job(f"Build VolumeEVM of {name}",
+                    _build_steps(uid, path, options, threshold, upper), commit)
+
+
+def build(obj, threshold=None, upper=None):
+    """Build the VolumeEVM of a volume object at ``threshold <= density (<= upper)``.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        A volume object (or its surface).
+    threshold, upper : float, optional
+        In the data's own units; default: the object's ``volumeevm.threshold`` (and ``upper``
+        when ``use_upper`` is set). Stored on the object.
+
+    Returns
+    -------
+    VolumeEVM
+        Also saved to a sidecar file whose path is ``obj.volumeevm.vevm_path``.
+
+    Raises
+    ------
+    VolumeEVMError
+        Not a volume object, an upper bound below the threshold, an empty region, a source
+        file that is gone, not enough memory.
+    """
+    return jobs.run(build_job(obj, threshold, upper))
+
+
+# ---------------------------------------------------------------------------- mesh
+def _mesh_steps(vevm_or_path):
+    if isinstance(vevm_or_path, VolumeEVM):
+        vevm = vevm_or_path
+    else:
+        yield 0.0, "loading VolumeEVM"
+        vevm = VolumeEVM.load(vevm_or_path)
+    yield 0.2, "meshing"
+    verts_mm, polys = vevm.mesh()
+    yield 0.9, "making the mesh object"
+    co = (np.asarray(verts_mm, np.float64) * BLENDER_UNITS_PER_MM).astype(np.float32)
+    return vevm, co, polys
+
+
+def mesh_job(context, obj):
+    """The make-mesh job (see :func:`make_mesh`)."""
+    vol_obj = volume_object(obj)
+    s = vol_obj.volumeevm
+    if not s.vevm_path:
+        raise VolumeEVMError(f"{vol_obj.name}: no VolumeEVM built yet; build one first")
+    path = sidecar.resolve(vol_obj)
+    if path is None:
+        raise VolumeEVMError(
+            f"{vol_obj.name}: VolumeEVM file {s.vevm_path!r} not found; build it again")
+    cached = runtime.vevm(path)
+    name = vol_obj.name
+
+    def commit(result):
+        vevm, co, polys = result
+        runtime.put_vevm(path, vevm)
+        owner = bpy.data.objects.get(name)
+        if owner is None:
+            raise VolumeEVMError(f"{name}: the volume object was deleted while meshing")
+        mesh = bpy.data.meshes.new(f"{name}_surface")
+        fill_mesh(mesh, co, polys)
+        surface = attach_surface(context, owner, mesh)
+        jobs.assign(surface.volumeevm, stack_signature="")
+        if len(owner.volumeevm.tools):
+            # The surface shows the tool stack's result, not the bare VolumeEVM.
+            refresh_quietly(owner, context.evaluated_depsgraph_get())
+        return surface
+
+    return jobs.Job(f"Mesh of {name}", _mesh_steps(cached if cached is not None else path),
+                    commit)
+
+
+def make_mesh(obj):
+    """Make (or refresh) the surface mesh object of a volume's VolumeEVM.
+
+    Returns
+    -------
+    bpy.types.Object
+        The surface object: polygons of the VolumeEVM's boundary (vertices in Blender units,
+        ``vevm.mesh()`` times 0.001), child of the volume object, identity matrices.
+
+    Raises
+    ------
+    VolumeEVMError
+        Not a volume object, no VolumeEVM built yet, a sidecar file that is gone.
+    """
+    return jobs.run(mesh_job(bpy.context, obj))
