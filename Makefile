@@ -8,7 +8,7 @@ PY313 ?= $(shell PYENV_VERSION=3.13.0 pyenv which python3.13 2>/dev/null || comm
 VENVS := .venv/py311 .venv/py313
 PYTEST_ARGS ?=
 
-.PHONY: demo test test-py311 test-py313 bench bench-setup bench-debs extension clean
+.PHONY: demo test test-py311 test-py313 bench bench-setup gl-debs bench-debs extension clean
 
 .venv/py311/.stamp: requirements/py311.txt
 	rm -rf .venv/py311
@@ -24,47 +24,53 @@ PYTEST_ARGS ?=
 
 test: test-py311 test-py313
 
-test-py311: .venv/py311/.stamp
+test-py311: .venv/py311/.stamp | gl-debs
 	.venv/py311/bin/python -m pytest tests $(PYTEST_ARGS)
 
-test-py313: .venv/py313/.stamp
+test-py313: .venv/py313/.stamp | gl-debs
 	.venv/py313/bin/python -m pytest tests $(PYTEST_ARGS)
 
 demo: .venv/py313/.stamp
 	.venv/py313/bin/python sample_blends/make_demo.py --out out
 
-# The extension zip: the wheels the manifest lists (pure-Python, pinned) from PyPI, then the
-# bpy wheel's own validator (the code of `blender --command extension build/validate`).
+# The extension: one zip per platform of the manifest (dist/volumeevm-VERSION-linux_x64.zip...),
+# each with the pure wheels and that platform's Numba and llvmlite for Python 3.11 and 3.13 (all
+# pinned in the manifest, fetched from PyPI into wheels/ by requirements/fetch_wheels.py), built
+# and validated by the bpy wheel's own tool (the code of `blender --command extension build`).
 BLENDER_EXT = $(firstword $(wildcard .venv/py313/lib/python3.13/site-packages/bpy/*/scripts/addons_core/bl_pkg/cli/blender_ext.py))
 VERSION = $(shell sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml)
 
 extension: .venv/py313/.stamp
-	.venv/py313/bin/python -c 'import tomllib; print("\n".join(w.rsplit("/", 1)[-1] for w in tomllib.load(open("blender_manifest.toml", "rb"))["wheels"]))' \
-	  | sed -E 's/^([^-]+)-([^-]+)-.*/\1==\2/' \
-	  | xargs .venv/py313/bin/python -m pip download --quiet --disable-pip-version-check --no-deps --only-binary=:all: --dest wheels
+	.venv/py313/bin/python requirements/fetch_wheels.py
 	mkdir -p dist
-	rm -f dist/volumeevm-$(VERSION).zip
-	.venv/py313/bin/python $(BLENDER_EXT) build --source-dir . --output-dir dist
-	.venv/py313/bin/python $(BLENDER_EXT) validate dist/volumeevm-$(VERSION).zip
-	@echo "built dist/volumeevm-$(VERSION).zip"
+	rm -f dist/volumeevm-$(VERSION)*.zip
+	.venv/py313/bin/python $(BLENDER_EXT) build --source-dir . --output-dir dist --split-platforms
+	for zip in dist/volumeevm-$(VERSION)-*.zip; do .venv/py313/bin/python $(BLENDER_EXT) validate $$zip || exit 1; done
+	@ls -l dist/volumeevm-$(VERSION)-*.zip
 
-# Bench peers: VTK and matplotlib from requirements/bench.txt into .venv/py313; VolPack and the
-# Mesa EGL libraries VTK renders offscreen with from Debian (apt-get, as root, only when missing);
-# the VolPack driver (bench/peers/volpack_driver.c) compiled against Debian's libvolpack.a.
-BENCH_DEBS := libvolpack1-dev libegl1 libegl-mesa0 libgl1-mesa-dri
-VOLPACK_DRIVER := bench/peers/build/volpack_driver
+# Debian packages, installed (apt-get, as root or with sudo) only when missing: the Mesa
+# EGL/OpenGL libraries that offscreen GPU drawing needs (the GPU tests, VTK in the benchmarks),
+# and for the benchmarks VolPack.
+GL_DEBS := libegl1 libegl-mesa0 libgl1-mesa-dri
+gl-debs: DEBS := $(GL_DEBS)
+bench-debs: DEBS := libvolpack1-dev $(GL_DEBS)
 
-.venv/py313/.bench-stamp: .venv/py313/.stamp requirements/bench.txt
-	.venv/py313/bin/pip install --quiet --disable-pip-version-check -r requirements/bench.txt
-	touch $@
-
-bench-debs:
-	@missing=""; for p in $(BENCH_DEBS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || missing="$$missing $$p"; done; \
+gl-debs bench-debs:
+	@missing=""; for p in $(DEBS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
 	  echo "apt-get install$$missing"; \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq$$missing; \
 	fi
+
+# Bench peers: VTK and matplotlib from requirements/bench.txt into .venv/py313; VolPack and the
+# Mesa libraries VTK renders offscreen with from Debian (bench-debs); the VolPack driver
+# (bench/peers/volpack_driver.c) compiled against Debian's libvolpack.a.
+VOLPACK_DRIVER := bench/peers/build/volpack_driver
+
+.venv/py313/.bench-stamp: .venv/py313/.stamp requirements/bench.txt
+	.venv/py313/bin/pip install --quiet --disable-pip-version-check -r requirements/bench.txt
+	touch $@
 
 $(VOLPACK_DRIVER): bench/peers/volpack_driver.c | bench-debs
 	mkdir -p $(@D)

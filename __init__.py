@@ -8,7 +8,7 @@ and the sidebar tab.
 import bpy
 
 from . import operators, ui
-from .blender import compositor, handlers, sidecar, tool_stack
+from .blender import compositor, handlers, kernels, sidecar, tool_stack
 from .operators import import_volume
 from .ui import panels, props
 
@@ -20,6 +20,7 @@ _POINTERS = (
 
 
 def register():
+    kernels.register(__package__)
     for cls in ui.CLASSES:
         bpy.utils.register_class(cls)
     for owner, name, group in _POINTERS:

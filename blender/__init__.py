@@ -19,6 +19,7 @@ imports the core, never the reverse. One module per concept:
 - ``compositor.py``: the compositor set-up for F12 and its stale-image check.
 - ``sidecar.py``: where VolumeEVM files live beside the .blend, and the save/load handlers.
 - ``jobs.py``: long work as steps and an all-or-nothing commit; the operators' job mix-in.
+- ``kernels.py``: the core's compiled kernels in Blender (cache folder, threads, first use).
 - ``runtime.py``: runtime caches (dense volumes, loaded VolumeEVMs, tool stack states).
 - ``handlers.py``: installing and removing the add-on's app handlers.
 """

@@ -20,19 +20,22 @@ undone; what the commit replaces is dropped only once the job succeeded (:func:`
 synchronously, ``invoke()`` runs it from a 0.1 s modal timer with a progress bar (sidebar and
 status bar) and Esc to cancel. Any exception ends the job: the operator reports it (an
 unexpected one with its traceback printed to the console), the running-job marker
-:data:`CURRENT` and the timer go, and the scene is as it was before the job.
+:data:`CURRENT` and the timer go, and the scene is as it was before the job. While a job's
+steps run, the core's kernels use the scene's render threads and a kernel's first use in the
+session shows in the progress (:mod:`.kernels`).
 """
 
 import functools
 import traceback
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Generator
 
 import bpy
 
 from ..volumeevm_addon import VolumeEVMError
+from . import kernels
 
 #: The errors an operator reports to the user (bad input, unreadable or unwritable files).
 REPORTED_ERRORS = (VolumeEVMError, OSError)
@@ -81,15 +84,22 @@ def drain(steps, *, verbose=None):
         Print a progress line per step; default: when Blender runs in the background.
     """
     verbose = bpy.app.background if verbose is None else verbose
-    while True:
-        try:
-            fraction, text = next(steps)
-        except StopIteration as stop:
-            if verbose:
-                print(progress_line(1.0, "done"), flush=True)
-            return stop.value
+    fraction = 0.0
+
+    def show(text):  # a kernel's first use, during the step at ``fraction``
         if verbose:
             print(progress_line(fraction, text), flush=True)
+
+    with kernels.job_settings(show):
+        while True:
+            try:
+                fraction, text = next(steps)
+            except StopIteration as stop:
+                if verbose:
+                    print(progress_line(1.0, "done"), flush=True)
+                return stop.value
+            if verbose:
+                print(progress_line(fraction, text), flush=True)
 
 
 def run(job, *, verbose=None):
@@ -287,6 +297,9 @@ class JobOperator:
         except Exception as error:
             return report_failure(self, error)
         CURRENT = Progress(self._job.label, 0.0, "starting")
+        show = functools.partial(setattr, CURRENT, "text")  # set from the worker, read by the UI
+        self._settings = ExitStack()  # the kernels' threads and first-use text, until _stop
+        self._settings.enter_context(kernels.job_settings(show))
         self._timer = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="volumeevm")
         try:
@@ -304,6 +317,7 @@ class JobOperator:
         """End the modal job: clear :data:`CURRENT`, remove the timer, let the worker go."""
         global CURRENT
         CURRENT = None
+        self._settings.close()
         if self._timer is not None:
             context.window_manager.event_timer_remove(self._timer)
             self._timer = None
@@ -320,6 +334,8 @@ class JobOperator:
         if event.type != "TIMER":
             return {"PASS_THROUGH"} if event.type in _PASS_THROUGH else {"RUNNING_MODAL"}
         if not self._future.done():
+            if CURRENT.text == kernels.FIRST_USE:  # the step waits for kernels to compile: say so
+                _redraw(context)
             return {"RUNNING_MODAL"}
         try:
             kind, value = self._future.result()

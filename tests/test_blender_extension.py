@@ -1,14 +1,23 @@
-"""The extension as users get it: build the zip with the validator inside the bpy wheel
-(``bl_pkg/cli/blender_ext.py``, the code of ``blender --command extension build/validate``),
-validate it, install it into a fresh bpy, enable it, run its operators, disable it.
+"""The extension as users get it: the Linux x64 zip (this machine's and CI's platform), built
+with ``--split-platforms`` as ``make extension`` builds each platform's, by the tool inside the
+bpy wheel (``bl_pkg/cli/blender_ext.py``, the code of ``blender --command extension
+build/validate``), validated, installed into a fresh bpy and enabled; then, in Blender started
+again, enabled (neither imports Numba), its operators and script API run, disabled. Building and
+meshing a VolumeEVM runs the EVM and mesh kernels: they compile with the bundled Numba and
+llvmlite (not the venv's), cached in the extension's user folder, and the job prints that it
+prepares them.
 
 The fresh bpy is a child process of the running venv's Python (the same bpy version) with
-``BLENDER_USER_RESOURCES`` in ``tmp_path``, so nothing is written to the user's Blender folders.
+``BLENDER_USER_RESOURCES`` in ``tmp_path``, so nothing is written to the user's Blender folders
+and the kernels compile from cold. The wheels come from PyPI once, into ``wheels/``
+(git-ignored), as ``make extension`` fetches them (``requirements/fetch_wheels.py``).
 """
 
 import importlib.util
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -20,26 +29,69 @@ import pytest
 from blender_helpers import REPO
 
 MANIFEST = tomllib.loads((REPO / "blender_manifest.toml").read_text())
-ZIP_NAME = f"{MANIFEST['id']}-{MANIFEST['version']}.zip"
+PLATFORM = "linux-x64"
+ZIP_NAME = f"{MANIFEST['id']}-{MANIFEST['version']}-{PLATFORM.replace('-', '_')}.zip"
+FIRST_USE = "preparing renderer (first use only)"
 
-INSTALL_AND_RUN = r'''
+_spec = importlib.util.spec_from_file_location("fetch_wheels",
+                                               REPO / "requirements" / "fetch_wheels.py")
+fetch_wheels = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(fetch_wheels)
+
+INSTALL = r'''
 import glob, json, os, sys
-import bpy, addon_utils
+import bpy
 
-zip_path, repo_dir, volume, threshold = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
-result = {}
+zip_path, repo_dir = sys.argv[1], sys.argv[2]
 bpy.context.preferences.extensions.repos.new(
     name="vevm_test", module="vevm_test", custom_directory=repo_dir, source="USER")
-result["install"] = sorted(bpy.ops.extensions.package_install_files(
-    filepath=zip_path, repo="vevm_test", enable_on_install=True))
-result["module"] = "bl_ext.vevm_test.volumeevm" in sys.modules
+result = {"install": sorted(bpy.ops.extensions.package_install_files(
+    filepath=zip_path, repo="vevm_test", enable_on_install=True))}
 result["registered"] = hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
+result["numba_imported_by_enabling"] = "numba" in sys.modules
 site = glob.glob(os.path.join(bpy.utils.user_resource("EXTENSIONS"), ".local", "lib", "python*",
-                              "site-packages", "*"))
-result["site_packages"] = sorted(os.path.basename(p) for p in site)
+                              "site-packages"))
+result["site_packages"] = sorted(os.listdir(site[0])) if site else []
+print("RESULT " + json.dumps(result), flush=True)
+'''
+
+# Blender started again after the install (the extension's wheels now come first on sys.path,
+# before the venv's own Numba): enable the extension, run its operators and script API.
+RUN = r'''
+import glob, json, os, sys, time
+import bpy, addon_utils
+
+repo_dir, volume, threshold = sys.argv[1], sys.argv[2], float(sys.argv[3])
+package = "bl_ext.vevm_test.volumeevm"
+bpy.context.preferences.extensions.repos.new(
+    name="vevm_test", module="vevm_test", custom_directory=repo_dir, source="USER")
+result = {}
+
+def fail(error):
+    raise error
+
+start = time.perf_counter()
+addon_utils.enable(package, default_set=True, handle_error=fail)
+result["enable_seconds"] = time.perf_counter() - start
+result["numba_imported_by_enabling"] = "numba" in sys.modules
+result["module"] = package in sys.modules
+result["registered"] = hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
+extension = sys.modules[package]
+extension.unregister()
+start = time.perf_counter()
+extension.register()
+result["register_seconds"] = time.perf_counter() - start
+start = time.perf_counter()
 result["import"] = sorted(bpy.ops.volumeevm.import_volume(filepath=volume))
 result["build"] = sorted(bpy.ops.volumeevm.build_vevm(use_settings=False, threshold=threshold))
 result["mesh"] = sorted(bpy.ops.volumeevm.make_mesh())
+result["first_use_seconds"] = time.perf_counter() - start
+import numba, llvmlite
+site = os.path.realpath(os.path.join(bpy.utils.user_resource("EXTENSIONS"), ".local"))
+result["numba"] = [numba.__version__, llvmlite.__version__,
+                   all(os.path.realpath(m.__file__).startswith(site) for m in (numba, llvmlite))]
+cache = bpy.utils.extension_path_user(package, path="numba")
+result["cached_kernels"] = len(glob.glob(os.path.join(cache, "**", "*.nbi"), recursive=True))
 surface = bpy.context.active_object
 settings = surface.volumeevm.volume.volumeevm
 result["voxels"] = settings.voxel_count
@@ -52,7 +104,7 @@ vol = api.import_volume(volume, name="by_api")
 vevm = api.build(vol, threshold)
 surface = api.make_mesh(vol)
 result["api"] = [vol.name, vevm.voxel_count, len(surface.data.polygons)]
-addon_utils.disable("bl_ext.vevm_test.volumeevm", default_set=True)
+addon_utils.disable(package, default_set=True)
 result["unregistered"] = not hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
 print("RESULT " + json.dumps(result), flush=True)
 '''
@@ -66,37 +118,81 @@ def _blender_ext():
     return found[0]
 
 
-def _ensure_wheels():
-    """The wheels the manifest lists, downloaded from PyPI once (as ``make extension`` does)."""
-    wanted = [REPO / w for w in MANIFEST["wheels"]]
-    missing = [w for w in wanted if not w.is_file()]
-    if missing:
-        pins = ["==".join(w.name.split("-")[:2]) for w in missing]
-        done = subprocess.run(
-            [sys.executable, "-m", "pip", "download", "--quiet", "--disable-pip-version-check",
-             "--no-deps", "--only-binary=:all:", "--dest", str(REPO / "wheels"), *pins],
-            capture_output=True, text=True)
-        if done.returncode != 0:
-            pytest.fail(f"could not download the extension's wheels ({' '.join(pins)}); "
-                        f"run `make extension` with network access:\n{done.stderr}")
-    return wanted
+def _bpy_process(tmp_path, script, env, *args):
+    """Run ``script`` in a fresh bpy (a child Python) with ``args``; its output and RESULT."""
+    path = tmp_path / "script.py"
+    path.write_text(script)
+    run = subprocess.run([sys.executable, str(path), *map(str, args)], capture_output=True,
+                         text=True, env=env, timeout=600, cwd=tmp_path)
+    lines = [line for line in run.stdout.splitlines() if line.startswith("RESULT ")]
+    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
+    return run, json.loads(lines[-1][len("RESULT "):])
 
 
-def test_manifest_wheels_are_pure_python_and_numpy_free():
-    for wheel in MANIFEST["wheels"]:
-        assert wheel.startswith("./wheels/") and wheel.endswith("-py3-none-any.whl"), wheel
-        assert not Path(wheel).name.lower().startswith("numpy")
+def _pins():
+    """``{name: version}`` of Numba and llvmlite, the same in both environments' requirements."""
+    pins = [dict(re.findall(r"^(numba|llvmlite)==(\S+)$",
+                            (REPO / "requirements" / name).read_text(), re.M))
+            for name in ("py311.txt", "py313.txt")]
+    assert pins[0] == pins[1] and set(pins[0]) == {"numba", "llvmlite"}
+    return pins[0]
+
+
+def _platform_source(tmp_path, wheels):
+    """A copy of the source tree whose manifest names only :data:`PLATFORM` and ``wheels``
+    (``wheels/`` itself linked, not copied): the tool builds that one platform's zip."""
+    def skip(folder, names):
+        top = {".git", ".venv", "wheels", "dist", "out"} if Path(folder) == REPO else set()
+        return [n for n in names if n in top or n == "__pycache__"]
+
+    source = tmp_path / "source"
+    shutil.copytree(REPO, source, ignore=skip)
+    (source / "wheels").symlink_to(REPO / "wheels", target_is_directory=True)
+    names = {w.name for w in wheels}
+    lines = []
+    for line in (REPO / "blender_manifest.toml").read_text().splitlines(keepends=True):
+        if line.startswith("platforms = "):
+            line = f'platforms = ["{PLATFORM}"]\n'
+        listed = re.fullmatch(r'\s*"\./wheels/(\S+\.whl)",\n', line)
+        if not listed or listed.group(1) in names:
+            lines.append(line)
+    (source / "blender_manifest.toml").write_text("".join(lines))
+    manifest = tomllib.loads((source / "blender_manifest.toml").read_text())
+    assert manifest["platforms"] == [PLATFORM]
+    assert manifest["wheels"] == [f"./wheels/{w.name}" for w in wheels]
+    return source
+
+
+def test_manifest_bundles_numba_and_llvmlite_per_platform_and_no_numpy():
+    tags = [fetch_wheels.wheel_tags(w) for w in MANIFEST["wheels"]]
+    assert all(w.startswith("./wheels/") for w in MANIFEST["wheels"])
+    assert not any(t[0].lower() == "numpy" for t in tags)  # Blender's own, never bundled
+    # The platforms with llvmlite wheels on PyPI: no Intel macOS.
+    assert MANIFEST["platforms"] == ["windows-x64", "linux-x64", "linux-arm64", "macos-arm64"]
+    pins = _pins()
+    platform_wheels = sorted((name, version, python, abi, fetch_wheels.blender_platform(platform))
+                             for name, version, python, abi, platform in tags if platform != "any")
+    assert platform_wheels == sorted(
+        (name, pins[name], python, python, platform) for name in ("numba", "llvmlite")
+        for python in ("cp311", "cp313") for platform in MANIFEST["platforms"])
+    assert all(t[2:] == ("py3", "none", "any") for t in tags if t[4] == "any")
     assert MANIFEST["blender_version_min"] == "4.5.0"
     assert MANIFEST["license"] == ["SPDX:GPL-3.0-or-later"]
 
 
 def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
-    wheels = _ensure_wheels()
+    try:
+        wheels = fetch_wheels.fetch(PLATFORM)
+    except RuntimeError as error:
+        pytest.fail(f"could not download the extension's wheels for {PLATFORM}; run "
+                    f"`make extension` with network access:\n{error}")
     tool = _blender_ext()
     dist = tmp_path / "dist"
     dist.mkdir()
+    source = _platform_source(tmp_path, wheels)
     built = subprocess.run(
-        [sys.executable, str(tool), "build", "--source-dir", str(REPO), "--output-dir", str(dist)],
+        [sys.executable, str(tool), "build", "--source-dir", str(source), "--output-dir",
+         str(dist), "--split-platforms"],
         capture_output=True, text=True)
     assert built.returncode == 0, built.stdout + built.stderr
     archive = dist / ZIP_NAME
@@ -109,7 +205,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
                    "volumeevm_addon/model/_evm.py", "volumeevm_addon/rendering/_render.py",
                    "volumeevm_addon/phantoms.py", "volumeevm_addon/metrics.py"):
         assert needed in names
-    assert {f"wheels/{w.name}" for w in wheels} <= names
+    assert {n for n in names if n.startswith("wheels/")} == {f"wheels/{w.name}" for w in wheels}
     for left_out in ("tests/", "bench/", "sample_blends/", ".venv/", ".git/", "requirements/",
                      "Makefile", "pytest.ini", "out/", "dist/"):
         assert not any(n == left_out or n.startswith(left_out) for n in names), left_out
@@ -119,33 +215,36 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
                            capture_output=True, text=True)
     assert valid.returncode == 0, valid.stdout + valid.stderr
 
-    script = tmp_path / "install_and_run.py"
-    script.write_text(INSTALL_AND_RUN)
-    repo_dir = tmp_path / "repo"
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
+    repo_dir = tmp_path / "repo"
     volume = data_dir / "ct_skull_cgal.npy"
-    run = subprocess.run(
-        [sys.executable, str(script), str(archive), str(repo_dir), str(volume), "2.9"],
-        capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
-    lines = [line for line in run.stdout.splitlines() if line.startswith("RESULT ")]
-    assert run.returncode == 0 and lines, run.stdout[-3000:] + run.stderr[-3000:]
-    result = json.loads(lines[-1][len("RESULT "):])
+    _, installed = _bpy_process(tmp_path, INSTALL, env, archive, repo_dir)
+    run, result = _bpy_process(tmp_path, RUN, env, repo_dir, volume, 2.9)
 
     from volumeevm_addon import VolumeEVM, read_volume
 
     expected = VolumeEVM.from_volume(read_volume(volume), 2.9)
     verts, polys = expected.mesh()
-    assert result["install"] == ["FINISHED"]
+    print(f"enable {result['enable_seconds']:.2f} s, register() "
+          f"{1000 * result['register_seconds']:.1f} ms; import, build and mesh with the kernels' "
+          f"first use {result['first_use_seconds']:.1f} s")
+    assert installed["install"] == ["FINISHED"] and installed["registered"]
+    assert {"pydicom", "nibabel", "nrrd", "tifffile", "numba", "llvmlite"} <= set(
+        installed["site_packages"])
+    assert not any(name.lower().startswith("numpy") for name in installed["site_packages"])
+    assert not installed["numba_imported_by_enabling"] and not result["numba_imported_by_enabling"]
     assert result["module"] and result["registered"]
-    assert {"pydicom", "nibabel", "nrrd", "tifffile"} <= set(result["site_packages"])
-    assert not any(name.lower().startswith("numpy") for name in result["site_packages"])
     assert result["import"] == result["build"] == result["mesh"] == ["FINISHED"]
+    pins = _pins()
+    assert result["numba"] == [pins["numba"], pins["llvmlite"], True]  # the bundled ones
+    assert result["cached_kernels"] > 0
+    assert re.search(rf"^\[volumeevm\] +\d+% {re.escape(FIRST_USE)}$", run.stdout, re.M)
     assert result["voxels"] == expected.voxel_count and result["evs"] == len(expected.evm)
     assert result["polygons"] == len(polys) and result["vertices"] == len(np.asarray(verts))
     assert result["api"] == ["by_api", expected.voxel_count, len(polys)]
     assert result["unregistered"]
     # The installed add-on's folder got nothing written into it.
-    installed = repo_dir / MANIFEST["id"]
-    assert (installed / "blender_manifest.toml").is_file()
-    assert list(installed.rglob("*.vevm")) == []
+    folder = repo_dir / MANIFEST["id"]
+    assert (folder / "blender_manifest.toml").is_file()
+    assert list(folder.rglob("*.vevm")) == [] and list(folder.rglob("*.nbi")) == []
     assert "[volumeevm]  30% building EVM" in run.stdout
