@@ -2,17 +2,82 @@
 
 Arrays move with ``foreach_set`` / ``foreach_get`` through the mesh's attributes, with no Python
 loop per vertex (the per-item ``MeshLoop.vertex_index`` path is several times slower on large
-meshes).
+meshes). A surface comes with its edges (:class:`Faces`, from the core's
+:class:`BoundaryMesh`), written like the rest: Blender's own edge pass (``calc_edges``, a
+hash of every corner) takes longer than all the other arrays together.
 """
+
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..volumeevm_addon import Polygons
+from ..volumeevm_addon import BLENDER_UNITS_PER_MM, BoundaryMesh, Polygons
 from . import jobs
 
 #: Outward triangles of the box whose corner (i, j, k) in {0, 1}^3 is vertex 4 i + 2 j + k.
 BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int32)
+
+
+@dataclass(frozen=True)
+class Faces:
+    """A surface's polygons with its edges, as Blender stores them (int32 arrays).
+
+    Attributes
+    ----------
+    polygons : Polygons
+        Loops (corner vertices), loop starts and sizes.
+    edges : (E, 2) ndarray of np.int32
+        Each edge's two vertices, once.
+    corner_edges : (L,) ndarray of np.int32
+        The edge from each loop corner to the next corner of its polygon.
+    """
+
+    polygons: Polygons
+    edges: np.ndarray
+    corner_edges: np.ndarray
+
+    def sizes(self):
+        """The counts Blender keeps: (edges, loops, polygons)."""
+        return len(self.edges), len(self.polygons.indices), len(self.polygons)
+
+
+def surface_geometry(vevm, previous=None):
+    """The boundary mesh of a VolumeEVM, ready for :func:`fill_mesh`.
+
+    Parameters
+    ----------
+    vevm : VolumeEVM
+    previous : tuple, optional
+        ``(co, boundary)`` of an earlier region of the same grid (what this returned for it):
+        the mesh is updated where the two differ (:meth:`BoundaryMesh.updated`), and only the
+        new vertices are placed (the others keep their positions).
+
+    Returns
+    -------
+    co : (n, 3) ndarray of np.float32
+        Vertices in Blender units: ``vevm.mesh()``'s times :data:`BLENDER_UNITS_PER_MM`.
+    faces : Faces
+    boundary : BoundaryMesh
+        The core's mesh, to update the next one from.
+    """
+    if previous is None:
+        boundary = BoundaryMesh(vevm.evm)
+        co = _blender_units(vevm, boundary.vertices)
+    else:
+        old_co, old = previous
+        boundary = old.updated(vevm.evm)
+        if boundary is old:
+            co = old_co
+        else:
+            co, fresh = boundary.carry(old_co)
+            co[fresh] = _blender_units(vevm, boundary.points(fresh))
+    return co, Faces(boundary.polygons, *boundary.edges()), boundary
+
+
+def _blender_units(vevm, points):
+    """Lattice points of ``vevm``'s grid in Blender units, float32 (as Blender keeps them)."""
+    return (vevm.corner_positions(points) * BLENDER_UNITS_PER_MM).astype(np.float32)
 
 
 def _attribute(mesh, name, kind, domain):
@@ -26,23 +91,32 @@ def _corner_vertices(mesh):
     return (found.data, "value") if found is not None else (mesh.loops, "vertex_index")
 
 
-def fill_mesh(mesh, co, polys):
-    """Fill an empty mesh in bulk: vertices ``co`` (n, 3) and polygons (loops, starts).
+def _write(mesh, co, faces):
+    """Write every array of ``co`` and ``faces`` into a mesh that has their sizes."""
+    polygons = faces.polygons
+    _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_set("vector", co.ravel())
+    _attribute(mesh, ".edge_verts", "INT32_2D", "EDGE").data.foreach_set("value", faces.edges.ravel())
+    corners, field = _corner_vertices(mesh)
+    corners.foreach_set(field, polygons.indices)
+    _attribute(mesh, ".corner_edge", "INT", "CORNER").data.foreach_set("value", faces.corner_edges)
+    mesh.polygons.foreach_set("loop_start", polygons.starts)
+    mesh.update()
 
-    Positions and corner vertices are written through the mesh's attributes (one copy each).
+
+def fill_mesh(mesh, co, faces):
+    """Fill an empty mesh in bulk: vertices ``co`` (n, 3) float32 and :class:`Faces`.
+
+    Positions, edges, corner vertices and corner edges are written through the mesh's
+    attributes (one copy each).
     """
     mesh.vertices.add(len(co))
-    _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_set(
-        "vector", np.ascontiguousarray(co, np.float32).ravel())
-    mesh.loops.add(len(polys.indices))
-    corners, field = _corner_vertices(mesh)
-    corners.foreach_set(field, np.ascontiguousarray(polys.indices, np.int32))
-    mesh.polygons.add(len(polys))
-    mesh.polygons.foreach_set("loop_start", np.ascontiguousarray(polys.starts, np.int32))
+    mesh.edges.add(len(faces.edges))
+    mesh.loops.add(len(faces.polygons.indices))
+    mesh.polygons.add(len(faces.polygons))
     # Flat faces: a voxel boundary has no smooth normals (new meshes shade smooth since 4.1).
     _attribute(mesh, "sharp_face", "BOOLEAN", "FACE").data.foreach_set(
-        "value", np.ones(len(polys), bool))
-    mesh.update(calc_edges=True)
+        "value", np.ones(len(faces.polygons), bool))
+    _write(mesh, co, faces)
 
 
 def wire_mesh(mesh, points, edges):
@@ -55,30 +129,46 @@ def wire_mesh(mesh, points, edges):
 
 
 def mesh_geometry(mesh):
-    """What :func:`fill_mesh` writes, read back from ``mesh``: ``(co, Polygons)``."""
-    co = np.empty(len(mesh.vertices) * 3, np.float32)
-    _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_get("vector", co)
+    """What :func:`fill_mesh` writes, read back from ``mesh``: ``(co, Faces)``."""
+    co = np.empty((len(mesh.vertices), 3), np.float32)
+    _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_get("vector", co.ravel())
+    edges = np.empty((len(mesh.edges), 2), np.int32)
+    _attribute(mesh, ".edge_verts", "INT32_2D", "EDGE").data.foreach_get("value", edges.ravel())
     indices = np.empty(len(mesh.loops), np.int32)
     corners, field = _corner_vertices(mesh)
     corners.foreach_get(field, indices)
+    corner_edges = np.empty(len(mesh.loops), np.int32)
+    _attribute(mesh, ".corner_edge", "INT", "CORNER").data.foreach_get("value", corner_edges)
     starts = np.empty(len(mesh.polygons), np.int32)
     mesh.polygons.foreach_get("loop_start", starts)
     sizes = np.diff(starts, append=np.int32(len(indices))).astype(np.int32)
-    return co.reshape(-1, 3), Polygons(indices, starts, sizes)
+    return co, Faces(Polygons(indices, starts, sizes), edges, corner_edges)
 
 
-def refill_mesh(mesh, co, polys):
+def sizes(mesh):
+    """The counts of a Blender mesh: (vertices, edges, loops, polygons)."""
+    return len(mesh.vertices), len(mesh.edges), len(mesh.loops), len(mesh.polygons)
+
+
+def refill_mesh(mesh, co, faces, old=None):
     """Replace the geometry of ``mesh`` in place; in a :func:`.jobs.transaction` that fails
-    (filling half way, or a later step) the old geometry is put back."""
-    old = mesh_geometry(mesh)
+    (filling half way, or a later step) the old geometry is put back: ``old``, the ``(co,
+    Faces)`` the caller knows the mesh holds (what it wrote last), else read from the mesh.
+    Arrays of the sizes the mesh has are written over its own (no new geometry); others
+    replace it."""
+    if old is None:
+        old = mesh_geometry(mesh)
 
     def restore():
         mesh.clear_geometry()
         fill_mesh(mesh, *old)
 
     jobs.on_undo(restore)
-    mesh.clear_geometry()
-    fill_mesh(mesh, co, polys)
+    if (len(co), *faces.sizes()) == sizes(mesh):
+        _write(mesh, co, faces)
+    else:
+        mesh.clear_geometry()
+        fill_mesh(mesh, co, faces)
 
 
 def tool_triangles(tool_obj, depsgraph, *, box=False):

@@ -9,7 +9,7 @@
   corrupt sidecar), shown in the sidebar.
 - The tool stack state of each volume object (:class:`StackState`): its ``EditStack`` with the
   cached result after every entry, the voxelized tools keyed by what they were made from, the
-  last result, the last refresh's timing and any problem.
+  last result and the surface mesh written last, the last refresh's timing and any problem.
   Keyed by ``(uid, object name)`` (a duplicated volume keeps the uid but has its own stack).
   Undo and redo re-sync it from the object's properties (``tool_stack.py``).
 """
@@ -37,6 +37,7 @@ class StackState:
     stack: object = None  # EditStack on the VolumeEVM of base_path
     tools: OrderedDict = field(default_factory=OrderedDict)  # digest -> tool EVM (LRU)
     result: object = None  # the VolumeEVM of the last successful evaluation
+    shown: tuple = None  # (signature, co, Faces, BoundaryMesh) last written into the surface
     timing: dict = field(default_factory=dict)  # the last refresh: seconds by part, counts
     problem: str = ""  # why the last evaluation failed ("" if it did not)
 

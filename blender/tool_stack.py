@@ -7,8 +7,10 @@ entry are :data:`TOOL_KINDS`, the one table the properties, panels and operators
 
 Refreshing. :func:`refresh` reads the entries and their tools from the evaluated depsgraph,
 voxelizes each tool again only if its triangles or placement changed (a cache keyed by a digest
-of both), lets the core's ``EditStack`` recompute from the first changed entry, and rewrites the
-surface mesh in place (all or nothing: if writing fails, its old geometry is put back). The
+of both), lets the core's ``EditStack`` recompute from the first changed entry (in place, where
+the moved tool's old and new voxels differ), updates the core's mesh of the last result where
+the results differ and rewrites the surface mesh in place (all or nothing: if writing fails,
+its old geometry is put back). The
 surface stores a signature of the base and entries it shows; when nothing changed (e.g. the
 update was our own mesh write, or a property of the volume unrelated to the stack) nothing is
 written, so there is no feedback loop. A failure (tool moved wholly outside, open mesh, empty
@@ -38,7 +40,6 @@ import bpy
 import numpy as np
 
 from ..volumeevm_addon import (
-    BLENDER_UNITS_PER_MM,
     EVM,
     EditStack,
     ToolOperation,
@@ -48,7 +49,7 @@ from ..volumeevm_addon import (
     voxelize_mesh_evm,
 )
 from . import jobs, runtime, sidecar
-from .meshes import BOX_FACES, fill_mesh, refill_mesh, tool_triangles
+from .meshes import BOX_FACES, fill_mesh, refill_mesh, sizes, surface_geometry, tool_triangles
 from .objects import attach_surface, own_surface, volume_object
 
 
@@ -229,7 +230,7 @@ def _synced_state(vol_obj):
         state.base_path = path
         state.base_digest = _base_digest(base)
         state.stack = EditStack(base)
-        state.result = None
+        state.result = state.shown = None
     return state
 
 
@@ -286,29 +287,37 @@ def _evaluate(state, entries, timing):
     return result
 
 
-def _write_surface(context, vol_obj, result, signature, timing, *, create):
+def _write_surface(context, state, vol_obj, result, signature, timing, *, create):
     """Put the result's mesh into the volume's surface (in place), or make the surface.
 
-    All or nothing: if writing fails, the surface keeps its old mesh (or none is made).
+    The core's mesh of the last result written is updated where the regions differ
+    (:func:`.meshes.surface_geometry`). All or nothing: if writing fails, the surface keeps its
+    old mesh (or none is made): the arrays written last, while the surface still shows them
+    (same signature and sizes), else its mesh read back.
     """
     surface = own_surface(vol_obj)
     if surface is None and not create:
         return None
     start = time.perf_counter()
-    verts_mm, polys = result.mesh()
-    co = (np.asarray(verts_mm, np.float64) * BLENDER_UNITS_PER_MM).astype(np.float32)
+    shown, old_co, old_faces, boundary = state.shown or (None, None, None, None)
+    co, faces, boundary = surface_geometry(result, None if boundary is None else (old_co, boundary))
     middle = time.perf_counter()
     with jobs.transaction():
         if surface is None:
             mesh = bpy.data.meshes.new(f"{vol_obj.name}_surface")
-            fill_mesh(mesh, co, polys)
+            fill_mesh(mesh, co, faces)
             surface = attach_surface(context, vol_obj, mesh)
         else:
-            refill_mesh(surface.data, co, polys)
+            old = None
+            if (shown == surface.volumeevm.stack_signature
+                    and (len(old_co), *old_faces.sizes()) == sizes(surface.data)):
+                old = old_co, old_faces
+            refill_mesh(surface.data, co, faces, old)
         jobs.assign(surface.volumeevm, stack_signature=signature)
+    state.shown = signature, co, faces, boundary
     end = time.perf_counter()
     timing["mesh_s"], timing["write_s"] = middle - start, end - middle
-    timing["polygons"] = len(polys)
+    timing["polygons"] = len(faces.polygons)
     return surface
 
 
@@ -364,7 +373,7 @@ def refresh(vol_obj, depsgraph, *, create=False, force=False, extra=None):
                 return None
             result = _evaluate(state, entries, timing)
             if extra is None and not shown:
-                _write_surface(bpy.context, vol_obj, result, signature, timing, create=create)
+                _write_surface(bpy.context, state, vol_obj, result, signature, timing, create=create)
         except jobs.REPORTED_ERRORS as error:
             stack_problem(vol_obj, str(error))
             raise

@@ -32,7 +32,7 @@ from ..volumeevm_addon import (
     read_volume,
 )
 from . import jobs, runtime, sidecar
-from .meshes import fill_mesh, wire_mesh
+from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, volume_object
 from .tool_stack import refresh_quietly
 
@@ -247,10 +247,9 @@ def _mesh_steps(vevm_or_path):
         yield 0.0, "loading VolumeEVM"
         vevm = VolumeEVM.load(vevm_or_path)
     yield 0.2, "meshing"
-    verts_mm, polys = vevm.mesh()
+    co, faces, _ = surface_geometry(vevm)
     yield 0.9, "making the mesh object"
-    co = (np.asarray(verts_mm, np.float64) * BLENDER_UNITS_PER_MM).astype(np.float32)
-    return vevm, co, polys
+    return vevm, co, faces
 
 
 def mesh_job(context, obj):
@@ -267,13 +266,13 @@ def mesh_job(context, obj):
     name = vol_obj.name
 
     def commit(result):
-        vevm, co, polys = result
+        vevm, co, faces = result
         runtime.put_vevm(path, vevm)
         owner = bpy.data.objects.get(name)
         if owner is None:
             raise VolumeEVMError(f"{name}: the volume object was deleted while meshing")
         mesh = bpy.data.meshes.new(f"{name}_surface")
-        fill_mesh(mesh, co, polys)
+        fill_mesh(mesh, co, faces)
         surface = attach_surface(context, owner, mesh)
         jobs.assign(surface.volumeevm, stack_signature="")
         if len(owner.volumeevm.tools):

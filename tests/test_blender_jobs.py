@@ -118,7 +118,7 @@ def test_unexpected_error_in_a_step_ends_the_job_scene_unchanged(
         label = "Build VolumeEVM of ct_skull_cgal"
     else:
         _meshed(api, skull)
-        monkeypatch.setattr(ext.volumeevm_addon.VolumeEVM, "mesh", _bug)
+        monkeypatch.setattr(ext.blender.volumes, "surface_geometry", _bug)
         run = bpy.ops.volumeevm.make_mesh
         label = "Mesh of ct_skull_cgal"
     before = scene_state(api)

@@ -28,7 +28,7 @@ from .model._cache import DerivedCache
 from .model._evm import EVM
 from .model._histogram import density_histogram, otsu_threshold
 from .model._levels import LEVELS
-from .model._mesh import Polygons
+from .model._mesh import BoundaryMesh, Polygons
 from .model._stack import EditStack, ToolOperation
 from .model._volume import BLENDER_UNITS_PER_MM, Volume, grid_to_world, index_to_physical
 from .model._volumeevm import VolumeEVM
@@ -46,6 +46,7 @@ from .rendering._transfer import PRESETS, TransferFunction
 __all__ = [
     "BACKGROUND_DEPTH",
     "BLENDER_UNITS_PER_MM",
+    "BoundaryMesh",
     "Camera",
     "DerivedCache",
     "EVM",

@@ -7,7 +7,11 @@ crossing below a voxel centre) is an exact sign, with a cheap floating-point fil
 integer fallback for the few uncertain cases, and a fixed symbolic perturbation breaks every tie.
 :func:`check_closed_mesh` is the validation it runs first, usable on its own.
 
-Both use NumPy only.
+The filter is a compiled kernel (:mod:`._jit`), linear in the (triangle, column) pairs: it
+keeps the crossings it is sure of and hands the uncertain pairs to the exact NumPy path. A
+second kernel sorts each column's crossings into the runs of non-zero winding number, from
+which :func:`voxelize_mesh` fills its mask and :func:`voxelize_mesh_evm` writes the EVM's
+vertices directly (no grid: linear in the columns and the runs).
 """
 
 from dataclasses import dataclass
@@ -15,7 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._errors import VolumeEVMError
+from ._jit import kernel
 from ._memory import check_memory
+from .model import _sweep
 
 __all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "tool_to_grid", "voxelize_memory",
            "voxelize_mesh", "voxelize_mesh_evm"]
@@ -28,12 +34,14 @@ _ORIENT2D_BOUND = (3.0 + 16.0 * _EPS) * _EPS
 _ORIENT3D_BOUND = (7.0 + 56.0 * _EPS) * _EPS
 # The bounds above assume no underflow; determinants smaller than this go to the exact path.
 _TINY = 2.0**-900
-# Candidate (triangle, ray) pairs processed per chunk: bounds the working memory (~150 bytes each).
+# Uncertain (triangle, ray) pairs the exact path takes per chunk: bounds its working memory
+# (~150 bytes each).
 _CHUNK = 1 << 19
-# Bytes per (triangle, column) candidate pair, from its test to the filled columns: measured
-# with tracemalloc (about 220 over the bunny, fandisk, femur and rotor meshes in grids of
-# 0.4 to 7 million voxels), with a margin.
-_PAIR_BYTES = 250
+# Bytes per (triangle, column) candidate pair, from its test to the EVM, counted (tracemalloc
+# does not see the kernels' arrays): a sure crossing's column, start and sign in arrays grown by
+# doubling (~51 while one grows), its place in its column's sort and its run ends (~32) and the
+# vertices they make (~32); an uncertain pair's row (~72 while it grows) before the exact path.
+_PAIR_BYTES = 128
 # Largest |coordinate| of the mesh in voxel index space: keeps every product in the predicates
 # (up to the cube of a coordinate) far from float64 overflow.
 _MAX_INDEX = 1e30
@@ -177,9 +185,10 @@ def voxelize_mesh(vertices, faces, shape, to_grid):
     (simulation of simplicity), so a ray through a shared edge or vertex crosses the surface
     exactly as often as a ray in general position.
 
-    Cost grows with the number of (triangle, column) pairs in the triangles' projected
-    bounding boxes plus the number of voxels; the pairs are processed in chunks of bounded
-    memory.
+    Cost grows linearly with the number of (triangle, column) pairs in the triangles'
+    projected bounding boxes plus the number of voxels (filling the mask): compiled kernels
+    test the pairs one by one and sort the crossings column by column; the few uncertain pairs
+    go to the exact path in chunks of bounded memory.
 
     References
     ----------
@@ -197,8 +206,19 @@ def voxelize_mesh(vertices, faces, shape, to_grid):
     >>> int(voxelize_mesh(v, f, (5, 5, 5), to_grid).sum())  # centres with i + j + k < 4
     20
     """
-    verts, tris = _as_mesh(vertices, faces)
     shape = _as_shape(shape)
+    ptr, ends = _winding_runs(vertices, faces, shape, to_grid, dense=True)
+    return _fill_runs(ptr, ends, shape).view(bool)
+
+
+def _winding_runs(vertices, faces, shape, to_grid, *, dense):
+    """The runs of :func:`voxelize_mesh`'s voxels, column by column, after its checks.
+
+    Returns ``(ptr, ends)``: column ``c = i * Y + j`` runs from ``ends[ptr[c]]`` to
+    ``ends[ptr[c] + 1]`` (exclusive), and so on to ``ends[ptr[c + 1] - 1]``. ``dense`` says
+    whether the caller then fills a grid (counted in the memory check).
+    """
+    verts, tris = _as_mesh(vertices, faces)
     matrix = _as_affine(to_grid)
     check_closed_mesh(verts, tris)
 
@@ -220,7 +240,7 @@ def voxelize_mesh(vertices, faces, shape, to_grid):
         )
     # A mirroring transform turns outward normals inward: undo it in the crossing signs.
     orientation = 1 if np.linalg.det(linear) > 0 else -1
-    return _winding_mask(pts[tris], shape, orientation)
+    return _column_runs(pts[tris], shape, orientation, dense)
 
 
 def _as_mesh(vertices, faces):
@@ -306,8 +326,8 @@ def _edge_defects(tris):
     return n_open, n_unpaired, len(edges)
 
 
-def _winding_mask(tri_pts, shape, orientation):
-    """Mask of voxel centres with non-zero winding number (see :func:`voxelize_mesh`).
+def _column_runs(tri_pts, shape, orientation, dense):
+    """Runs of voxel centres with non-zero winding number (see :func:`_winding_runs`).
 
     Parameters
     ----------
@@ -317,6 +337,8 @@ def _winding_mask(tri_pts, shape, orientation):
         Grid shape ``(X, Y, Z)``.
     orientation : {1, -1}
         -1 if the faces' winding was reversed by a mirroring transform.
+    dense : bool
+        Whether a grid of ``shape`` will be filled (for the memory check).
     """
     nx, ny, nz = shape
     # Columns (i, j) whose ray can meet each triangle: integer points of the projected
@@ -329,45 +351,257 @@ def _winding_mask(tri_pts, shape, orientation):
     width = np.maximum(hi - lo + 1.0, 0.0).astype(np.int64)
     count = width[:, 0] * width[:, 1]
     useful = (count > 0) & (tri_pts[:, :, 2].min(axis=1) <= nz - 1)
-    tri_pts, width, count = tri_pts[useful], width[useful], count[useful]
-    lo = lo[useful].astype(np.int64)
-    ends = np.cumsum(count)
-    total = int(ends[-1]) if len(ends) else 0
-    check_memory(voxelize_memory(shape, total), f"voxelizing into a grid of shape {shape}",
-                 source="tool mesh", advice="voxelize into a smaller grid or use a smaller tool")
-
-    columns, starts, signs = [], [], []
-    for first in range(0, total, _CHUNK):
-        pair = np.arange(first, min(first + _CHUNK, total), dtype=np.int64)
-        tri = np.searchsorted(ends, pair, side="right")
-        local = pair - (ends[tri] - count[tri])
-        i = lo[tri, 0] + local % width[tri, 0]
-        j = lo[tri, 1] + local // width[tri, 0]
+    tri_pts = np.ascontiguousarray(tri_pts[useful])
+    width, lo = width[useful], lo[useful].astype(np.int64)
+    pairs = int(count[useful].sum())
+    check_memory(voxelize_memory(shape, pairs, dense),
+                 f"voxelizing into a grid of shape {shape}", source="tool mesh",
+                 advice="voxelize into a smaller grid or use a smaller tool")
+    column, start, sign, unsure = _sure_crossings(tri_pts, lo, width, ny, nz)
+    columns, starts, signs = [column], [start], [sign]
+    for first in range(0, len(unsure), _CHUNK):
+        tri, i, j = unsure[first:first + _CHUNK].T
         i, j, sign, start = _crossings(tri_pts, tri, i, j, nz)
-        columns.append(i * ny + j)
-        starts.append(start)
-        signs.append(sign)
-    if not columns:
-        return np.zeros(shape, dtype=bool)
-    column = np.concatenate(columns)
-    start = np.concatenate(starts)
+        below = start < nz  # a crossing at the top changes no centre's winding number
+        columns.append(i[below] * ny + j[below])
+        starts.append(start[below])
+        signs.append(sign[below])
     # Upward ray from inside an outward shell leaves through a face with normal z > 0, so a
     # crossing at or below the centre with normal z < 0 adds +1 to the centre's winding number.
     step = -orientation * np.concatenate(signs).astype(np.int64)
-    return _fill_columns(column, start, step, shape)
+    return _runs_of(np.concatenate(columns), np.concatenate(starts), step, nx * ny, nz)
 
 
-def voxelize_memory(shape, pairs):
+@kernel
+def _orient2d_filtered(ax, ay, bx, by, px, py):
+    """orient2d(a, b, p) in float64 and its sign when that value decides it (else 0)."""
+    left = (ax - px) * (by - py)
+    right = (ay - py) * (bx - px)
+    det = left - right
+    if abs(det) > max(_ORIENT2D_BOUND * (abs(left) + abs(right)), _TINY):
+        return (1 if det > 0 else -1), det
+    return 0, det
+
+
+@kernel
+def _below_sure(tri, px, py, qz, sign):
+    """Whether the crossing of column (px, py) with triangle ``tri`` (oriented ``sign``) is
+    surely at or below height ``qz`` (1), surely above it (-1), or too close to tell (0):
+    the float64 :func:`_orient3d` and its error bound."""
+    adx, ady, adz = tri[0, 0] - px, tri[0, 1] - py, tri[0, 2] - qz
+    bdx, bdy, bdz = tri[1, 0] - px, tri[1, 1] - py, tri[1, 2] - qz
+    cdx, cdy, cdz = tri[2, 0] - px, tri[2, 1] - py, tri[2, 2] - qz
+    bc1, bc2 = bdx * cdy, bdy * cdx
+    ca1, ca2 = cdx * ady, cdy * adx
+    ab1, ab2 = adx * bdy, ady * bdx
+    det = adz * (bc1 - bc2) + bdz * (ca1 - ca2) + cdz * (ab1 - ab2)
+    permanent = ((abs(bc1) + abs(bc2)) * abs(adz) + (abs(ca1) + abs(ca2)) * abs(bdz)
+                 + (abs(ab1) + abs(ab2)) * abs(cdz))
+    if not abs(det) > max(_ORIENT3D_BOUND * permanent, _TINY):
+        return 0
+    return 1 if sign * det < 0 else -1
+
+
+@kernel
+def _sure_crossings(tri_pts, lo, width, ny, nz):
+    """The crossings of the columns in each triangle's box that the float64 filter decides.
+
+    The steps of :func:`_crossings` for one pair at a time: the three edge signs (inside when
+    all agree), the crossing height from the barycentric weights, the first centre at or above
+    it, checked by orient3d at that centre and the one below. Returns ``column`` (``i * ny +
+    j``), ``start``, ``sign`` of the sure crossings below the top (``start < nz``) and the
+    ``(triangle, i, j)`` rows of the uncertain pairs, for the exact path.
+    """
+    column = np.empty(256, np.int64)
+    start = np.empty(256, np.int64)
+    signs = np.empty(256, np.int8)
+    unsure = np.empty((16, 3), np.int64)
+    n = 0
+    m = 0
+    for t in range(len(tri_pts)):
+        tri = tri_pts[t]
+        ax, ay, az = tri[0, 0], tri[0, 1], tri[0, 2]
+        bx, by, bz = tri[1, 0], tri[1, 1], tri[1, 2]
+        cx, cy, cz = tri[2, 0], tri[2, 1], tri[2, 2]
+        z_lo, z_hi = min(az, bz, cz), max(az, bz, cz)
+        for jj in range(width[t, 1]):
+            j = lo[t, 1] + jj
+            py = float(j)
+            for ii in range(width[t, 0]):
+                i = lo[t, 0] + ii
+                px = float(i)
+                # Edge a->b gives the weight of c, b->c of a, c->a of b.
+                w_a = w_b = 0.0
+                sign, w_c = _orient2d_filtered(ax, ay, bx, by, px, py)
+                sure = sign != 0
+                if sure:
+                    s, w_a = _orient2d_filtered(bx, by, cx, cy, px, py)
+                    sure = s != 0
+                    if sure and s != sign:
+                        continue
+                if sure:
+                    s, w_b = _orient2d_filtered(cx, cy, ax, ay, px, py)
+                    sure = s != 0
+                    if sure and s != sign:
+                        continue
+                if sure:
+                    total = w_a + w_b + w_c
+                    height = (w_a * az + w_b * bz + w_c * cz) / total if total != 0.0 else az
+                    first = min(max(np.ceil(min(max(height, z_lo), z_hi)), 0.0), float(nz))
+                    if first == nz:
+                        continue  # at or above the top centre: no centre's winding changes
+                    sure = _below_sure(tri, px, py, first, sign) == 1 and (
+                        first == 0.0 or _below_sure(tri, px, py, first - 1.0, sign) == -1)
+                    if sure:
+                        if n == len(column):
+                            column = _grown(column, n)
+                            start = _grown(start, n)
+                            signs = _grown(signs, n)
+                        column[n] = i * ny + j
+                        start[n] = int(first)
+                        signs[n] = sign
+                        n += 1
+                if not sure:
+                    if m == len(unsure):
+                        unsure = _grown(unsure, m)
+                    unsure[m, 0], unsure[m, 1], unsure[m, 2] = t, i, j
+                    m += 1
+    return column[:n].copy(), start[:n].copy(), signs[:n].copy(), unsure[:m].copy()
+
+
+@kernel
+def _grown(array, count):
+    """``array`` with twice the room, its first ``count`` rows kept."""
+    grown = np.empty((2 * len(array),) + array.shape[1:], array.dtype)
+    grown[:count] = array[:count]
+    return grown
+
+
+@kernel
+def _runs_of(column, start, step, n_columns, nz):
+    """Each column's runs of non-zero winding number from its crossings (any order).
+
+    A crossing adds ``step`` to the winding number of the centres from ``start`` up. Column
+    by column (a counting sort, then an insertion sort of its few crossings by start), the
+    running winding number gives the runs' ends; a run still open at the top ends at ``nz``.
+    Returns ``(ptr, ends)`` as :func:`_winding_runs` does.
+    """
+    ptr = np.zeros(n_columns + 1, np.int64)
+    for c in column:
+        ptr[c + 1] += 1
+    for c in range(n_columns):
+        ptr[c + 1] += ptr[c]
+    fill = ptr[:-1].copy()
+    heights = np.empty(len(column), np.int64)
+    steps = np.empty(len(column), np.int64)
+    for k in range(len(column)):
+        c = column[k]
+        heights[fill[c]] = start[k]
+        steps[fill[c]] = step[k]
+        fill[c] += 1
+    ends = np.empty(2 * len(column), np.int64)
+    out = np.zeros(n_columns + 1, np.int64)
+    n = 0
+    for c in range(n_columns):
+        first, stop = ptr[c], ptr[c + 1]
+        for k in range(first + 1, stop):
+            height, value = heights[k], steps[k]
+            q = k
+            while q > first and heights[q - 1] > height:
+                heights[q], steps[q] = heights[q - 1], steps[q - 1]
+                q -= 1
+            heights[q], steps[q] = height, value
+        winding = 0
+        inside = False
+        k = first
+        while k < stop:
+            height = heights[k]
+            while k < stop and heights[k] == height:
+                winding += steps[k]
+                k += 1
+            if (winding != 0) != inside:
+                ends[n] = height
+                n += 1
+                inside = not inside
+        if inside:
+            ends[n] = nz
+            n += 1
+        out[c + 1] = n
+    return out, ends[:n].copy()
+
+
+@kernel
+def _fill_runs(ptr, ends, shape):
+    """The grid of ``shape`` with the runs ``(ptr, ends)`` set (uint8 0 or 1)."""
+    nx, ny, nz = shape
+    grid = np.zeros((nx, ny, nz), np.uint8)
+    for c in range(nx * ny):
+        for k in range(ptr[c], ptr[c + 1], 2):
+            grid[c // ny, c % ny, ends[k]:ends[k + 1]] = 1
+    return grid
+
+
+@kernel
+def _run_keys(ptr, ends, shape, origin):
+    """The EVM keys of the region of runs ``(ptr, ends)`` in the grid of ``shape`` placed at
+    ``origin`` (offset lattice coordinates), sorted.
+
+    Lattice point (x, y, z) is a vertex when an odd number of the 4 columns around its line,
+    (x - 1, y - 1) to (x, y), have a run end at z (the EVM is the XOR of the region's shifted
+    copies, and a column's run ends are where its voxels toggle along z): a merge of those
+    columns' ends (each strictly increasing), line by line, plane by plane.
+    """
+    nx, ny, _ = shape
+    heads = np.empty(4, np.int64)
+    stops = np.empty(4, np.int64)
+    keys = np.empty(256, np.int64)
+    n = 0
+    for x in range(nx + 1):
+        for y in range(ny + 1):
+            lists = 0
+            for cx in range(max(x - 1, 0), min(x + 1, nx)):
+                for cy in range(max(y - 1, 0), min(y + 1, ny)):
+                    c = cx * ny + cy
+                    if ptr[c] < ptr[c + 1]:
+                        heads[lists], stops[lists] = ptr[c], ptr[c + 1]
+                        lists += 1
+            line = ((x + origin[0]) << (2 * _sweep.BITS)) | ((y + origin[1]) << _sweep.BITS)
+            while lists:
+                z = ends[heads[0]]
+                for k in range(1, lists):
+                    z = min(z, ends[heads[k]])
+                odd = False
+                k = 0
+                while k < lists:
+                    if ends[heads[k]] == z:
+                        odd = not odd
+                        heads[k] += 1
+                        if heads[k] == stops[k]:
+                            lists -= 1
+                            heads[k], stops[k] = heads[lists], stops[lists]
+                            continue
+                    k += 1
+                if odd:
+                    if n == len(keys):
+                        keys = _grown(keys, n)
+                    keys[n] = line | (z + origin[2])
+                    n += 1
+    return keys[:n].copy()
+
+
+def voxelize_memory(shape, pairs, dense=True):
     """Estimated peak bytes of :func:`voxelize_mesh` for a grid and its candidate pairs.
 
-    ``pairs`` (triangle, column) candidates bound the crossings. The dense grid costs its int8
-    run marks and the boolean mask (2 bytes a voxel); each candidate costs its test and, as a
-    crossing, its column, start and step and their sorted copies (``_PAIR_BYTES``); a chunk of
-    candidates being tested costs about 150 bytes each. The mesh check before it allocates in
-    proportion to the mesh, which is already in memory, and is not counted.
+    ``pairs`` (triangle, column) candidates bound the crossings. A dense grid costs a byte a
+    voxel (``dense``; :func:`voxelize_mesh_evm` makes none), its columns three run offsets
+    each; each candidate costs what its crossing or its place in the uncertain list takes
+    (``_PAIR_BYTES``), and a chunk of uncertain pairs on the exact path about 150 bytes each.
+    The mesh check before it allocates in proportion to the mesh, which is already in memory,
+    and is not counted.
     """
     nx, ny, nz = (int(n) for n in shape)
-    return 2 * nx * ny * (nz + 1) + _PAIR_BYTES * pairs + 150 * min(pairs, _CHUNK)
+    grid = nx * ny * nz if dense else 0
+    return grid + 24 * nx * ny + _PAIR_BYTES * pairs + 150 * min(pairs, _CHUNK)
 
 
 def _crossings(tri_pts, tri, i, j, nz):
@@ -503,46 +737,11 @@ def _exact_ints(*arrays, with_scale=False):
     return (out, 1 << shift) if with_scale else out
 
 
-def _fill_columns(column, start, step, shape):
-    """Bool grid of non-zero running sums of ``step`` placed at ``(column, start)``.
-
-    Parameters
-    ----------
-    column : (N,) ndarray of int64
-        Ray column ``i * Y + j`` of each crossing.
-    start : (N,) ndarray of int64
-        First centre index k, in ``[0, Z]``, whose winding number includes the crossing.
-    step : (N,) ndarray of int64
-        The crossing's contribution to the winding number.
-    shape : tuple of 3 int
-        ``(X, Y, Z)``.
-    """
-    nx, ny, nz = shape
-    order = np.argsort(column * (nz + 1) + start, kind="stable")
-    column, start, step = column[order], start[order], step[order]
-    winding = np.cumsum(step)
-    first = np.flatnonzero(np.r_[True, column[1:] != column[:-1]])
-    before = np.r_[0, winding[first[1:] - 1]]
-    winding -= np.repeat(before, np.diff(np.r_[first, len(column)]))
-    same_next = np.r_[column[1:] == column[:-1], False]
-    stop = np.where(same_next, np.r_[start[1:], 0], nz)
-    run = (winding != 0) & (stop > start)
-    # +1 where a run of non-zero winding starts, -1 where it stops; runs in one column are
-    # disjoint, so the running sum along z is 0 or 1.
-    marks = np.zeros(nx * ny * (nz + 1), dtype=np.int8)
-    base = column[run] * (nz + 1)
-    np.add.at(marks, base + start[run], 1)
-    np.add.at(marks, base + stop[run], -1)
-    marks = marks.reshape(nx, ny, nz + 1)
-    np.cumsum(marks, axis=2, dtype=np.int8, out=marks)
-    return marks[:, :, :nz] != 0
-
-
 def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     """The EVM of :func:`voxelize_mesh`'s voxels, computed on the tool's bounding box only.
 
-    A tool usually covers a small part of the grid; the mask and its EVM are made for the
-    sub-grid of the tool's bounding box and placed with an integer offset. The vertices are
+    A tool usually covers a small part of the grid; its runs and their EVM are made for the
+    sub-grid of the tool's bounding box and placed with an integer offset (no grid is filled). The vertices are
     mapped to index space exactly as :func:`voxelize_mesh` maps them and then moved by a
     non-negative integer no larger than their smallest coordinates; that subtraction is exact in
     float64, and the voxelization is invariant under integer translations (the tie rule perturbs
@@ -584,14 +783,23 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     extent = np.asarray(shape, np.float64) - 0.5
     # Past 1e15 (< 2**53) a float64 may be coarser than 1 and the shift would round: whole grid.
     if np.any(hi <= -0.5) or np.any(lo >= extent) or not np.abs(pts).max() <= 1e15:
-        return EVM.from_mask(voxelize_mesh(verts, tris, shape, matrix))  # its result or error
+        return _runs_evm(verts, tris, shape, matrix, np.zeros(3, np.int64))  # result or error
     offset = np.clip(np.floor(lo), 0, None).astype(np.int64)
     top = np.minimum(np.floor(hi).astype(np.int64) + 1, shape)
     if np.any(top <= offset):  # meets the grid but holds no voxel centre
         check_closed_mesh(verts, tris)  # an open mesh is still refused
         return EVM()
-    mask = voxelize_mesh(pts - offset, tris, tuple(int(n) for n in top - offset), np.eye(4))
-    return EVM.from_mask(mask, offset=tuple(int(n) for n in offset))
+    return _runs_evm(pts - offset, tris, tuple(int(n) for n in top - offset), np.eye(4), offset)
+
+
+def _runs_evm(vertices, faces, shape, to_grid, offset):
+    """The EVM of :func:`voxelize_mesh`'s voxels in the grid ``shape`` placed at lattice cell
+    ``offset``, from their runs (no grid)."""
+    from .model._evm import EVM
+
+    ptr, ends = _winding_runs(vertices, faces, _as_shape(shape), to_grid, dense=False)
+    origin = np.asarray(offset, np.int64) + _sweep.OFFSET
+    return EVM._from_keys(_run_keys(ptr, ends, np.asarray(shape, np.int64), origin))
 
 
 def box_evm(lo, hi, shape):

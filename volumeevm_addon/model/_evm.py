@@ -209,6 +209,30 @@ def _clip_keys(keys, lo, hi):
 
 
 @kernel
+def _prefix_xor(vertices, shape):
+    """The cells of the grid ``shape`` inside the region of ``vertices`` (grid coordinates),
+    as uint8 0 or 1: each vertex toggles its cell, folded into the grid (a vertex before it
+    toggles the whole orthant it starts; one past its far end toggles nothing inside), then
+    the prefix XOR along z, y and x."""
+    nx, ny, nz = shape
+    grid = np.zeros((nx, ny, nz), np.uint8)
+    for x, y, z in vertices:
+        if x < nx and y < ny and z < nz:
+            grid[max(x, 0), max(y, 0), max(z, 0)] ^= 1
+    for x in range(nx):
+        for y in range(ny):
+            inside = np.uint8(0)
+            for z in range(nz):
+                inside ^= grid[x, y, z]
+                grid[x, y, z] = inside
+            if y > 0:
+                grid[x, y] ^= grid[x, y - 1]
+        if x > 0:
+            grid[x] ^= grid[x - 1]
+    return grid
+
+
+@kernel
 def _key_bounds(keys):
     """The smallest and largest offset coordinates of 3-D keys, per axis (one pass, where a
     NumPy reduction along the short axis of the vertices is slow)."""
@@ -299,7 +323,7 @@ class EVM:
     True
     """
 
-    __slots__ = ("_vertices", "_keys", "_boxes")
+    __slots__ = ("_vertices", "_keys", "_boxes", "_bounds")
 
     def __init__(self, vertices=None):
         v = np.zeros((0, 3), np.int64) if vertices is None else np.asarray(vertices)
@@ -317,7 +341,7 @@ class EVM:
     def _set(self, keys):
         self._keys = {"xyz": keys}
         self._boxes = {}
-        self._vertices = compact_integers(_sweep.unpack(keys, 3))
+        self._vertices = self._bounds = None  # made on first use
 
     @classmethod
     def _from_keys(cls, keys):
@@ -391,30 +415,25 @@ class EVM:
         shape = tuple(int(s) for s in shape)
         if len(shape) != 3:
             raise VolumeEVMError(f"shape must have 3 entries, got {shape}")
-        # The prefix-XOR grid, the boolean result and two int64 copies of the vertices.
-        check_memory(2 * int(np.prod([s + 1 for s in shape], dtype=np.float64)) + 48 * len(self),
+        # The prefix-XOR grid (the boolean result) and two int64 copies of the vertices.
+        check_memory(int(np.prod(shape, dtype=np.float64)) + 48 * len(self),
                      "making the voxel mask", source=f"EVM grid {shape}",
                      advice="use a smaller grid, or clip the region to the part you need")
         v = self.vertices.astype(np.int64) - np.asarray(offset, np.int64)
-        grid = np.zeros(tuple(s + 1 for s in shape), np.uint8)
-        clipped = np.clip(v, 0, shape)
-        # A vertex past the far end of an axis toggles nothing inside; drop it.
-        inside = (v < np.asarray(shape)).all(axis=1)
-        np.bitwise_xor.at(grid, tuple(clipped[inside].T), 1)
-        for axis in range(3):
-            np.bitwise_xor.accumulate(grid, axis=axis, out=grid)
-        return grid[: shape[0], : shape[1], : shape[2]].astype(bool)
+        return _prefix_xor(v, np.asarray(shape, np.int64)).view(bool)
 
     # ------------------------------------------------------------------ access
     @property
     def vertices(self):
         """Extreme vertices ``(n, 3)``, sorted in x, y, z order (read-only view)."""
+        if self._vertices is None:
+            self._vertices = compact_integers(_sweep.unpack(self._keys["xyz"], 3))
         v = self._vertices.view()
         v.flags.writeable = False
         return v
 
     def __len__(self):
-        return len(self._vertices)
+        return len(self._keys["xyz"])
 
     def __eq__(self, other):
         return isinstance(other, EVM) and np.array_equal(self._keys["xyz"], other._keys["xyz"])
@@ -444,8 +463,11 @@ class EVM:
         """
         if self.is_empty():
             return None
-        lo, hi = _key_bounds(self._keys["xyz"])
-        return tuple(int(a) - _sweep.OFFSET for a in lo), tuple(int(a) - _sweep.OFFSET for a in hi)
+        if self._bounds is None:
+            lo, hi = _key_bounds(self._keys["xyz"])
+            self._bounds = (tuple(int(a) - _sweep.OFFSET for a in lo),
+                            tuple(int(a) - _sweep.OFFSET for a in hi))
+        return self._bounds
 
     def keys(self, order="xyz"):
         """Packed int64 keys of the vertices sorted in ``order``, what every sweep reads.
@@ -467,7 +489,7 @@ class EVM:
         """
         if order not in self._keys:
             axes = _axes(order)
-            keys = _sweep.pack(self._vertices[:, axes])
+            keys = _sweep.pack(self.vertices[:, axes])
             # The vertices are in x, y, z order: a stable sort by the leading axes of ``order``
             # up to where the rest follow x, y, z (one pass for "zxy", two for "yzx") sorts all.
             leading = next(p for p in range(3) if axes[p:] == sorted(axes[p:]))
@@ -765,7 +787,7 @@ class EVM:
         lo, hi = self.bounds()
         check_lattice_range([a + o for a, o in zip(lo, offset)], [a + o for a, o in zip(hi, offset)], "offset")
         # A translation keeps the lexicographic order: the keys stay sorted.
-        return EVM._from_keys(_sweep.pack(self._vertices.astype(np.int64) + np.array(offset)))
+        return EVM._from_keys(_sweep.pack(self.vertices.astype(np.int64) + np.array(offset)))
 
     def split(self, axis, c):
         """Split by the plane ``axis = c``: ``(part below c, part at or above c)``.

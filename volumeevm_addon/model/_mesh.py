@@ -40,6 +40,7 @@ import numpy as np
 from .._jit import kernel, parallel_map
 from .._memory import check_memory
 from . import _sweep
+from ._evm import _key_bounds
 
 # Cyclic axis orders "ABC" with e_B x e_C = +e_A, so (B, C) counter-clockwise faces +A.
 _CYCLIC = ("xyz", "yzx", "zxy")
@@ -339,8 +340,11 @@ def _loops(corner_vertex, first, stop, axis_b, axis_c, order, rank):
 
     Each edge gives its start vertex, then the vertices strictly inside it (the T-junctions,
     found between its ends in the order along its line) in its direction. Returns
-    ``(loops, sizes)``.
+    ``(loops, sizes, slots)``: with each loop corner, the slot ``axis * n + k`` of the edge
+    from it to the next corner, the edge along ``axis`` from the vertex at place ``k`` of that
+    axis's line order to the next one (:func:`_numbered_edges` numbers them).
     """
+    n = rank.shape[1]
     sizes = np.empty(stop - first, np.int32)
     total = 0
     for r in range(first, stop):
@@ -351,17 +355,338 @@ def _loops(corner_vertex, first, stop, axis_b, axis_c, order, rank):
         sizes[r - first] = size
         total += size
     loops = np.empty(total, np.int32)
+    slots = np.empty(total, np.int32)
     w = 0
     for r in range(first, stop):
         for e in range(4):
             axis = axis_b if e % 2 == 0 else axis_c
             here = rank[axis, corner_vertex[4 * r + e]]
             there = rank[axis, corner_vertex[4 * r + (e + 1) % 4]]
-            step = 1 if there > here else -1
-            for k in range(here, there, step):
-                loops[w] = order[axis, k]
-                w += 1
-    return loops, sizes
+            if there > here:
+                for k in range(here, there):
+                    loops[w] = order[axis, k]
+                    slots[w] = axis * n + k
+                    w += 1
+            else:
+                for k in range(here, there, -1):
+                    loops[w] = order[axis, k]
+                    slots[w] = axis * n + k - 1
+                    w += 1
+    return loops, sizes, slots
+
+
+@kernel
+def _merge_vertices(keys, uses, added):
+    """The vertex keys after some corners left (``uses`` already lowered) and ``added`` came.
+
+    ``keys`` are the sorted vertex keys and ``uses`` their corner counts; a vertex whose count
+    fell to 0 goes, a new corner key not among them comes. Returns the new sorted keys, their
+    counts, each old vertex's new index (-1 if gone) and each added corner's vertex.
+    """
+    order_keys, order = _sweep.radix_sort(added.copy(), 0, 3)
+    new_keys = np.empty(len(keys) + len(added), np.int64)
+    new_uses = np.empty(len(keys) + len(added), np.int32)
+    old_vertex = np.empty(len(keys), np.int32)
+    added_vertex = np.empty(len(added), np.int32)
+    n = 0
+    i = 0
+    k = 0
+    while i < len(keys) or k < len(added):
+        if k == len(added) or (i < len(keys) and keys[i] < order_keys[k]):
+            key = keys[i]
+        else:
+            key = order_keys[k]
+        count = 0
+        if i < len(keys) and keys[i] == key:
+            count = uses[i]
+            old_vertex[i] = n if count > 0 or (k < len(added) and order_keys[k] == key) else -1
+            i += 1
+        while k < len(added) and order_keys[k] == key:
+            added_vertex[order[k]] = n
+            count += 1
+            k += 1
+        if count > 0:
+            new_keys[n] = key
+            new_uses[n] = count
+            n += 1
+    return new_keys[:n].copy(), new_uses[:n].copy(), old_vertex, added_vertex
+
+
+@kernel
+def _carried(came_from, values, n):
+    """``values`` (a row per old vertex) moved to the new vertices ``came_from`` names, and the
+    new vertices no old one became (their rows are left unset)."""
+    out = np.empty((n, values.shape[1]), values.dtype)
+    fresh = np.ones(n, np.bool_)
+    for i in range(len(came_from)):
+        if came_from[i] >= 0:
+            out[came_from[i]] = values[i]
+            fresh[came_from[i]] = False
+    return out, np.nonzero(fresh)[0]
+
+
+@kernel
+def _numbered_edges(slots, order, n):
+    """The edges of the used ``slots`` (see :func:`_loops`), numbered by slot: their two
+    vertices, and each loop corner's edge number."""
+    number = np.zeros(3 * n + 1, np.int32)
+    for slot in slots:
+        number[slot + 1] = 1
+    for slot in range(3 * n):
+        number[slot + 1] += number[slot]
+    edges = np.empty((number[3 * n], 2), np.int32)
+    for axis in range(3):
+        for k in range(n - 1):
+            slot = axis * n + k
+            if number[slot + 1] != number[slot]:
+                edges[number[slot], 0], edges[number[slot], 1] = order[axis, k], order[axis, k + 1]
+    corner_edges = np.empty(len(slots), np.int32)
+    for k in range(len(slots)):
+        corner_edges[k] = number[slots[k]]
+    return edges, corner_edges
+
+
+def _groups(evm):
+    """The face rectangles of a region, in the mesh's six groups: per axis (x, y, z) where the
+    solid ends (+A), then where it starts (-A), each ordered by plane, lo C, hi C, lo B."""
+    tasks = parallel_map(lambda order: _blocks(evm.keys(order)), [(order,) for order in _CYCLIC])
+    found = iter(parallel_map(_plane_rectangles, [task for axis in tasks for task in axis]))
+    groups, count = [], 0
+    for order, axis in zip(_CYCLIC, tasks):
+        blocks = [next(found) for _ in axis]
+        ends, starts = (np.concatenate([block[side] for block in blocks] or [np.zeros((0, 5), np.int64)])
+                        for side in (0, 1))
+        groups += [ends, starts]
+        count += len(ends) + len(starts)
+        _check_memory(_BYTES_PER_RECTANGLE * count + _MESH_OVERHEAD,
+                      f"{len(ends) + len(starts)} face runs perpendicular to axis {order[0]}")
+    return groups
+
+
+def _touching(rectangles, lo, hi):
+    """Which rectangles ``[A, lo B, hi B, lo C, hi C]`` meet the closed box from ``lo`` to
+    ``hi`` (its A, B and C coordinates) in B and C, edges and corners included."""
+    return ((rectangles[:, 1] <= hi[1]) & (rectangles[:, 2] >= lo[1])
+            & (rectangles[:, 3] <= hi[2]) & (rectangles[:, 4] >= lo[2]))
+
+
+def _dirty_rectangles(keys, lo, hi):
+    """The rectangles of the planes ``lo`` to ``hi`` (offset coordinates) of the region of
+    ``keys`` (sorted in a cyclic order), as :func:`_plane_rectangles` gives them: the section
+    before them swept from the first plane, then their own sweep."""
+    start, stop = np.searchsorted(keys >> (2 * _sweep.BITS), (lo, hi + 1))
+    return _plane_rectangles(keys, start, stop, _section_after(keys, 0, start, np.zeros(0, np.int64)))
+
+
+class BoundaryMesh:
+    """The boundary mesh of a region, kept with what it is made of, so that the mesh of a
+    region differing from it in a small box is made by :meth:`updated` without sweeping the
+    whole region again.
+
+    The mesh is the one :func:`boundary_mesh` describes. It is made of six groups of face
+    rectangles (per axis, where the solid ends and where it starts), their corners' vertices
+    (distinct keys, sorted, and how many corners use each) and the loops. When the region
+    changes inside the cells ``lo`` to ``hi``, only the faces on the planes ``lo[A]`` to
+    ``hi[A]`` of each axis A can change: those planes' rectangles are swept again (the
+    vertices' keys in the other axis orders follow by a merge with the changed vertices) and
+    replace the old ones; the vertices follow by a merge (the corners that left and came),
+    and the loops, which take every vertex on their edges, are made again. The result equals
+    the mesh made from scratch, array for array.
+
+    Parameters
+    ----------
+    evm : EVM
+        The region.
+
+    Attributes
+    ----------
+    evm : EVM
+        The region this is the mesh of.
+    polygons : Polygons
+        The faces, as :func:`boundary_mesh` orders them.
+    came_from : (m,) ndarray of np.int32 or None
+        For a mesh made by :meth:`updated`: each vertex of the mesh it was made from, its
+        index here (-1 where it is gone); None for a mesh made from scratch.
+
+    Raises
+    ------
+    VolumeEVMError
+        When the mesh would need more memory than is available.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from volumeevm_addon import EVM
+    >>> mask = np.zeros((6, 6, 6), bool); mask[1:5, 1:5, 1:5] = True
+    >>> cube = BoundaryMesh(EVM.from_mask(mask))
+    >>> len(cube.polygons), len(cube)  # 6 faces, 8 corners
+    (6, 8)
+    >>> mask[2, 2, 4] = False  # a notch in the top face
+    >>> notched = cube.updated(EVM.from_mask(mask))
+    >>> len(notched.polygons), notched.came_from.tolist()  # where the cube's corners went
+    (14, [0, 1, 2, 3, 16, 17, 18, 19])
+    >>> fresh = BoundaryMesh(EVM.from_mask(mask))
+    >>> bool(np.array_equal(notched.polygons.indices, fresh.polygons.indices))
+    True
+    """
+
+    def __init__(self, evm):
+        self._orders = [evm.keys(order) for order in _CYCLIC]
+        self.came_from = None
+        groups = _groups(evm)
+        if not any(len(g) for g in groups):
+            self._set(evm, groups, np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int32))
+            return
+        keys, corner_vertex = _vertices_of(self._corners(groups))
+        uses = np.bincount(corner_vertex, minlength=len(keys)).astype(np.int32)
+        self._set(evm, groups, keys, uses, corner_vertex)
+
+    @staticmethod
+    def _corners(groups):
+        """The packed corner keys of the groups' rectangles, 4 per rectangle in loop order."""
+        return np.concatenate([_corner_keys(rectangles, _AXES[g // 2], g % 2 == 1)
+                               for g, rectangles in enumerate(groups)])
+
+    def _set(self, evm, groups, keys, uses, corner_vertex):
+        """Make the loops of the groups' rectangles from their corners' vertices."""
+        self.evm, self._groups, self._keys, self._uses = evm, groups, keys, uses
+        self._corner_vertex = corner_vertex
+        self._lines = self._vertices = self._edges = None
+        if len(keys) == 0:
+            empty = np.zeros(0, np.int32)
+            self.polygons = Polygons(empty, empty, empty)
+            return
+        order, rank = self._lines = _lines(keys)
+        tasks, first = [], 0
+        for g, rectangles in enumerate(groups):
+            axes, stop = _AXES[g // 2], first + len(rectangles)
+            tasks += [(corner_vertex, start, min(start + _BLOCK_RECTANGLES, stop), axes[1], axes[2], order, rank)
+                      for start in range(first, stop, _BLOCK_RECTANGLES)]
+            first = stop
+        blocks = parallel_map(_loops, tasks)
+        sizes = np.concatenate([block[1] for block in blocks])
+        starts = (np.cumsum(sizes, dtype=np.int64) - sizes).astype(np.int32)
+        self.polygons = Polygons(np.concatenate([block[0] for block in blocks]), starts, sizes)
+        self._slots = [block[2] for block in blocks]
+
+    def __len__(self):
+        return len(self._keys)
+
+    @property
+    def vertices(self):
+        """Lattice points (voxel corners), ``(n, 3)`` float64, sorted in x, y, z order."""
+        if self._vertices is None:
+            self._vertices = self.points(slice(None))
+        return self._vertices
+
+    def carry(self, values):
+        """Per-vertex ``values`` of the mesh this one was :meth:`updated` from, moved to this
+        mesh's vertices (positions, colours: whatever the vertex keeps).
+
+        Parameters
+        ----------
+        values : (m, k) ndarray
+            A row per vertex of the old mesh, in its vertex order.
+
+        Returns
+        -------
+        out : (n, k) ndarray
+            A row per vertex here, of ``values``' dtype.
+        fresh : (f,) ndarray of np.int64
+            The vertices that are new here: their rows of ``out`` are left for the caller.
+        """
+        return _carried(self.came_from, values, len(self))
+
+    def points(self, indices):
+        """The lattice points of some vertices, without making all of :attr:`vertices`.
+
+        Parameters
+        ----------
+        indices : array_like of int, or slice
+            Any index into :attr:`vertices`.
+
+        Returns
+        -------
+        (k, 3) ndarray of np.float64
+        """
+        return _sweep.unpack(np.atleast_1d(self._keys[indices]), 3).astype(np.float64)
+
+    def updated(self, evm):
+        """The mesh of ``evm``, made from this one where the two regions agree.
+
+        Parameters
+        ----------
+        evm : EVM
+            Another region of the same lattice (typically this one edited in a small box).
+
+        Returns
+        -------
+        BoundaryMesh
+            Equal to ``BoundaryMesh(evm)``; this one itself if the regions are equal (then
+            nothing moved, and its :attr:`came_from` still refers to the mesh before it).
+
+        Raises
+        ------
+        VolumeEVMError
+            When the mesh would need more memory than is available.
+        """
+        changed = _sweep.xor(self._orders[0], evm.keys())  # EVM(old ^ new) = EVM(old) ^ EVM(new)
+        if len(changed) == 0:
+            return self
+        if len(self._keys) == 0:
+            return BoundaryMesh(evm)
+        # Faces change on the planes of old ^ new only: per axis, lo to hi (offset coordinates).
+        lo, hi = _key_bounds(changed)
+        orders = [evm.keys()] + [
+            _sweep.xor(old, _sweep.radix_sort(_sweep.pack(_sweep.unpack(changed, 3)[:, axes]), 0, 3)[0])
+            for old, axes in zip(self._orders[1:], _AXES[1:])]
+        dirty = parallel_map(_dirty_rectangles, [(orders[axis], lo[axis], hi[axis]) for axis in range(3)])
+        # On those planes, a rectangle whose closed extent misses the closed box of the change
+        # (in B and C) has the same runs on its lines and the lines around it: it stays.
+        groups, corners, left, came, first = [], [], [], [], 0
+        for g, old in enumerate(self._groups):
+            axes, side = _AXES[g // 2], g % 2
+            r0, r1 = np.searchsorted(old[:, 0], (lo[axes[0]], hi[axes[0]] + 1))
+            new = dirty[g // 2][side]
+            old_touch, new_touch = (_touching(rectangles, lo[axes], hi[axes]) for rectangles in (old[r0:r1], new))
+            groups.append(np.concatenate([old[:r0], new, old[r1:]]))
+            vertex = self._corner_vertex[first:first + 4 * len(old)].reshape(-1, 4)
+            corners.append((vertex[:r0], vertex[r0:r1][~old_touch], new_touch, vertex[r1:]))
+            left.append(vertex[r0:r1][old_touch].ravel())
+            came.append(_corner_keys(new[new_touch], axes, side == 1))
+            first += 4 * len(old)
+        _check_memory(_BYTES_PER_RECTANGLE * sum(len(g) for g in groups) + _MESH_OVERHEAD,
+                      "the updated face runs")
+        uses = self._uses - np.bincount(np.concatenate(left), minlength=len(self._keys)).astype(np.int32)
+        keys, uses, old_vertex, added_vertex = _merge_vertices(self._keys, uses, np.concatenate(came))
+        corner_vertex, added = [], 0
+        for before, kept, touch, after in corners:
+            middle = np.empty((len(touch), 4), np.int32)
+            middle[~touch] = old_vertex[kept]
+            middle[touch] = added_vertex[added:added + 4 * np.count_nonzero(touch)].reshape(-1, 4)
+            added += 4 * np.count_nonzero(touch)
+            corner_vertex += [old_vertex[before].ravel(), middle.ravel(), old_vertex[after].ravel()]
+        mesh = BoundaryMesh.__new__(BoundaryMesh)
+        mesh._orders, mesh.came_from = orders, old_vertex
+        mesh._set(evm, groups, keys, uses, np.concatenate(corner_vertex))
+        return mesh
+
+    def edges(self):
+        """The mesh's edges, as Blender stores them: each once, with each loop corner's edge.
+
+        Returns
+        -------
+        edges : (E, 2) ndarray of np.int32
+            The two vertices of every edge (axis by axis, along the lines); made on first use.
+        corner_edges : (L,) ndarray of np.int32
+            The edge from loop corner ``i`` to the next corner of its polygon.
+        """
+        if self._edges is None:
+            if self._lines is None:
+                self._edges = np.zeros((0, 2), np.int32), np.zeros(0, np.int32)
+            else:
+                self._edges = _numbered_edges(np.concatenate(self._slots), self._lines[0], len(self))
+        return self._edges
 
 
 def boundary_mesh(evm):
@@ -375,35 +700,8 @@ def boundary_mesh(evm):
         Merged rectangles with T-junction vertices inserted: per axis (x, y, z) the faces where
         the solid ends (+A), then where it starts (-A), each by plane, lo C, hi C, lo B.
     """
-    tasks = parallel_map(lambda order: _blocks(evm.keys(order)), [(order,) for order in _CYCLIC])
-    found = iter(parallel_map(_plane_rectangles, [task for axis in tasks for task in axis]))
-    groups, count = [], 0
-    for axes, order, axis in zip(_AXES, _CYCLIC, tasks):
-        blocks = [next(found) for _ in axis]
-        ends, starts = (np.concatenate([block[side] for block in blocks] or [np.zeros((0, 5), np.int64)])
-                        for side in (0, 1))
-        groups += [(ends, axes, False), (starts, axes, True)]
-        count += len(ends) + len(starts)
-        _check_memory(_BYTES_PER_RECTANGLE * count + _MESH_OVERHEAD,
-                      f"{len(ends) + len(starts)} face runs perpendicular to axis {order[0]}")
-    if count == 0:
-        empty = np.zeros(0, np.int32)
-        return np.zeros((0, 3)), Polygons(empty, empty, empty)
-    corners = np.concatenate([_corner_keys(rectangles, axes, flip) for rectangles, axes, flip in groups])
-    vertices, corner_vertex = _vertices_of(corners)
-    del corners
-    order, rank = _lines(vertices)
-    tasks, first = [], 0
-    for rectangles, axes, _ in groups:
-        stop = first + len(rectangles)
-        tasks += [(corner_vertex, start, min(start + _BLOCK_RECTANGLES, stop), axes[1], axes[2], order, rank)
-                  for start in range(first, stop, _BLOCK_RECTANGLES)]
-        first = stop
-    blocks = parallel_map(_loops, tasks)
-    sizes = np.concatenate([block[1] for block in blocks])
-    starts = (np.cumsum(sizes, dtype=np.int64) - sizes).astype(np.int32)
-    polygons = Polygons(np.concatenate([block[0] for block in blocks]), starts, sizes)
-    return _sweep.unpack(vertices, 3).astype(np.float64), polygons
+    mesh = BoundaryMesh(evm)
+    return mesh.vertices, mesh.polygons
 
 
 def mesh_volume_area(vertices, polygons):

@@ -13,6 +13,7 @@ the table. It is written atomically and never replaces a file unasked
 built (:mod:`._vevm_file`).
 """
 
+import copy
 import json
 import math
 import numbers
@@ -512,9 +513,14 @@ class VolumeEVM:
         return np.cumsum(edges[:-1]) > 0
 
     def _derived(self, region, table):
-        return VolumeEVM(region, table, shape=self.shape, spacing=self.spacing, origin=self.origin,
-                         orientation=self.orientation, units=self.units, threshold=self.threshold,
-                         upper=self.upper)
+        """The VolumeEVM of ``region`` in this grid with ``table``, which the caller made for it
+        (one density per voxel, in table order). The grid, units and interval were checked when
+        this one was made and carry over; nothing is checked again (counting the region's
+        voxels would cost a sweep of it)."""
+        derived = copy.copy(self)
+        derived.evm, derived._tables, derived._indices = region, {0: table}, {}
+        derived.cache = DerivedCache(budget=default_budget(self.shape))
+        return derived
 
     # ------------------------------------------------------------------ geometry
     def index_to_physical(self):
@@ -543,9 +549,30 @@ class VolumeEVM:
             When the mesh would need more memory than is available.
         """
         vertices, polygons = self.evm.mesh()
-        # Lattice point p is the corner at voxel-centre index p - 0.5.
+        return self.corner_positions(vertices), polygons
+
+    def corner_positions(self, vertices):
+        """Lattice points (voxel corners: :meth:`mesh`'s, or a :class:`BoundaryMesh`'s vertices)
+        in physical mm (LPS).
+
+        Parameters
+        ----------
+        vertices : (n, 3) array_like of float
+            Lattice coordinates; point ``p`` is the corner at voxel-centre index ``p - 0.5``.
+
+        Returns
+        -------
+        (n, 3) ndarray of np.float64
+        """
         matrix = self.index_to_physical()
-        return (vertices - 0.5) @ matrix[:3, :3].T + matrix[:3, 3], polygons
+        corner = np.asarray(vertices, np.float64) - 0.5
+        # Axis by axis rather than a matrix product: no BLAS (whose threads can take longer
+        # than the product on a busy machine), and the same numbers on every CPU.
+        out = np.empty_like(corner)
+        for axis in range(3):
+            out[:, axis] = (corner[:, 0] * matrix[axis, 0] + corner[:, 1] * matrix[axis, 1]
+                            + corner[:, 2] * matrix[axis, 2] + matrix[axis, 3])
+        return out
 
     def size_report(self):
         """Bytes of the model (vertices and the densities tables built so far) against the dense
