@@ -207,7 +207,7 @@ def test_the_default_budget_scales_with_the_grid():
     assert small.cache.budget == 256 << 20
     assert DerivedCache(budget=5).budget == 5
     big = VolumeEVM(small.evm, small.table(), shape=(600, 600, 600))
-    assert big.cache.budget == 64 * 602 ** 3
+    assert big.cache.budget == 96 * 602 ** 3
 
 
 def test_least_recently_used_entries_go_first():

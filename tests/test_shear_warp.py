@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, TransferFunction,
-                             VolumeEVM, VolumeEVMError, grid_to_world, render)
+                             VolumeEVM, VolumeEVMError, grid_to_world, render, set_kernel_threads)
 from volumeevm_addon.rendering import _shear_warp
+from volumeevm_addon.rendering import _shear_warp_kernels as kernels
 from volumeevm_addon.rendering._shear_warp import _View, _region_layout, render_shear_warp
 from render_helpers import MODES, reference
 
@@ -388,6 +389,54 @@ def test_principal_axis_switch_at_45_degrees(brain_half):
     assert across < 1.5 * same_axis
 
 
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_runs_are_the_table_in_order(brain_half, axis):
+    """The runs read from the EVM's boxes cover exactly the region's voxels of each scanline,
+    and their positions number the densities table of the axis in its order."""
+    layout = _region_layout(brain_half, axis)
+    runs = layout.runs
+    grid = np.full(layout.shape, np.nan)
+    for line in range(layout.shape[0] * runs.lines):
+        s, a = divmod(line, runs.lines)
+        for r in range(runs.starts[line], runs.starts[line + 1]):
+            grid[s, a, runs.lo[r]:runs.hi[r]] = layout.values[runs.pos[r] + 1:
+                                                              runs.pos[r] + 1 + runs.hi[r]
+                                                              - runs.lo[r]]
+    dense = np.transpose(brain_half.to_dense(), layout.axes)
+    mask = np.transpose(brain_half.evm.to_mask(brain_half.shape), layout.axes)
+    np.testing.assert_array_equal(np.isfinite(grid), mask)
+    np.testing.assert_array_equal(grid[mask], dense[mask])
+    assert runs.pos[-1] + runs.hi[-1] - runs.lo[-1] == brain_half.voxel_count
+
+
+THREAD_CASES = [("over", {}), ("under", {"classification": "post", "shading": True}),
+                ("over", {"slices_per_voxel": 2, "shading": True}),
+                ("over", {"intermediate_scale": 1.5, "termination": 0.9}), ("xray", {}),
+                ("mip", {})]
+
+
+@pytest.mark.parametrize("mode, options", THREAD_CASES,
+                         ids=[mode + "".join(f"-{k}" for k in o) for mode, o in THREAD_CASES])
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_thread_count_changes_nothing(ct_head, kind, mode, options):
+    """The bands of intermediate scanlines (and the warp's pixels) are spread over the kernel
+    threads; each band composites every slice for its own scanlines, so one thread and two
+    give the same image and depth, bit for bit."""
+    g = grid_to_world(ct_head.spacing, (0.0, 0.0, 0.0))
+    cam = orbit_camera(g, ct_head.shape, ct_head.spacing, (0.4, -1.0, 0.3), kind, res=(64, 52))
+    opts = dict(options, mode=mode, **xray_options(mode, 0.002))
+    previous = set_kernel_threads(1)
+    try:
+        one = render_shear_warp(ct_head, cam, CT_BONE, g, **opts)
+        set_kernel_threads(2)
+        two = render_shear_warp(ct_head, cam, CT_BONE, g, **opts)
+    finally:
+        set_kernel_threads(previous)
+    assert one[0][..., 3].max() > 0.3
+    np.testing.assert_array_equal(two[0], one[0])
+    np.testing.assert_array_equal(two[1], one[1])
+
+
 def test_axis_cache_is_reused(brain_half):
     """What depends only on the principal axis is built once; a camera move along the same
     axis and another transfer function reuse it."""
@@ -407,27 +456,59 @@ def test_axis_cache_is_reused(brain_half):
     assert len(kept("classes")) == 2
 
 
+def composited_slice(rows, lut, f, g):
+    """The intermediate image of one sample of a one-slice volume, translated by fractions
+    ``f`` (rows) and ``g`` (columns), composited "over" onto nothing by the compositing kernel:
+    the voxels' table ``rows`` (0: outside the region) index ``lut`` (channels first), read
+    through the runs of the region; the image covers the slice and a margin around it."""
+    n, m = rows.shape
+    runs = kernels.Runs(n, m, *kernels.mask_runs(rows[None] > 0))
+    voxels = kernels.Voxels(np.r_[0, rows.ravel()].astype(np.int32),
+                            np.ascontiguousarray(lut[:4].T), 4)
+    beta_a, beta_b = 3.0 + f, -2.0 + g
+    origin = (-6, 0)  # the image starts 3 rows and 2 columns before the slice
+    plan = kernels.Plan(np.zeros(1, np.int64), np.full(1, -1), np.ones(1, np.float32),
+                        np.zeros(1, np.float32), np.ones(1), np.array([beta_a]),
+                        np.array([beta_b]), np.zeros(1), np.zeros(1), np.zeros(1),
+                        np.zeros(1, np.int32), np.zeros(1, bool))
+    optics = kernels.Optics(kernels.MODE_CODES["over"], False, False, np.float32(1.0),
+                            np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
+                            0.0, 0.0, 64.0, _shear_warp._light(None, None), np.float32(0.0),
+                            np.float32(0.0), np.float32(0.0))
+    size = (n + 4, m + 4)
+    frame = kernels.Frame(origin[0], origin[1], np.zeros((0, 0), np.float32),
+                          np.float32(-np.inf), np.float32(np.inf), np.zeros((0, 0), np.float32),
+                          np.zeros(size + (4,), np.float32), np.full(size, kernels.NEVER, np.int32),
+                          np.zeros((0, 0), np.int32))
+    kernels.composite(0, 1, size[0], plan, runs, runs, voxels, optics, frame)
+    return frame.image, origin, (beta_a, beta_b)
+
+
 @pytest.mark.parametrize("f, g", [(0.0, 0.0), (0.3, 0.7), (0.5, 0.49), (0.999, 0.5)])
 def test_translated_slice_is_the_bilinear_resampling(f, g):
-    """The default path's resampling of a translated slice (rows gathered as RGBA pixels,
-    separable, window beyond the slice's box) equals the four-weight bilinear of the table's
-    channels, clamp policy included."""
+    """The compositing kernel's resampling of a translated slice (taps read through the runs,
+    beyond the slice's region too) equals the four-weight bilinear of the table's channels,
+    clamp policy included."""
     rng = np.random.default_rng(7)
     lut = np.zeros((5, 65), np.float32)
     lut[:4, 1:] = rng.random((4, 64), dtype=np.float32)
     lut[4, 1:] = 1.0
     rows = rng.integers(0, 65, (9, 11)).astype(np.int16)  # 0: outside voxels inside the box
-    box, window = (2, 11, 3, 14), (1, 13, 2, 12)
-    pixels = np.ascontiguousarray(lut[:4].T).view(np.complex128).ravel()
+    image, origin, (beta_a, beta_b) = composited_slice(rows, lut, f, g)
     f32, g32 = np.float32(f), np.float32(g)
-    out, inside = _shear_warp._translated(pixels, rows, box, window, f32, g32)
-    src = np.take(lut, _shear_warp._window(rows, box, *window), axis=1)
-    n, m = window[1] - window[0] - 1, window[3] - window[2] - 1
-    expect, expect_inside = _shear_warp._bilinear(
-        src, src[-1] > 0, np.arange(n), np.full(n, f32), np.arange(m), np.full(m, g32), True)
-    np.testing.assert_array_equal(inside, expect_inside)
-    np.testing.assert_allclose(_shear_warp._normalise(out, inside),
-                               _shear_warp._normalise(expect, expect_inside), atol=1e-6)
+    # The same samples by NumPy: the four taps of each intermediate pixel, outside voxels 0.
+    padded = np.zeros((rows.shape[0] + 6, rows.shape[1] + 6), np.int64)
+    padded[3:-3, 3:-3] = rows
+    src = np.take(lut, padded, axis=1)
+    i = np.arange(image.shape[0]) + origin[0] + int(np.floor(beta_a)) + 3
+    j = np.arange(image.shape[1]) + origin[1] + int(np.floor(beta_b)) + 3
+    taps = [src[:, i[:, None] + a, j[None, :] + b] for a in (0, 1) for b in (0, 1)]
+    weights = [(1 - f32) * (1 - g32), (1 - f32) * g32, f32 * (1 - g32), f32 * g32]
+    expect = sum(t * w for t, w in zip(taps, weights))
+    expect_inside = padded[i[:, None] + int(f32 >= 0.5), j[None, :] + int(g32 >= 0.5)] > 0
+    expect = np.where(expect_inside, expect[:4] / np.maximum(expect[4], 1e-30), 0.0)
+    np.testing.assert_array_equal(image[..., 3] > 0, expect_inside)
+    np.testing.assert_allclose(image, np.moveaxis(expect, 0, -1), atol=1e-6)
 
 
 def test_warp_chunks_do_not_change_the_image(brain_half, monkeypatch):
@@ -457,15 +538,16 @@ def test_span_and_shift_move_indices_only():
         t1 = t0 + int(rng.integers(1, 30))
         origin = int(rng.integers(-80, 80))
         lo, hi = int(rng.integers(-5, 20)), int(rng.integers(30, 120))
-        span = _shear_warp._span(t0, t1, alpha, beta, origin, lo, hi)
+        span = kernels.span(t0, t1, alpha, beta, origin, lo, hi)
         for k in (1, 2, 7, -3):
-            moved = _shear_warp._span(t0, t1, alpha, beta, origin - k, lo + k, hi + k)
-            assert (span is None) == (moved is None)
-            if span is None:
+            moved = kernels.span(t0, t1, alpha, beta, origin - k, lo + k, hi + k)
+            assert (span[1] <= span[0]) == (moved[1] <= moved[0])
+            if span[1] <= span[0]:
                 continue
             assert (moved[0], moved[1]) == (span[0] + k, span[1] + k)
-            np.testing.assert_array_equal(moved[2], span[2])
-            np.testing.assert_array_equal(moved[3], span[3])
+            taps = [kernels.tap(p + origin, alpha, beta) for p in range(*span)]
+            moved_taps = [kernels.tap(p + origin - k, alpha, beta) for p in range(*moved)]
+            assert moved_taps == taps
 
 
 ORIGIN_CASES = [(mode, {}) for mode in MODES] + [

@@ -21,15 +21,15 @@ from .._errors import VolumeEVMError
 
 __all__ = ["DerivedCache", "default_budget", "held_bytes"]
 
-BUDGET_PER_VOXEL = 64
-"""Default budget per voxel of the grid padded by one voxel on each side (bytes), 16 times a
+BUDGET_PER_VOXEL = 96
+"""Default budget per voxel of the grid padded by one voxel on each side (bytes), 24 times a
 float32 dense grid: room for the largest set of tables one method derives, so that views with
-one method never make a table twice: ray casting with shading keeps 20 bytes per padded voxel
-(a complex64 sampling table and float32 gradients) beside its blocks; shear-warp's three
-principal axes up to about 48 for a region that fills the grid (slice codes, densities, classes
-and the rows per slice, per axis). The CT head at 300 HU (256 x 256 x 108, 6 % of it region)
-keeps about 75 MiB with shear-warp (three axes), 25 MiB with splatting and 140 MiB with shaded
-ray casting: its default, 447 MiB, holds all three at once."""
+one method never make a table twice. Measured: ray casting with shading keeps 20 bytes per
+padded voxel (a complex64 sampling table and float32 gradients) beside its blocks; shear-warp's
+three principal axes, for a region that fills the grid (brainsmall), 31 (pre-classification)
+or 15 (post), and 65 or 83 with shading (per-axis gradients). The CT head at 300 HU
+(256 x 256 x 108, 6 % of it region) keeps 29 MiB with shear-warp (three axes), 25 MiB with
+splatting and 141 MiB with shaded ray casting: its default, 670 MiB, holds all three at once."""
 MIN_BUDGET = 256 << 20
 """The default budget is never below this (256 MiB): small volumes keep every method's tables."""
 

@@ -485,6 +485,21 @@ class Camera:
         uv[..., 1] = (ymax - y) / (ymax - ymin) * self.height
         return uv, depth
 
+    def pixel_centres(self):
+        """View-plane coordinates of the pixel centres, through which :meth:`rays` pass.
+
+        Returns
+        -------
+        x : (W,) ndarray of np.float64
+            Per pixel column, left to right.
+        y : (H,) ndarray of np.float64
+            Per pixel row, top to bottom.
+        """
+        h, w = self.shape
+        xmin, xmax, ymin, ymax = self.viewplane
+        return (xmin + (np.arange(w) + 0.5) * ((xmax - xmin) / w),
+                ymax - (np.arange(h) + 0.5) * ((ymax - ymin) / h))
+
     def rays(self):
         """World-space rays through the pixel centres.
 
@@ -498,9 +513,7 @@ class Camera:
             axial depth ``t · (directions · forward)`` (orthographic: ``t``).
         """
         h, w = self.shape
-        xmin, xmax, ymin, ymax = self.viewplane
-        x = xmin + (np.arange(w) + 0.5) * ((xmax - xmin) / w)
-        y = ymax - (np.arange(h) + 0.5) * ((ymax - ymin) / h)
+        x, y = self.pixel_centres()
         m = self.matrix_world
         rx, uy, fz = m[:3, 0], m[:3, 1], m[:3, 2]
         if self.is_ortho:

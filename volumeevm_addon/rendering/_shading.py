@@ -3,9 +3,9 @@
 The light sits at the camera: ``L = V = -ray direction``, so ``H = L``, and the normal is the
 normalised gradient of the density (:mod:`._gradients`), two-sided (absolute values). The
 settings are a :class:`Shading` record; :class:`Lighting` joins them with the view's map from
-index-space gradients to world normals, and lights samples (:meth:`Lighting.shade`). Shear-warp
-lights voxels rather than samples, in float32 and without BLAS, and shares the terms of the
-model (:func:`blinn_phong`).
+index-space gradients to world normals, and lights samples (:meth:`Lighting.shade`). The terms
+of the model are :func:`blinn_phong`'s; compiled kernels compute the same terms one sample (or,
+shear-warp with pre-classification, one voxel) at a time, in float32.
 """
 
 from dataclasses import dataclass

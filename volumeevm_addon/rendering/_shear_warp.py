@@ -3,7 +3,8 @@
 The view is factored into a shear (perspective: a shear and a per-slice scale) that makes every
 ray perpendicular to the slices of the **principal axis**, and one 2-D warp from the
 intermediate image (one pixel per voxel of a slice, or ``intermediate_scale`` pixels per voxel
-along each in-slice axis) to the final image.
+along each in-slice axis) to the final image. The loops are compiled kernels
+(:mod:`._shear_warp_kernels`); this module factors the view and builds their tables.
 
 Pipeline
 --------
@@ -13,34 +14,35 @@ Pipeline
    the box, so that every ray crosses the slices the same way), ties to x, then y, then z
    (VolPack ``vp_view.c``). A perspective eye inside the box is rendered in up to six passes,
    the rays grouped by the axis and sign most parallel to each, each pass compositing the
-   slices beyond the eye (Lacroute's split of the view into pyramids). The slices ``c = s`` (voxel-centre
-   planes) are read front to back (``"over"``, ``"xray"``, ``"mip"``) or back to front
-   (``"under"``): the densities table ``vevm.table(c)`` read forwards or backwards.
+   slices beyond the eye (Lacroute's split of the view into pyramids). The slices ``c = s``
+   (voxel-centre planes) are read front to back (``"over"``, ``"xray"``, ``"mip"``) or back to
+   front (``"under"``).
 2. **Intermediate image.** Its pixel ``(p, q)`` is the ray through the point ``(p, q)`` (plus an
    integer origin) of a reference plane ``c = c_ref`` in index space; its two axes are the
-   in-slice axes of the table order (:data:`volumeevm_addon.model._densities.TABLE_ORDERS`). The
-   ray meets slice ``s`` at in-slice index coordinates ``x = α_s p + β_s`` (and likewise ``y``).
-   Orthographic: ``α_s = 1`` and ``β_s = (s - c_ref) d_a / d_c`` (the shear): the slice is
-   *translated*, so the four bilinear weights ``(1-f)(1-g), (1-f)g, f(1-g), fg`` with
-   ``f = frac(β_s)`` are the same for the whole slice (VolPack ``vp_renderA.c``) and resampling
-   is four shifted views of the slice's box (the default, unshaded pre-classification with one
-   sample per slice: two 1-D interpolations of shifted views, columns then rows,
-   ``a + f·(b - a)``). Perspective: ``α_s = (s - E_c)/(c_ref - E_c)`` with the eye ``E``, a
-   per-slice uniform scale about the eye (Lacroute & Levoy 1994, §4; Schulze et al. 2001);
-   the reference plane is the region's far end, so ``α_s <= 1`` (slices are magnified, never
-   minified) and the bilinear weights are separable: one 2-tap weight vector per row and one
-   per column of the slice. ``intermediate_scale = k`` divides ``α_s`` by ``k`` (the separable
-   path, orthographic too).
-3. **Slices are moved, voxels are not.** What depends only on the principal axis is computed
-   once and kept in the VolumeEVM's cache, ``vevm.cache``: per slice, the bounding box of the
-   EVM section valid at it (:meth:`EVM.sections`) and, over that box, the position in
-   ``vevm.table(c)`` of each voxel (0 outside the region). A view only shifts (scales) these boxes: per slice, the
-   work is a few vectorised operations on the box, cut to the part of the intermediate image
-   that is still needed (early ray termination) and, for ``"over"``/``"under"``, to the part
-   holding voxels that the transfer function does not make transparent (cached per transfer
-   function). Slices whose density range is transparent are skipped. Unshaded
-   pre-classification also keeps, per transfer function, each voxel's table row per slice, so
-   that a view gathers colours with one lookup per voxel.
+   in-slice axes of the table order (:data:`volumeevm_addon.model._densities.TABLE_ORDERS`):
+   rows are the slices' scanlines, columns run along them. The ray meets slice ``s`` at
+   in-slice index coordinates ``x = α_s p + β_s`` (and likewise ``y``). Orthographic:
+   ``α_s = 1`` and ``β_s = (s - c_ref) d_a / d_c`` (the shear): the slice is *translated*, so
+   the bilinear weights are the same for the whole slice (VolPack ``vp_renderA.c``).
+   Perspective: ``α_s = (s - E_c)/(c_ref - E_c)`` with the eye ``E``, a per-slice uniform scale
+   about the eye (Lacroute & Levoy 1994, §4; Schulze et al. 2001); the reference plane is the
+   region's far end, so ``α_s <= 1`` (slices are magnified, never minified).
+   ``intermediate_scale = k`` divides ``α_s`` by ``k``.
+3. **Runs, not boxes** (the report's Figure 4). The EVM is the run-length encoding: the 1-D
+   sections of the section valid at slice ``s`` are the runs of region voxels along its
+   scanlines, and the densities table ``vevm.table(c)`` lists them in that order. What depends
+   only on the principal axis is computed once and kept in the VolumeEVM's cache,
+   ``vevm.cache``: the runs of every scanline with the table position of their first voxel
+   (:func:`._shear_warp_kernels.box_runs`). Per transfer function (also kept) the runs of the
+   voxels worth compositing: pre-classification, the voxels the function does not make
+   transparent; post-classification, the voxels where a sample may be visible
+   (:func:`._shear_warp_kernels.mixed_codes`); X-ray and MIP, every region voxel. The kernel
+   (:func:`._shear_warp_kernels.composite`) samples, per slice and intermediate scanline, only
+   the pixels whose bilinear taps touch such a run, reads the taps through the region's runs,
+   and skips the pixels that are opaque already ("over", early ray termination) by pointers
+   to the next pixel that is not (VolPack). Bands of intermediate scanlines are composited in
+   parallel (:func:`.._jit.parallel_map`), each through every slice: the image does not depend
+   on the number of threads.
 4. **Samples along the rays** (``slices_per_voxel = k``, Shear-Warp Deluxe's intermediate
    slices): each voxel slice ``s`` owns the slab of its cells, ``c`` in ``[s - 1/2, s + 1/2)``,
    and takes ``k`` samples at the centres of ``k`` equal parts of it; a sample between the
@@ -54,8 +56,8 @@ Pipeline
    mm (``sqrt(1 + s_a² + s_b²)`` slices in VolPack's isotropic case). Perspective rays have
    their own ``Δ``; the table is made for the central ray and each sample is corrected to its
    ray's ``Δ`` by ``α' = 1 - (1 - α)^(Δ/Δ_table)`` (colour scaled by ``α'/α``).
-   With ``shading``, each voxel's colour is lit once per view before interpolation (the
-   reference's Blinn–Phong headlight on per-voxel central-difference gradients, which are
+   With ``shading``, each visible voxel's colour is lit once per view before interpolation
+   (the reference's Blinn–Phong headlight on per-voxel central-difference gradients, which are
    computed once per principal axis and cached; the light is the view direction, for
    perspective the eye-to-region-centre direction).
    ``"mip"`` and ``"xray"`` interpolate densities instead (post-classification, as the
@@ -63,20 +65,16 @@ Pipeline
    X-ray accumulates ``μ·Δ`` with ``μ = xray_scale · max(d - xray_offset, 0)`` per mm and gives
    ``1 - exp(-Σ μΔ)`` as grey premultiplied RGBA. ``"post"`` does the same for ``"over"`` and
    ``"under"``: densities (and, with shading, the per-voxel gradients) are interpolated, then
-   classified through the table and lit per sample, the reference's order; slabs whose two
-   slices' density range is transparent are skipped.
+   classified through the table and lit per sample, the reference's order.
 5. **Boundary policy "clamp"** (:mod:`._reference`), in the slice: a sample is transparent if the
    voxel nearest to it (its cell) is outside the region; otherwise the bilinear weights of
-   outside voxels are dropped and the others renormalised. Outside voxels are never read: their
-   code is 0 and the table row 0 is ``(0, 0, 0, 0, weight 0)``.
+   outside voxels are dropped and the others renormalised. Outside voxels are never read: they
+   have no code in the runs.
 6. **Compositing** into one float32 intermediate image: ``"over"`` front to back,
    ``C += (1 - A)·c``, with early ray termination: a pixel whose opacity reached
-   ``termination`` takes nothing more (so its error is at most ``1 - termination``), and
-   every few slices the bounding box of the pixels below it is recomputed; slices are cut to it
-   and the loop stops when it is empty. (The box only shrinks where whole bands of the
-   intermediate image are opaque, e.g. a close-up; around a head seen whole the transparent
-   background keeps it wide.) ``"under"`` back to front,
-   ``C = c + (1 - a)·C``; ``"xray"`` sums ``μΔ``; ``"mip"`` keeps the maximum and its slice.
+   ``termination`` takes nothing more (so its error is at most ``1 - termination``) and is
+   skipped from then on. ``"under"`` back to front, ``C = c + (1 - a)·C``; ``"xray"`` sums
+   ``μΔ``; ``"mip"`` keeps the maximum and its slice.
 7. **Warp**: every final pixel's ray (from :meth:`Camera.rays`) meets the reference plane at
    ``(p, q)``; the colour is the bilinear interpolation of the intermediate image there (an
    affine map for orthographic cameras, a homography for perspective ones).
@@ -87,7 +85,7 @@ Depth
   ``[clip_start, min(clip_end, depth_in))``. ``depth_in`` is brought into the intermediate image
   once per view (each intermediate pixel takes the value of the final pixel its ray passes
   through, nearest); per slice the sample depth is affine in ``(p, q)`` and is only evaluated
-  on slices whose depth range crosses a limit.
+  per pixel on slices whose depth range crosses a limit.
 - Depth out: axial depth of the front end (half a slice before the sample, along the ray) of the
   first visible sample (:mod:`._depth`: opacity per unit length at least ``VISIBLE_ALPHA``;
   ``"xray"``: attenuation; ``"mip"``: the frontmost sample holding the maximum, if its class is
@@ -124,13 +122,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import parallel_map
 from ..model._densities import TABLE_ORDERS
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view
 from ._gradients import region_gradients
 from ._modes import finish_mode
-from ._shading import Shading, blinn_phong, checked_shading
+from ._shading import Shading, checked_shading
+from ._shear_warp_kernels import (MODE_CODES, NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
+                                  box_runs, composite, flagged_runs, lit_colours, mask_runs,
+                                  mixed_codes, ray_points, warp)
 
 __all__ = ["render_shear_warp", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
 
@@ -139,61 +141,69 @@ SLICES_PER_VOXEL = (1, 2, 3, 4, 8)
 CLASSIFICATIONS = ("pre", "post")
 """Classify voxels, then interpolate colours ("pre"), or interpolate densities, then classify."""
 
-_ERT_EVERY = 8
-"""Slices between two updates of the early-ray-termination bounding box."""
 _MAX_INTERMEDIATE = 1 << 26
 """Largest intermediate image (pixels); only extreme perspective close-ups come near it."""
+_BAND = 4
+"""Intermediate scanlines per band of the compositing (a band goes through every slice)."""
+_TASKS = 16
+"""Tasks the bands are dealt to, in turn (task ``k`` takes bands ``k, k + 16, ...``): the
+image's middle, where the volume is, is shared out evenly whatever the number of threads."""
 _WARP_CHUNK = 1 << 14
-"""Final pixels the warp computes per NumPy call: its temporaries stay small enough for the
-allocator to reuse them (whole-image ones went back to the system and were page-faulted in
-again on every frame, which cost the 512² warp more than its arithmetic)."""
-_NEVER = np.iinfo(np.int32).max
-_TIE = 1e-6
-"""Relative margin a MIP sample must exceed the maximum by to replace it (float32 ties)."""
+"""Final pixels per task of the warp."""
 _UNSEEN = -np.finfo(np.float32).max
 """MIP maximum before any sample (finite, so that the tie margin stays a number)."""
+_EMPTY = np.zeros((0, 0), np.float32)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
 class _Layout:
-    """The slices of one principal axis.
+    """The slices of one principal axis as runs.
 
     Attributes
     ----------
-    boxes : (n, 4) ndarray of np.int64
-        Per slice ``(a0, a1, b0, b1)``: the bounding box of its region voxels in the two in-slice
-        axes (table order), empty (``a1 <= a0``) for a slice without voxels.
-    codes : list of ndarray of np.int32
-        Per slice, over its box: ``1 +`` the position of each voxel in ``values[1:]``, 0 outside.
+    axis, axes : int, list of int
+        The principal axis; the table order as grid axes (slice, scanline, column).
+    shape : tuple of int
+        Slices, scanlines per slice and columns per scanline.
+    runs : Runs
+        The region's runs per scanline (:data:`._shear_warp_kernels.Runs`), each voxel's code
+        its position in ``values`` (``values[0]``: outside).
     values : (N + 1,) ndarray
-        ``values[0] = 0``, then the densities the codes point at.
-    ranges : (n, 2) ndarray or None
-        Per slice, min and max density of its voxels (``None``: no slice may be skipped).
-    axis, axes, region_only
-        The principal axis; the table order as grid axes; whether codes number the region's
-        voxels (True: the layout is kept in ``vevm.cache``, and so is what is derived from it,
-        :func:`_kept`) or every voxel of the dense grid (False: made for one render).
+        ``values[0] = 0``, then the densities the codes point at: the densities table of the
+        axis, or the whole dense grid.
+    region_only : bool
+        Whether codes number the region's voxels (True: the layout is kept in ``vevm.cache``,
+        and so is what is derived from it, :func:`_kept`) or every voxel of the dense grid
+        (False: made for one render, and every region voxel is composited).
     """
 
-    def __init__(self, boxes, codes, values, ranges, axes, region_only):
-        self.axis = axes[0]
-        self.axes = axes
-        self.region_only = region_only
-        self.boxes = boxes
-        self.codes = codes
-        self.values = values
-        self.values32 = values.astype(np.float32)
-        self.ranges = ranges
+    axis: int
+    axes: list
+    shape: tuple
+    runs: Runs
+    values: np.ndarray
+    region_only: bool
+
+    @property
+    def nbytes(self):
+        """Bytes of its arrays: what ``vevm.cache`` counts (at once, on every use)."""
+        return self.values.nbytes + _runs_bytes(self.runs)
+
+
+def _runs_bytes(runs):
+    """Bytes of the arrays of a :data:`Runs`."""
+    return sum(field.nbytes for field in runs if isinstance(field, np.ndarray))
 
 
 def _key(axis, part, tf=None, lut_size=None):
     """The ``vevm.cache`` key of ``part`` of the slices of principal axis ``axis``: "layout"
     (:func:`_region_layout`), "gradients", "post" or "post_shaded" (:func:`_post_table`), and
-    per transfer function and table size "classes" and "slice_rows" (:func:`_classes`,
-    :func:`_slice_rows`). The function enters the key by its control points, all these depend
-    on: equal functions share them, and the cache keeps no function (nor its own tables) alive.
+    per transfer function and table size "classes" and "mixed" (:func:`_classes`,
+    :func:`_mixed`). The function enters the key by its control points, all these depend on:
+    equal functions share them, and the cache keeps no function (nor its own tables) alive.
     One function for the render and :func:`tables_to_build`, so that the memory check sees the
     same cache the render uses."""
-    if part in ("classes", "slice_rows"):
+    if part in ("classes", "mixed"):
         return ("shear_warp", part, axis, tf.points.tobytes(), lut_size)
     return ("shear_warp", part, axis)
 
@@ -214,48 +224,30 @@ def _region_layout(vevm, axis):
 
 
 def _make_region_layout(vevm, axis):
-    """Slice boxes from the EVM's sections and table positions, for ``vevm.table(axis)``."""
+    """The runs of the EVM's ordered boxes in the table order of ``axis`` (slabs, sub-slabs,
+    runs: :meth:`EVM.boxes`), numbered as ``vevm.table(axis)`` lists their voxels."""
     order = TABLE_ORDERS[axis]
     axes = ["xyz".index(ch) for ch in order]
-    shape = tuple(vevm.shape[a] for a in axes)
-    boxes = np.zeros((shape[0], 4), np.int64)
-    for slab in vevm.evm.sections(order):
-        lo, hi = max(slab.lo, 0), min(slab.hi, shape[0])
-        if len(slab.section) and lo < hi:
-            pts = slab.section.astype(np.int64)
-            bmin, bmax = np.maximum(pts.min(axis=0), 0), np.minimum(pts.max(axis=0), shape[1:])
-            boxes[lo:hi] = (bmin[0], bmax[0], bmin[1], bmax[1])
-    # Table position of every voxel: the table lists the region's voxels in C order of the grid
-    # transposed to the table order (VolumeEVM.table), so a running count numbers them.
-    mask = np.transpose(vevm.evm.to_mask(vevm.shape), axes)
-    position = np.cumsum(mask, dtype=np.int32).reshape(shape)
-    position *= mask
-    codes = [position[s, a0:a1, b0:b1].copy() for s, (a0, a1, b0, b1) in enumerate(boxes)]
+    shape = tuple(int(vevm.shape[a]) for a in axes)
+    lo, hi = (np.ascontiguousarray(corner[:, axes], dtype=np.int64)
+              for corner in vevm.evm.boxes(order))
+    runs = Runs(shape[1], shape[2], *box_runs(lo, hi, shape[0], shape[1]))
     table = vevm.table(axis)
-    counts = mask.sum(axis=(1, 2))
-    ranges = np.zeros((shape[0], 2))
-    full = counts > 0
-    if table.size:
-        starts = (np.cumsum(counts) - counts)[full]
-        ranges[full, 0] = np.minimum.reduceat(table, starts)
-        ranges[full, 1] = np.maximum.reduceat(table, starts)
-    values = np.concatenate([np.zeros(1, table.dtype), table])
-    return _Layout(boxes, codes, values, ranges, axes, True)
+    return _Layout(axis, axes, shape, runs, np.concatenate([np.zeros(1, table.dtype), table]),
+                   True)
 
 
 def _dense_layout(vevm, axis):
-    """The same slices over the whole dense grid, outside voxels coded 0: the dense side of the
-    exactness contract (no section, no table, no skipping)."""
+    """The same slices over the whole dense grid, runs read from the region's mask and codes
+    numbering every voxel of the grid: the dense side of the exactness contract (no EVM, no
+    table, no skipping)."""
     order = TABLE_ORDERS[axis]
     axes = ["xyz".index(ch) for ch in order]
     dense = np.transpose(vevm.to_dense(), axes)
-    mask = np.transpose(vevm.evm.to_mask(vevm.shape), axes)
-    n = dense.shape
-    flat = np.arange(1, dense.size + 1, dtype=np.int64).reshape(n) * mask
-    boxes = np.tile(np.array([0, n[1], 0, n[2]], np.int64), (n[0], 1))
-    codes = [flat[s] for s in range(n[0])]
+    mask = np.ascontiguousarray(np.transpose(vevm.evm.to_mask(vevm.shape), axes))
+    runs = Runs(dense.shape[1], dense.shape[2], *mask_runs(mask))
     values = np.concatenate([np.zeros(1, dense.dtype), dense.ravel()])
-    return _Layout(boxes, codes, values, None, axes, False)
+    return _Layout(axis, axes, dense.shape, runs, values, False)
 
 
 def _transform(points, matrix, offset=None):
@@ -277,8 +269,8 @@ def _gradients(layout, vevm):
 
 
 def _make_gradients(layout, vevm):
-    """Per voxel, in code order: index-space gradients over region voxels, the reference's
-    rule (:func:`._gradients.region_gradients`)."""
+    """Per voxel, in code order, ``(codes, 3)`` float32: index-space gradients over region
+    voxels, the reference's rule (:func:`._gradients.region_gradients`)."""
     mask = vevm.evm.to_mask(vevm.shape)
     pad = tuple(int(n) + 2 for n in vevm.shape)
     dense = np.zeros(pad, np.float32)
@@ -295,112 +287,86 @@ def _make_gradients(layout, vevm):
     return out
 
 
-def _light(grads, view, shading):
-    """Blinn–Phong headlight along the view direction for index-space gradients ``(..., 3)``:
-    the factor on the straight colour and the specular term added to it
-    (:func:`._shading.blinn_phong`), both ``(...)`` float32."""
-    normals = _transform(grads, view.inv[:3, :3])  # to world: the inverse transpose
-    norm = np.sqrt(np.einsum("...i,...i->...", normals, normals))
-    has = norm > 0
-    cos = np.abs(_transform(normals, view.light[:, None])[..., 0]) / np.where(has, norm, 1.0)
-    cos[~has] = 1.0
-    return blinn_phong(cos, has, shading)
-
-
-def _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading):
-    """Premultiplied, step-corrected RGBA (and region weight 1) of every voxel, lit by a
-    Blinn–Phong headlight along the view direction: the per-view table of shaded
-    pre-classification, ``(5, codes)``, indexed by code (column 0: outside)."""
-    lit, glint = _light(_gradients(layout, vevm), view, shading)
-    rows = classes.rows
-    out = np.take(lut, rows, axis=1)
-    rgb = np.take(_straight_rgb(tf, lut_size), rows, axis=1) * lit + glint
-    np.minimum(rgb, 1.0, out=rgb)
-    out[:3] = rgb * out[3]
-    return out
-
-
-def _straight_rgb(tf, lut_size):
-    """Straight colours of the table rows, ``(3, lut_size + 1)``, column 0 (outside) black."""
-    straight = np.zeros((3, lut_size + 1), np.float32)
-    straight[:, 1:] = tf.straight_table(n=lut_size)[:, :3].T
-    return straight
-
-
 def _post_table(layout, vevm, with_gradients):
-    """Per code, what post-classification interpolates, channels first: the density, the
-    index-space gradient (``with_gradients``) and the region weight (0 for code 0). Kept
+    """Per code, what post-classification interpolates: the density and, ``with_gradients``,
+    the index-space gradient, ``(codes, 1 or 4)`` float32 (row 0: outside). Kept
     (:func:`_kept`)."""
 
     def make():
-        rows = [layout.values32[None]]
+        columns = [layout.values.astype(np.float32)[:, None]]
         if with_gradients:
-            rows.append(_gradients(layout, vevm).T)
-        weight = np.ones((1, len(layout.values)), np.float32)
-        weight[0, 0] = 0.0
-        return np.ascontiguousarray(np.concatenate(rows + [weight]), dtype=np.float32)
+            columns.append(_gradients(layout, vevm))
+        return np.ascontiguousarray(np.concatenate(columns, axis=1))
 
     return _kept(vevm, layout, "post_shaded" if with_gradients else "post", make)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
 class _Classes:
-    """Per transfer function and table size: the table row of every voxel (0 outside) and per
-    slice the box of voxels the function does not make transparent."""
+    """Pre-classification by one transfer function and table size.
 
-    def __init__(self, layout, tf, lut_size):
+    ``rows``: per code, the voxel's row of the classification table (0: outside);
+    ``codes``: the codes of the voxels the function does not make transparent (all, on the
+    dense layout) and ``index``: per code, 1 + its place among them (0: the others), where
+    shading lights them; ``work``: the runs of those voxels (:data:`Runs`).
+    """
+
+    rows: np.ndarray
+    codes: np.ndarray
+    index: np.ndarray
+    work: Runs
+
+    @property
+    def nbytes(self):
+        """Bytes of its arrays: what ``vevm.cache`` counts (at once, on every use)."""
+        return self.rows.nbytes + self.codes.nbytes + self.index.nbytes + _runs_bytes(self.work)
+
+    @classmethod
+    def of(cls, layout, tf, lut_size):
+        """The classes of the voxels of ``layout``."""
         q = tf.quantize(layout.values[1:], n=lut_size)
-        self.rows = np.zeros(len(layout.values), np.int32)
-        self.rows[1:] = q + 1
-        visible = np.zeros(len(layout.values), bool)
-        visible[1:] = tf.straight_table(n=lut_size)[q, 3] > 0
-        self.tight = layout.boxes.copy()
-        if layout.ranges is None:  # dense: every voxel is worked on
-            return
-        clear = tf.transparent_between(layout.ranges[:, 0], layout.ranges[:, 1])
-        for s, (a0, a1, b0, b1) in enumerate(layout.boxes):
-            if a1 <= a0 or b1 <= b0 or clear[s]:
-                self.tight[s] = (0, 0, 0, 0)
-                continue
-            seen = visible[layout.codes[s]]
-            rows = np.flatnonzero(seen.any(axis=1))
-            cols = np.flatnonzero(seen.any(axis=0))
-            if rows.size == 0:
-                self.tight[s] = (0, 0, 0, 0)
-            else:
-                self.tight[s] = (a0 + rows[0], a0 + rows[-1] + 1, b0 + cols[0], b0 + cols[-1] + 1)
+        rows = np.zeros(len(layout.values), np.int32)
+        rows[1:] = q + 1
+        if layout.region_only:
+            visible = np.zeros(len(layout.values), bool)
+            visible[1:] = tf.straight_table(n=lut_size)[q, 3] > 0
+            starts, lo, hi, box = flagged_runs(layout.runs, visible, layout.shape[0])
+            work = layout.runs._replace(starts=starts, lo=lo, hi=hi, pos=np.zeros(0, np.int64),
+                                        box=box)
+            codes = np.flatnonzero(visible)
+        else:  # dense: every voxel is worked on
+            work = layout.runs
+            codes = np.arange(1, len(layout.values))
+        index = np.zeros(len(layout.values), np.int32)
+        index[codes] = np.arange(1, len(codes) + 1, dtype=np.int32)
+        return cls(rows, codes, index, work)
 
 
 def _classes(vevm, layout, tf, lut_size):
     """The :class:`_Classes` of ``tf`` and ``lut_size`` for ``layout``, kept (:func:`_kept`)."""
-    return _kept(vevm, layout, "classes", lambda: _Classes(layout, tf, lut_size), tf, lut_size)
+    return _kept(vevm, layout, "classes", lambda: _Classes.of(layout, tf, lut_size), tf,
+                 lut_size)
 
 
-def _slice_rows(vevm, layout, classes, tf, lut_size):
-    """Per slice, over its box (as :attr:`_Layout.codes`), the table row of each voxel
-    (int16: ``lut_size < 32767``) for ``classes`` (of ``tf`` and ``lut_size``): unshaded
-    pre-classification gathers colours with one lookup per voxel instead of two. Kept
-    (:func:`_kept`)."""
-    return _kept(vevm, layout, "slice_rows",
-                 lambda: [classes.rows[codes].astype(np.int16) for codes in layout.codes],
-                 tf, lut_size)
+def _mixed(vevm, layout, tf, lut_size):
+    """Post-classification: the runs of the voxels where a sample may be visible
+    (:func:`._shear_warp_kernels.mixed_codes`) for ``tf`` and ``lut_size``, kept
+    (:func:`_kept`); every region voxel on the dense layout."""
 
+    def make():
+        visible = tf.straight_table(n=lut_size)[:, 3] > 0
+        # Per table row: -1 where visible, else the index of its run of transparent rows.
+        ids = np.where(visible, -1, np.cumsum(np.r_[True, visible[1:] != visible[:-1]]) - 1)
+        codes = np.zeros(len(layout.values), np.int32)
+        codes[1:] = ids[tf.quantize(layout.values[1:], n=lut_size)]
+        flags = mixed_codes(layout.runs, codes, layout.shape[0], layout.shape[2])
+        starts, lo, hi, box = flagged_runs(layout.runs, flags, layout.shape[0])
+        return layout.runs._replace(starts=starts, lo=lo, hi=hi, pos=np.zeros(0, np.int64),
+                                    box=box)
 
-def _reads_slice_rows(constant, per_voxel, shaded, post):
-    """Whether a view reads :func:`_slice_rows`: the default path, slices only translated
-    (``constant``: orthographic, ``intermediate_scale`` 1), one sample per slice, unshaded
-    pre-classification. One rule for the render and :func:`tables_to_build`."""
-    return constant and per_voxel == 1 and not shaded and not post
-
-
-def _window(codes, box, a0, a1, b0, b1):
-    """Codes over ``[a0, a1) x [b0, b1)`` (slice coordinates), 0 outside the slice's box."""
-    out = np.zeros((a1 - a0, b1 - b0), codes.dtype)
-    ia0, ia1 = max(a0, box[0]), min(a1, box[1])
-    ib0, ib1 = max(b0, box[2]), min(b1, box[3])
-    if ia0 < ia1 and ib0 < ib1:
-        out[ia0 - a0:ia1 - a0, ib0 - b0:ib1 - b0] = codes[ia0 - box[0]:ia1 - box[0],
-                                                          ib0 - box[2]:ib1 - box[2]]
-    return out
+    if not layout.region_only:
+        return layout.runs
+    return _kept(vevm, layout, "mixed", make, tf, lut_size)
 
 
 class _View:
@@ -411,12 +377,6 @@ class _View:
         self.scale = scale  # intermediate pixels per voxel along each in-slice axis
         self.inv = np.linalg.inv(g)
         rot = self.inv[:3, :3].T
-        if not camera.is_ortho:
-            # Index space; perspective rays share one origin.
-            origins, dirs = camera.rays()
-            d = _transform(dirs.reshape(-1, 3), rot)
-            o = np.broadcast_to(_transform(origins.reshape(-1, 3)[:1], rot, self.inv[:3, 3]),
-                                d.shape)
         self.axis = axis
         self.light = self.view_direction(vevm, camera, g)
         a, b = ("xyz".index(ch) for ch in TABLE_ORDERS[axis][1:])
@@ -429,33 +389,22 @@ class _View:
             self.step = 1 if forward[axis] > 0 else -1
             self.c_ref = 0.0
             self.slope = forward / forward[axis]  # index-space ray per unit step along c
-            self.pq, seen = self.ortho_plane(camera, rot)
-            ok = np.ones(len(self.pq), bool)
+            self.rows, self.cols, seen = self.ortho_plane(camera, rot)
+            ok = True
         else:
             self.eye = self.inv[:3, :3] @ camera.position + self.inv[:3, 3]
             self.step = step
             self.c_ref = nc - 0.5 if self.step > 0 else -0.5
-            ok = d[:, axis] * self.step > 1e-12
-            if rays is not None:
-                ok &= rays
-            # Rays that never cross the slices (parallel, or going away) get t = 0, so that no
-            # inf or NaN is made for them; they are masked out below.
-            t = np.where(ok, (self.c_ref - o[:, axis]) / np.where(ok, d[:, axis], 1.0), 0.0)
-            pq = np.stack([o[:, a] + t * d[:, a], o[:, b] + t * d[:, b]], axis=1) * scale
-            pq[~ok] = 0.0
-            self.pq = pq  # (H*W, 2) intermediate coordinates before the origin shift
-            if ok.any():
-                seen = pq[ok]
-                seen = (seen[:, 0].min(), seen[:, 0].max(), seen[:, 1].min(), seen[:, 1].max())
+            self.pq, ok, seen = self.persp_plane(camera, rot, rays)
         self.rays_ok = ok
-        lo_box = layout.boxes
-        used = np.flatnonzero((lo_box[:, 1] > lo_box[:, 0]) & (lo_box[:, 3] > lo_box[:, 2]))
+        lo_box = layout.runs.box
+        used = np.flatnonzero(lo_box[:, 1] > lo_box[:, 0])
         if not self.ortho:
             lam = (used - self.eye[axis]) / (self.c_ref - self.eye[axis])
             used = used[lam > 0]
         # Slices front to back.
         self.slices = used if self.step > 0 else used[::-1]
-        self.empty = self.slices.size == 0 or not ok.any()
+        self.empty = self.slices.size == 0 or not np.any(ok)
         if self.empty:
             return
         # Extent: the region's footprint over all slices, within the image's footprint.
@@ -489,7 +438,7 @@ class _View:
             # rays' footprint if the central ray is not in this pass).
             centre = np.array(camera.shape) // 2
             k = centre[0] * camera.shape[1] + centre[1]
-            pc = self.pq[k] if ok[k] else np.array([seen[0] + seen[1], seen[2] + seen[3]]) / 2
+            pc = self.pq[:, k] if ok[k] else np.array([seen[0] + seen[1], seen[2] + seen[3]]) / 2
             pc = np.floor(pc + 0.5)
             self.delta = float(self.ray_step(pc[0], pc[1], sp))
             self.ratio = (delta / self.delta).astype(np.float32)
@@ -519,33 +468,49 @@ class _View:
                 (max(p_hi - p_lo + 1, 0), max(q_hi - q_lo + 1, 0)))
 
     def ortho_plane(self, camera, rot):
-        """Orthographic: the intermediate coordinates of every pixel's ray, ``(H*W, 2)``, and
-        their ``(p min, p max, q min, q max)``.
+        """Orthographic: the intermediate coordinates of every pixel's ray as the sum of a
+        per-row term ``(H, 2)`` and a per-column term ``(W, 2)``, and their ``(p min, p max,
+        q min, q max)``.
 
         The rays of :meth:`Camera.rays` start at ``m + x_j r + y_i u`` (pixel column ``j``,
         row ``i``) and share one direction, so each coordinate is a sum of a per-row and a
-        per-column term: two outer sums instead of transforming every ray (same values up to
-        rounding).
+        per-column term (same values as transforming every ray, up to rounding).
         """
         a, b, c = self.abc
         h, w = camera.shape
-        xmin, xmax, ymin, ymax = camera.viewplane
-        x = xmin + (np.arange(w) + 0.5) * ((xmax - xmin) / w)
-        y = ymax - (np.arange(h) + 0.5) * ((ymax - ymin) / h)
+        x, y = camera.pixel_centres()
         m = camera.matrix_world
         origin = m[:3, 3] @ rot + self.inv[:3, 3]
         right, up = m[:3, 0] @ rot, m[:3, 1] @ rot
-        pq = np.empty((h, w, 2))
+        rows_pq, cols_pq = np.empty((h, 2)), np.empty((w, 2))
         extent = []
         for k, e in enumerate((a, b)):
             # Along the ray to c = c_ref: coordinate e moves by slope[e] per unit of c.
             along = np.eye(3)[e] - self.slope[e] * np.eye(3)[c]
             base = (origin @ along + self.slope[e] * self.c_ref) * self.scale
-            rows = base + y * ((up @ along) * self.scale)
-            cols = x * ((right @ along) * self.scale)
-            np.add(rows[:, None], cols[None, :], out=pq[..., k])
+            rows = rows_pq[:, k] = base + y * ((up @ along) * self.scale)
+            cols = cols_pq[:, k] = x * ((right @ along) * self.scale)
             extent += [rows.min() + cols.min(), rows.max() + cols.max()]
-        return pq.reshape(-1, 2), extent
+        return rows_pq, cols_pq, extent
+
+    def persp_plane(self, camera, rot, rays):
+        """Perspective: the intermediate coordinates of every pixel's ray, ``(2, H*W)`` before
+        the origin shift (0 for rays that do not cross the slices towards the reference plane),
+        which rays do (those of ``rays``, a flat mask or None for all) and their ``(p min,
+        p max, q min, q max)`` (:func:`._shear_warp_kernels.ray_points`)."""
+        h, w = camera.shape
+        x, y = camera.pixel_centres()
+        m = camera.matrix_world
+        right, up, back = m[:3, 0], m[:3, 1], m[:3, 2]
+        axes = list(self.abc)
+        terms = np.stack([right @ rot, up @ rot, -(back @ rot)], axis=1)[axes]
+        gram = np.array([right @ right, up @ up, back @ back, right @ up, right @ back,
+                         up @ back])
+        eye = (m[:3, 3] @ rot + self.inv[:3, 3])[axes]
+        pq, ok = np.empty((2, h * w)), np.empty(h * w, bool)
+        seen = ray_points(x, y, terms, gram, eye, self.c_ref, float(self.step), self.scale,
+                          np.zeros(0, bool) if rays is None else rays, pq, ok)
+        return pq, ok, seen
 
     @staticmethod
     def principal_axis(vevm, camera, g):
@@ -645,10 +610,10 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         Axial depth (Blender units) of scene geometry; samples at or beyond it are dropped.
         ``1e10`` or ``inf`` = nothing; NaN raises.
     skip_empty : bool
-        True (default): work only on each slice's section box (and, for ``"over"``/``"under"``,
-        the box of its voxels the transfer function does not make transparent) from the EVM
-        and the densities table. False: the same algorithm over every voxel of the dense grid,
-        with the region as a mask (the dense side of the exactness contract; slower).
+        True (default): sample only around the runs of voxels worth compositing (the EVM's
+        runs, less those the transfer function makes transparent), reading the densities
+        table. False: the same algorithm over the runs of the region's mask in the dense grid,
+        every region voxel composited (the dense side of the exactness contract; slower).
     termination : float
         Early ray termination for ``"over"``: pixels whose opacity reached it stop receiving
         slices (error at most ``1 - termination`` per pixel); 1.0 composites every slice.
@@ -662,7 +627,7 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         Samples along each ray per voxel slice (module docstring, 4): 1 is VolPack's one sample
         per slice; more interpolate between slices (trilinear): each voxel slice is classified
         once and every sample blends two of them, then resamples once (CT head 512²: 2 slices
-        cost 1.6 times one).
+        cost twice one).
     classification : {"pre", "post"}
         ``"pre"``: classify (and light) voxels, then interpolate colours (VolPack); ``"post"``:
         interpolate densities (and gradients), then classify and light each sample, as the
@@ -740,19 +705,19 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         view = _View(vevm, camera, g, layout, intermediate_scale, axis, step, rays)
         if view.empty:
             continue
-        image, rank, front = _composite(vevm, view, layout, tf, compositing, sampling,
-                                        _Clip.of_view(view, camera, g, depth_in))
-        _warp(view, camera, image, rank, front, rgba_out, depth_out)
+        frame, front = _composite(vevm, view, layout, tf, compositing, sampling,
+                                  _Clip.of_view(view, camera, g, depth_in))
+        _warp(view, camera, frame, front, rgba_out, depth_out)
     return rgba_out, depth_out
 
 
 def tables_to_build(vevm, camera, tf, grid_to_world, options):
     """How many principal axes the render would build slice tables for: the axes of its passes
     (:func:`_passes`) whose layout, or what this render reads beside it (the transfer
-    function's classes and, on the default path, its rows per slice; or the
-    post-classification table; the gradients with shading), is not in ``vevm.cache``
-    (:func:`_key`); every one with ``skip_empty=False`` (the dense layout is made per render).
-    Changes nothing: it only looks at the cache.
+    function's classes, or the post-classification table and the function's runs; the
+    gradients with shading), is not in ``vevm.cache`` (:func:`_key`); every one with
+    ``skip_empty=False`` (the dense layout is made per render). Changes nothing: it only
+    looks at the cache.
 
     ``options`` are the renderer's keywords (``mode`` included).
     """
@@ -763,15 +728,13 @@ def tables_to_build(vevm, camera, tf, grid_to_world, options):
         return len(axes)
     mode = options.get("mode", "over")
     shaded = mode in ("over", "under") and options.get("shading") not in (None, False)
-    post = mode in ("xray", "mip") or options.get("classification", "pre") == "post"
     lut_size = options.get("lut_size", 4096)
-    constant = camera.is_ortho and float(options.get("intermediate_scale", 1.0)) == 1.0
-    if post:
-        parts = ("layout", "post_shaded" if shaded else "post")
+    if mode in ("xray", "mip"):
+        parts = ("layout", "post")
+    elif options.get("classification", "pre") == "post":
+        parts = ("layout", "post_shaded" if shaded else "post", "mixed")
     else:
-        parts = ("layout", "classes") + (("gradients",) if shaded else ()) + (
-            ("slice_rows",) if _reads_slice_rows(constant, options.get("slices_per_voxel", 1),
-                                                 shaded, post) else ())
+        parts = ("layout", "classes") + (("gradients",) if shaded else ())
     return sum(not all(_key(axis, part, tf, lut_size) in vevm.cache for part in parts)
                for axis in axes)
 
@@ -817,20 +780,6 @@ def _samples(slices, step, per_voxel):
     return owner, np.tile(offsets, len(slices))
 
 
-def _slab_box(boxes, full, s, s2):
-    """Box of slice ``s`` a sample between slices ``s`` and ``s2`` (None: none) may take
-    something from: the union of their ``boxes`` (what may be visible) within slice ``s``'s
-    region box ``full`` (a sample whose nearest voxel is outside is transparent)."""
-    t = boxes[s]
-    if s2 is None or boxes[s2, 1] <= boxes[s2, 0] or boxes[s2, 3] <= boxes[s2, 2]:
-        return t
-    u = boxes[s2]
-    if t[1] > t[0] and t[3] > t[2]:
-        u = (min(t[0], u[0]), max(t[1], u[1]), min(t[2], u[2]), max(t[3], u[3]))
-    f = full[s]
-    return (max(u[0], f[0]), min(u[1], f[1]), max(u[2], f[2]), min(u[3], f[3]))
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class _Sampling:
     """How a render samples and classifies (checked): ``per_voxel`` samples per voxel slice,
@@ -841,299 +790,6 @@ class _Sampling:
     classification: str
     lut_size: int
     shading: Shading
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _Tables:
-    """What the samples of a view read (:func:`_tables`).
-
-    ``post``: densities are interpolated, then classified (post-classification, X-ray, MIP);
-    ``boxes``: per slice, the box of its voxels worth sampling; ``ranges``: per slice, the
-    density range, where transparent slabs may be skipped (post-classified over/under), else
-    None; ``lut``: over/under, the classification table, channels first (R, G, B, A, region
-    weight; row 0 for outside voxels: every plane of a slice's samples is contiguous), else
-    None; ``straight``: shaded post-classification, the table's straight colours
-    (:func:`_straight_rgb`); ``gathered``: the slices a sample interpolates
-    (:class:`_Gathered`); ``slice_rows`` and ``pixels``: the default path (orthographic, one
-    sample per translated slice, unshaded pre-classification: colours gathered as 16-byte RGBA
-    pixels of the table, by each voxel's row), else None.
-    """
-
-    post: bool
-    boxes: np.ndarray
-    ranges: np.ndarray
-    lut: np.ndarray
-    straight: np.ndarray
-    gathered: object
-    slice_rows: list
-    pixels: np.ndarray
-
-
-def _tables(vevm, view, layout, tf, mode, sampling, delta):
-    """The :class:`_Tables` of a view whose samples are ``delta`` mm apart."""
-    shading, lut_size = sampling.shading, sampling.lut_size
-    post = mode in ("xray", "mip") or sampling.classification == "post"
-    table = voxels = classes = lut = straight = ranges = slice_rows = pixels = None
-    if post:
-        table = _post_table(layout, vevm, shading is not None)
-        boxes = layout.boxes
-        ranges = layout.ranges if mode in ("over", "under") else None
-    else:
-        classes = _classes(vevm, layout, tf, lut_size)
-        boxes = classes.tight
-    if mode in ("over", "under"):
-        lut = np.zeros((5, lut_size + 1), np.float32)
-        lut[:4, 1:] = tf.table(n=lut_size, step_mm=delta).T
-        lut[4, 1:] = 1.0
-        if shading is not None and post:
-            straight = _straight_rgb(tf, lut_size)
-        elif shading is not None:
-            voxels = _shaded_voxels(layout, vevm, classes, tf, lut, lut_size, view, shading)
-    if _reads_slice_rows(view.constant, sampling.per_voxel, shading is not None, post):
-        slice_rows = _slice_rows(vevm, layout, classes, tf, lut_size)
-        pixels = np.ascontiguousarray(lut[:4].T).view(np.complex128).ravel()
-    return _Tables(post, boxes, ranges, lut, straight,
-                   _Gathered(layout, classes, table, voxels, lut, boxes), slice_rows, pixels)
-
-
-def _composite(vevm, view, layout, tf, compositing, sampling, clip):
-    """The slice loop: returns the intermediate premultiplied RGBA, the front-to-back rank of
-    the depth sample per pixel (``_NEVER`` where none) and, per rank, the slice coordinate of
-    the front end of its samples."""
-    mode = compositing.mode
-    hi, wi = view.size
-    per_voxel = sampling.per_voxel
-    owner, offset = _samples(view.slices, view.step, per_voxel)
-    centre = owner + offset
-    ranks = np.arange(len(owner))
-    if mode == "under":
-        owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
-    # Per-sample scalars as Python floats: the loop reads them one at a time.
-    alpha_s, beta_a, beta_b = (v.tolist() for v in view.slice_maps(owner + offset))
-    k0, kp, kq = (v.tolist() for v in view.depth_coefficients(owner + offset))
-    delta = view.delta / per_voxel
-    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
-    tables = _tables(vevm, view, layout, tf, mode, sampling, delta)
-    n_slices = len(layout.boxes)
-    rank_map = np.full((hi, wi), _NEVER, np.int32)
-    if mode in ("over", "under"):
-        image = np.zeros((4, hi, wi), np.float32)
-    else:
-        image = np.zeros((hi, wi), np.float32)
-        if mode == "mip":
-            image.fill(_UNSEEN)
-    active = [0, hi, 0, wi]
-    for n, s in enumerate(owner):
-        t = offset[n]
-        s2 = s + (1 if t > 0 else -1) if t != 0 else None
-        if s2 is not None and not 0 <= s2 < n_slices:
-            s2 = None
-        if tables.ranges is not None:
-            pair = [s] if s2 is None else [s, s2]
-            if tf.transparent_between(tables.ranges[pair, 0].min(),
-                                      tables.ranges[pair, 1].max()):
-                continue
-        box = _slab_box(tables.boxes, layout.boxes, s, s2)
-        if box[1] <= box[0] or box[3] <= box[2]:
-            continue
-        if tables.pixels is not None:
-            got = _shifted(tables, layout, view, s, box, active, beta_a[n], beta_b[n])
-            if got is None:
-                continue
-            out, inside, area = got
-            clip.apply(inside, k0[n], kp[n], kq[n], area, view.origin)
-            # One per-pixel factor: the clamp policy's renormalisation, the depth limits and,
-            # front to back, the transparency left in front (zero where terminated).
-            factor = _renormaliser(out, inside)
-            c = out[:4]
-            hit = _depth.visible(out[3] * factor, units)  # the sample's own opacity
-        else:
-            got = _resampled(tables.gathered, view, s, s2, t, box, active,
-                             (alpha_s[n], beta_a[n], beta_b[n]))
-            if got is None:
-                continue
-            sample, inside, area = got
-            clipped = clip.apply(inside, k0[n], kp[n], kq[n], area, view.origin)
-            if mode in ("xray", "mip"):
-                _accumulate(image, rank_map, sample[0], inside, area, ranks[n], view,
-                            compositing, delta)
-                continue
-            c = _post_classify(sample, inside, tables, tf, sampling, view) if tables.post \
-                else sample
-            if clipped or tables.post:  # (pre: _normalise already made outside samples zero)
-                c *= inside
-            # Before the correction to each ray's step: the threshold scales with the step too.
-            hit = _depth.visible(c[3], units)
-            if view.ratio is not None:
-                _correct(c, view.ratio[area])
-            factor = None
-        _blend(image, rank_map, c, factor, hit, area, ranks[n], compositing)
-        if mode == "over" and (n + 1) % _ERT_EVERY == 0:
-            active = _active_box(image, compositing.termination, active)
-            if active is None:
-                break
-    if mode in ("xray", "mip"):
-        image = _finished(image, rank_map, mode, tf)
-    return image, rank_map, centre - 0.5 * view.step / per_voxel
-
-
-def _shifted(tables, layout, view, s, box, active, beta_a, beta_b):
-    """The default path's sample of slice ``s``, translated by ``(beta_a, beta_b)``, over
-    ``box`` within the ``active`` part of the intermediate image: ``(interpolated RGBA and
-    region weight, inside, area)``, or None where it misses."""
-    rows = _shift(box[0], box[1], beta_a, int(view.origin[0]), active[0], active[1])
-    cols = _shift(box[2], box[3], beta_b, int(view.origin[1]), active[2], active[3])
-    if rows is None or cols is None:
-        return None
-    (p0, p1, i0, f), (q0, q1, j0, g) = rows, cols
-    out, inside = _translated(tables.pixels, tables.slice_rows[s], layout.boxes[s],
-                              (i0, i0 + p1 - p0 + 1, j0, j0 + q1 - q0 + 1), f, g)
-    return out, inside, (slice(p0, p1), slice(q0, q1))
-
-
-def _resampled(gathered, view, s, s2, t, box, active, maps):
-    """The sample at ``c = s + t`` (``s2``: the other slice it blends, or None) over ``box``
-    within the ``active`` part of the intermediate image, with the slice map ``maps = (α,
-    β_a, β_b)``: ``(normalised channels, inside, area)``, or None where it misses."""
-    alpha, beta_a, beta_b = maps
-    rows = _span(box[0], box[1], alpha, beta_a, int(view.origin[0]), active[0], active[1])
-    cols = _span(box[2], box[3], alpha, beta_b, int(view.origin[1]), active[2], active[3])
-    if rows is None or cols is None:
-        return None
-    p0, p1, ia, fa = rows
-    q0, q1, ib, fb = cols
-    window = (ia[0], ia[-1] + 2, ib[0], ib[-1] + 2)
-    if s2 is None:
-        src = _classified(*gathered.args, s, window)
-        region = src[-1] > 0
-    else:
-        # Bilinear resampling is linear: blend the two slices voxel by voxel, then resample
-        # once (trilinear). Each voxel slice feeds up to 2k samples: gathered once.
-        mine, other = gathered.get(s, window), gathered.get(s2, window)
-        region = mine[-1] > 0
-        src = mine * np.float32(1.0 - abs(t))
-        src += other * np.float32(abs(t))
-    # (The clamp policy looks at the sample's nearest voxel, which is in slice s.)
-    out, inside = _bilinear(src, region, ia - ia[0], fa, ib - ib[0], fb, view.constant)
-    return _normalise(out, inside), inside, (slice(p0, p1), slice(q0, q1))
-
-
-def _accumulate(image, rank_map, value, inside, area, rank, view, compositing, delta):
-    """X-ray: add the optical depth of samples of density ``value`` (``delta`` mm apart) to
-    ``image`` over ``area``; MIP: keep the maximum. The pixels whose depth sample this is take
-    ``rank``."""
-    if compositing.mode == "xray":
-        np.subtract(value, np.float32(compositing.xray_offset), out=value)
-        np.maximum(value, 0, out=value)
-        value *= np.float32(compositing.xray_scale * delta)
-        value *= inside
-        # (The ray's own step is ratio times the table's: so are μΔ and the threshold.)
-        hit = _depth.attenuates(value, delta)
-        hit &= rank_map[area] == _NEVER
-        if view.ratio is not None:
-            value *= view.ratio[area]
-        image[area] += value
-    else:
-        # Ties (within float32 rounding of the renormalised weights) keep the first,
-        # frontmost sample, as the reference does.
-        current = image[area]
-        bar = current + np.float32(_TIE) * np.maximum(np.abs(current), 1)
-        hit = inside & (value > bar)
-        np.copyto(image[area], value, where=hit)
-    np.copyto(rank_map[area], rank, where=hit)
-
-
-def _blend(image, rank_map, c, factor, hit, area, rank, compositing):
-    """Over or under: composite premultiplied samples ``c`` (4, ...), times ``factor`` if
-    given, into ``image`` over ``area``; visible samples (``hit``) give their pixels ``rank``
-    (over: the first, under: the last met, which is the frontmost)."""
-    target = image[(slice(None),) + area]
-    ranks = rank_map[area]
-    if compositing.mode == "over":
-        trans = 1.0 - target[3]
-        if compositing.termination < 1.0:  # terminated rays take nothing more
-            np.putmask(trans, target[3] >= compositing.termination, 0.0)
-        if factor is not None:
-            factor *= trans
-            trans = factor
-        c *= trans
-        target += c
-        np.copyto(ranks, rank, where=hit & (ranks == _NEVER))
-    else:
-        if factor is not None:
-            c *= factor
-        target *= 1.0 - c[3]
-        target += c
-        np.copyto(ranks, rank, where=hit)
-
-
-def _finished(image, rank_map, mode, tf):
-    """X-ray's optical depths or MIP's maxima ``(hi, wi)`` as premultiplied RGBA
-    ``(4, hi, wi)`` (:func:`._modes.finish_mode`); pixels whose maximum is not visible lose
-    their depth sample."""
-    hi, wi = image.shape
-    acc = np.zeros((hi * wi, 4), np.float32)
-    vmax = None
-    if mode == "xray":
-        acc[:, 0] = image.ravel()
-    else:
-        vmax = np.where(image > _UNSEEN, image, -np.inf).ravel()
-    visible = finish_mode(acc, vmax, mode, tf)
-    if visible is not None:
-        rank_map[~visible.reshape(hi, wi)] = _NEVER
-    return acc.reshape(hi, wi, 4).transpose(2, 0, 1)
-
-
-def _post_classify(sample, inside, tables, tf, sampling, view):
-    """Premultiplied, step-corrected RGBA (4, ...) of interpolated densities ``sample[0]``
-    (and, with shading, gradients ``sample[1:4]``) through the table ``tables.lut``."""
-    rows = tf.quantize(sample[0], n=sampling.lut_size)
-    rows += 1
-    rows *= inside  # row 0: transparent
-    c = np.take(tables.lut[:4], rows, axis=1)
-    if sampling.shading is not None:
-        grads = np.moveaxis(sample[1:4], 0, -1)
-        lit, glint = _light(grads, view, sampling.shading)
-        rgb = np.take(tables.straight, rows, axis=1)
-        rgb *= lit
-        rgb += glint
-        np.minimum(rgb, 1.0, out=rgb)
-        rgb *= c[3]
-        c[:3] = rgb
-    return c
-
-
-def _span(t0, t1, alpha, beta, origin, lo, hi):
-    """Intermediate indices ``[p0, p1)`` whose samples touch voxels ``[t0, t1)`` of a slice,
-    within ``[lo, hi)``, with each sample's first tap ``i`` and fraction ``f`` (``x = i + f``).
-
-    Sample ``p`` (array index) is at ``x = α (p + origin) + β``: the integer ``origin`` is
-    applied to indices only, so ``i - origin`` and ``f`` do not depend on it.
-    """
-    if alpha == 1.0:
-        span = _shift(t0, t1, beta, origin, lo, hi)
-        if span is None:
-            return None
-        p0, p1, i0, f = span
-        return p0, p1, np.arange(i0, i0 + p1 - p0, dtype=np.int64), np.full(p1 - p0, f)
-    p0 = max(int(np.ceil((t0 - 1 - beta) / alpha)), lo + origin)
-    p1 = min(int(np.ceil((t1 - beta) / alpha)), hi + origin)
-    if p1 <= p0:
-        return None
-    x = alpha * np.arange(p0, p1, dtype=np.float64) + beta
-    i = np.floor(x).astype(np.int64)
-    return p0 - origin, p1 - origin, i, (x - i).astype(np.float32)
-
-
-def _shift(t0, t1, beta, origin, lo, hi):
-    """:func:`_span` of a translated slice (``α = 1``): ``(p0, p1, i0, f)``, sample ``p`` at
-    ``x = (p - p0 + i0) + f``, the one fraction ``f = β - floor(β)`` as float32 (the integer
-    ``origin`` goes to the indices only); None if empty."""
-    base = math.floor(beta)
-    p0, p1 = max(t0 - 1 - base, lo + origin), min(t1 - base, hi + origin)
-    if p1 <= p0:
-        return None
-    return p0 - origin, p1 - origin, p0 + base, np.float32(beta - base)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -1154,218 +810,177 @@ class _Clip:
         far_min = camera.clip_end if limit is None else float(limit.min())
         return cls(camera.clip_start, camera.clip_end, far_min, limit)
 
-    def apply(self, inside, k0, kp, kq, area, origin):
-        """Clear the samples ``inside`` over ``area`` of the intermediate image (array
-        indices; ``origin`` added gives the absolute point), whose axial depth is
-        ``k0 + kp p + kq q``, that fail the test. Only evaluated per pixel where the area's
-        depth range crosses a limit; returns whether it was."""
-        p0, p1 = area[0].start + origin[0], area[0].stop + origin[0]
-        q0, q1 = area[1].start + origin[1], area[1].stop + origin[1]
-        corners = [k0 + kp * pp + kq * qq for pp in (p0, p1 - 1) for qq in (q0, q1 - 1)]
-        if min(corners) >= self.near and max(corners) < self.far_min:
-            return False
-        dep = (k0 + kp * np.arange(p0, p1, dtype=np.float64)[:, None]
-               + kq * np.arange(q0, q1, dtype=np.float64)[None, :]).astype(np.float32)
-        inside &= dep >= self.near
-        inside &= dep < (self.far if self.limit is None else self.limit[area])
-        return True
+    def cuts(self, view, k0, kp, kq):
+        """Per sample of axial depth ``k0 + kp p + kq q``, whether its depth over the
+        intermediate image crosses a limit (then each pixel is tested)."""
+        hi, wi = view.size
+        p0, q0 = view.origin
+        corners = [k0 + kp * p + kq * q for p in (p0, p0 + hi - 1) for q in (q0, q0 + wi - 1)]
+        low, high = np.minimum.reduce(corners), np.maximum.reduce(corners)
+        return (low < self.near) | (high >= self.far_min)
 
 
-def _classified(layout, classes, table, voxels, lut, s, window):
-    """What a sample interpolates from slice ``s`` over ``window`` (slice coordinates), channels
-    first, the last the region weight: post-classification's per-code ``table``, shaded
-    pre-classification's per-code ``voxels``, or the rows of the classification table
-    ``lut``."""
-    codes = _window(layout.codes[s], layout.boxes[s], *window)
-    if table is not None:
-        return np.take(table, codes, axis=1)
-    if voxels is not None:
-        return np.take(voxels, codes, axis=1)
-    return np.take(lut, np.take(classes.rows, codes), axis=1)
+def _optics(vevm, view, layout, tf, compositing, sampling, delta):
+    """What the samples of a view read and how they become colour: the runs worth compositing
+    (:data:`Runs`), the voxels' channels (:data:`Voxels`) and the :data:`Optics`, for samples
+    ``delta`` mm apart."""
+    mode, shading, lut_size = compositing.mode, sampling.shading, sampling.lut_size
+    post = mode in ("xray", "mip") or sampling.classification == "post"
+    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
+    lut = np.zeros((lut_size + 1, 4), np.float32)
+    straight = np.zeros((lut_size + 1, 3), np.float32)
+    lut_lo = lut_scale = 0.0
+    if mode in ("over", "under"):
+        lut[1:] = tf.table(n=lut_size, step_mm=delta)
+        straight[1:] = tf.straight_table(n=lut_size)[:, :3]
+        lo, hi, _ = tf._range(None, None, lut_size)  # the rows of quantize
+        lut_lo, lut_scale = lo, (lut_size - 1) / (hi - lo)
+    optics = Optics(MODE_CODES[mode], post, shading is not None,
+                    np.float32(compositing.termination),
+                    _depth.visible_threshold(1.0 if units is None else units, np.float32),
+                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading),
+                    np.float32(compositing.xray_offset),
+                    np.float32(compositing.xray_scale * delta),
+                    _depth.attenuation_threshold(delta, np.float32))
+    if post:
+        table = _post_table(layout, vevm, shading is not None)
+        work = layout.runs if mode in ("xray", "mip") else _mixed(vevm, layout, tf, lut_size)
+        return work, Voxels(np.zeros(0, np.int32), table, table.shape[1]), optics
+    classes = _classes(vevm, layout, tf, lut_size)
+    if shading is None:
+        return classes.work, Voxels(classes.rows, lut, 4), optics
+    return classes.work, Voxels(classes.index, _lit_voxels(classes, _gradients(layout, vevm),
+                                                           optics), 4), optics
 
 
-class _Gathered:
-    """:func:`_classified` slices kept while consecutive samples blend them (``slices_per_voxel``
-    > 1): each slice is gathered once, over every window a sample may ask of it.
-
-    A sample between slices ``s`` and ``s ± 1`` reads ``[t0 - 1, t1 + 1)`` of the union of
-    their boxes (:func:`_span`), so slice ``s``'s cover is the union of the boxes of ``s - 1``,
-    ``s`` and ``s + 1``, widened by one voxel. The three slices last asked for are kept.
-    """
-
-    def __init__(self, layout, classes, table, voxels, lut, boxes):
-        self.args = (layout, classes, table, voxels, lut)
-        self.boxes = boxes
-        self.kept = {}
-
-    def get(self, s, window):
-        """Slice ``s`` over ``window`` (slice coordinates), channels first: a read-only view."""
-        if s not in self.kept:
-            near = self.boxes[max(s - 1, 0):s + 2]
-            near = near[(near[:, 1] > near[:, 0]) & (near[:, 3] > near[:, 2])]
-            cover = (near[:, 0].min() - 1, near[:, 1].max() + 1, near[:, 2].min() - 1,
-                     near[:, 3].max() + 1)
-            if len(self.kept) == 3:
-                del self.kept[next(iter(self.kept))]
-            self.kept[s] = cover, _classified(*self.args, s, cover)
-        (a0, _, b0, _), values = self.kept[s]
-        return values[:, window[0] - a0:window[1] - a0, window[2] - b0:window[3] - b0]
+def _light(view, shading):
+    """The view's headlight as the kernels take it (:data:`Light`; zeros without shading)."""
+    if shading is None:
+        return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4)
+    return Light(tuple(view.inv[:3, :3].astype(np.float32).ravel()),
+                 tuple(view.light.astype(np.float32)),
+                 *(np.float32(w) for w in (shading.ambient, shading.diffuse, shading.specular,
+                                           shading.shininess)))
 
 
-def _bilinear(src, region, ia, fa, ib, fb, constant):
-    """Bilinear samples of a slice window ``src`` (channels first; the last channel is the
-    region weight) at ``x = ia + fa`` (rows) and ``y = ib + fb`` (columns), window
-    coordinates, not yet renormalised; and ``inside``: whether each sample's nearest voxel is
-    in the region (``region``: the window's voxels that are).
-
-    ``constant``: the fractions are the same for all rows and all columns (a translated slice,
-    ``ia``/``ib`` consecutive): four shifted views instead of gathers.
-    """
-    if constant:
-        f, g = fa[0], fb[0]
-        n, m = len(ia), len(ib)
-        out = src[:, :n, :m] * ((1 - f) * (1 - g))
-        out += src[:, :n, 1:m + 1] * ((1 - f) * g)
-        out += src[:, 1:n + 1, :m] * (f * (1 - g))
-        out += src[:, 1:n + 1, 1:m + 1] * (f * g)
-        ra, rb = int(f >= 0.5), int(g >= 0.5)
-        inside = region[ra:ra + n, rb:rb + m]
-    else:
-        cols = np.take(src, ib, axis=2)
-        cols *= 1 - fb
-        cols += np.take(src, ib + 1, axis=2) * fb
-        near_b = np.take(region, ib + (fb >= 0.5), axis=1)
-        fa2 = fa[:, None]
-        out = np.take(cols, ia, axis=1)
-        out *= 1 - fa2
-        out += np.take(cols, ia + 1, axis=1) * fa2
-        inside = np.take(near_b, ia + (fa >= 0.5), axis=0)
-    return out, inside
+def _lit_voxels(classes, gradients, optics):
+    """Shaded pre-classification: the lit colours of the visible voxels, ``(1 + visible, 4)``
+    (row 0 transparent, then by :attr:`_Classes.index`), in parallel over chunks of them
+    (:func:`._shear_warp_kernels.lit_colours`)."""
+    codes = classes.codes
+    out = np.zeros((len(codes) + 1, 4), np.float32)
+    chunk = 1 << 16
+    parallel_map(lambda start: lit_colours(codes[start:start + chunk], classes.rows, gradients,
+                                           optics.lut, optics.straight, optics.light,
+                                           out[start:start + chunk + 1]),
+                 [(start,) for start in range(0, len(codes), chunk)])
+    return out
 
 
-def _translated(pixels, rows, box, window, f, g):
-    """:func:`_bilinear` of pre-classified colours on a translated slice (one fraction ``f``
-    for all rows, ``g`` for all columns): ``window`` (slice coordinates) of the slice whose
-    table ``rows`` cover ``box``, its RGBA gathered from ``pixels`` (the table's rows as
-    complex128) and the region weight from ``rows > 0``; resampled separably, columns then
-    rows, as ``a + f·(b - a)``. Returns the 5 channels (RGBA, weight) and ``inside``."""
-    idx = _window(rows, box, *window)
-    n, m = idx.shape[0] - 1, idx.shape[1] - 1
-    rgba = np.take(pixels, idx).view(np.float32).reshape(n + 1, m + 1, 4)
-    region = idx > 0
-    cols = np.empty((5, n + 1, m), np.float32)
-    src = np.ascontiguousarray(rgba.transpose(2, 0, 1))  # (strided ufunc passes are slower)
-    np.subtract(src[:, :, 1:], src[:, :, :m], out=cols[:4])
-    weight = region.astype(np.float32)
-    np.subtract(weight[:, 1:], weight[:, :m], out=cols[4])
-    cols *= np.float32(g)
-    cols[:4] += src[:, :, :m]
-    cols[4] += weight[:, :m]
-    out = np.subtract(cols[:, 1:], cols[:, :n])
-    out *= np.float32(f)
-    out += cols[:, :n]
-    ra, rb = int(f >= 0.5), int(g >= 0.5)
-    return out, region[ra:ra + n, rb:rb + m]
+def _plan(view, layout, work, clip, owner, offset, ranks):
+    """The :data:`Plan` of the samples ``owner + offset`` (compositing order, front-to-back
+    ``ranks``) that may touch a run of ``work``."""
+    other = np.where(offset > 0, owner + 1, owner - 1)
+    other[(offset == 0) | (other < 0) | (other >= layout.shape[0])] = -1
+    box = work.box
+    has = box[:, 1] > box[:, 0]
+    keep = has[owner] | ((other >= 0) & has[np.maximum(other, 0)])
+    owner, offset, ranks, other = owner[keep], offset[keep], ranks[keep], other[keep]
+    centre = owner + offset
+    alpha, beta_a, beta_b = view.slice_maps(centre)
+    k0, kp, kq = view.depth_coefficients(centre)
+    return Plan(owner.astype(np.int64), other.astype(np.int64),
+                (1.0 - np.abs(offset)).astype(np.float32), np.abs(offset).astype(np.float32),
+                alpha, beta_a, beta_b, k0, kp, kq,
+                ranks.astype(np.int32), clip.cuts(view, k0, kp, kq))
 
 
-def _normalise(out, inside):
-    """The clamp policy on interpolated channels ``out`` (last: the summed weight of region
-    voxels): the others divided by that weight, zero where the nearest voxel is outside."""
-    result = out[:-1]
-    result *= _renormaliser(out, inside)
-    return result
-
-
-def _renormaliser(out, inside):
-    """The factor of the clamp policy on interpolated channels ``out`` (last: the summed weight
-    of region voxels): ``inside / weight``, float32."""
-    weight = out[-1]
-    np.maximum(weight, np.float32(1e-30), out=weight)
-    return inside / weight
-
-
-def _correct(c, ratio):
-    """Opacity of premultiplied samples ``c`` (4, ...) made for the table's step, corrected to
-    each ray's step ``ratio`` times longer: ``α' = 1 - (1 - α)^ratio``, colour times ``α'/α``."""
-    a = c[3]
-    factor = np.subtract(np.float32(1.0), a)
-    np.maximum(factor, 0, out=factor)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # log/exp rather than log1p/expm1: NumPy vectorises them (5x faster); the absolute
-        # error stays at float32 rounding.
-        np.log(factor, out=factor)
-        factor *= ratio
-        np.exp(factor, out=factor)
-        np.subtract(np.float32(1.0), factor, out=factor)  # α', 0 where α is 0
-        np.divide(factor, a, out=factor, where=a > 0)
-    c *= factor
-
-
-def _active_box(image, threshold, box):
-    """Bounding box of the pixels of ``box`` whose opacity is below ``threshold``; None if none."""
-    a0, a1, b0, b1 = box
-    open_ = image[3, a0:a1, b0:b1] < threshold
-    rows = np.flatnonzero(open_.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(open_[rows[0]:rows[-1] + 1].any(axis=0))
-    return [a0 + rows[0], a0 + rows[-1] + 1, b0 + cols[0], b0 + cols[-1] + 1]
-
-
-def _warp(view, camera, image, rank_map, front, rgba_out, depth_out):
-    """Final image: bilinear interpolation of the intermediate colour at each pixel's ray, and
-    the depth of the nearest intermediate pixel's depth sample.
-
-    Only the pixels whose taps touch the intermediate image are computed (the others stay
-    transparent), :data:`_WARP_CHUNK` at a time. The intermediate RGBA is gathered channels
-    last, one 16-byte pixel per index (viewed as complex128), which is what the final image's
-    layout wants.
-    """
+def _composite(vevm, view, layout, tf, compositing, sampling, clip):
+    """The slice loop: returns the intermediate image as a :data:`Frame` (premultiplied RGBA,
+    the front-to-back rank of each pixel's depth sample, :data:`NEVER` where none) and, per
+    rank, the slice coordinate of the front end of its samples."""
+    mode = compositing.mode
+    per_voxel = sampling.per_voxel
+    owner, offset = _samples(view.slices, view.step, per_voxel)
+    front = owner + offset - 0.5 * view.step / per_voxel
+    ranks = np.arange(len(owner))
+    if mode == "under":
+        owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
+    work, voxels, optics = _optics(vevm, view, layout, tf, compositing, sampling,
+                                   view.delta / per_voxel)
+    plan = _plan(view, layout, work, clip, owner, offset, ranks)
     hi, wi = view.size
-    # The image with a border of zeros: taps outside it read zeros, with no masking.
-    padded = np.zeros((hi + 2, wi + 2, 4), np.float32)
-    padded[1:-1, 1:-1] = image.transpose(1, 2, 0)
-    pixels = padded.reshape(-1).view(np.complex128)
-    rgba_flat = rgba_out.reshape(-1).view(np.complex128)
-    depth_flat = depth_out.reshape(-1)
-    for start in range(0, len(view.pq), _WARP_CHUNK):
-        part = slice(start, start + _WARP_CHUNK)
-        # Taps, fractions and nearest pixels from the absolute intermediate point: the origin
-        # (an integer) only moves the indices, so none of them depends on it.
-        p, q = view.pq[part, 0], view.pq[part, 1]
-        ok = view.rays_ok[part]
-        fp, fq = np.floor(p), np.floor(q)
-        fa, fb = p - fp, q - fq
-        ia = fp.astype(np.int64) - view.origin[0]
-        ib = fq.astype(np.int64) - view.origin[1]
-        idx = np.flatnonzero(ok & (ia >= -1) & (ia < hi) & (ib >= -1) & (ib < wi))
-        # Each pixel's fractions repeated for its 4 channels: NumPy's broadcasting of an
-        # (n, 1) factor over (n, 4) is several times slower than flat arrays.
-        fa4 = np.repeat(fa[idx].astype(np.float32), 4)
-        fb4 = np.repeat(fb[idx].astype(np.float32), 4)
-        base = (ia[idx] + 1) * (wi + 2) + ib[idx] + 1
-        top = _texels(pixels, base)
-        top += fb4 * (_texels(pixels, base + 1) - top)
-        base += wi + 2
-        bottom = _texels(pixels, base)
-        bottom += fb4 * (_texels(pixels, base + 1) - bottom)
-        bottom -= top
-        bottom *= fa4
-        top += bottom
-        rgba_flat[start + idx] = top.view(np.complex128)
-        # The nearest intermediate pixel, halves rounded up (as the clamp policy's nearest
-        # voxel): np.rint's half to even would depend on the origin's parity.
-        near_p, near_q = ia + (fa >= 0.5), ib + (fb >= 0.5)
-        idx = np.flatnonzero(ok & (near_p >= 0) & (near_p < hi) & (near_q >= 0) & (near_q < wi))
-        pp, qq = near_p[idx], near_q[idx]
-        r = rank_map[pp, qq]
-        hit = r != _NEVER
-        idx, r, pp, qq = idx[hit], r[hit], pp[hit], qq[hit]
-        k0, kp, kq = view.depth_coefficients(front[r])
-        depth_flat[start + idx] = k0 + kp * (pp + view.origin[0]) + kq * (qq + view.origin[1])
+    image = np.zeros((hi, wi, 4), np.float32)
+    if mode == "mip":
+        image[..., 0] = _UNSEEN
+    following = _EMPTY.astype(np.int32)
+    if mode == "over" and compositing.termination < 1.0:
+        following = np.empty((hi, wi + 1), np.int32)
+        following[:] = np.arange(wi + 1, dtype=np.int32)
+    frame = Frame(int(view.origin[0]), int(view.origin[1]),
+                  _EMPTY if view.ratio is None else view.ratio,
+                  np.float32(clip.near), np.float32(clip.far),
+                  _EMPTY if clip.limit is None else clip.limit, image,
+                  np.full((hi, wi), NEVER, np.int32), following)
+    tasks = min(_TASKS, -(-hi // _BAND))
+    parallel_map(lambda first: composite(first, tasks, _BAND, plan, layout.runs, work, voxels,
+                                         optics, frame),
+                 [(first,) for first in range(tasks)])
+    if mode in ("xray", "mip"):
+        _finish(frame, mode, tf)
+    return frame, front
 
 
-def _texels(pixels, index):
-    """The RGBA of a channels-last image ``pixels`` (viewed as complex128) at ``index``, flat
-    float32 ``(4 n,)``."""
-    return np.take(pixels, index).view(np.float32)
+def _finish(frame, mode, tf):
+    """X-ray's optical depths or MIP's maxima (channel 0 of the image) as premultiplied RGBA
+    (:func:`._modes.finish_mode`), in place; pixels whose maximum is not visible lose their
+    depth sample."""
+    acc = frame.image.reshape(-1, 4)
+    vmax = None if mode == "xray" else np.where(acc[:, 0] > _UNSEEN, acc[:, 0], -np.inf)
+    visible = finish_mode(acc, vmax, mode, tf)
+    if visible is not None:
+        frame.rank[~visible.reshape(frame.rank.shape)] = NEVER
+
+
+def _warp(view, camera, frame, front, rgba_out, depth_out):
+    """Final image: bilinear interpolation of the intermediate colour at each pixel's ray, and
+    the depth of the nearest intermediate pixel's depth sample
+    (:func:`._shear_warp_kernels.warp`), :data:`_WARP_CHUNK` pixels per task."""
+    h, w = camera.shape
+    k0, kp, kq = view.depth_coefficients(front)
+    none = np.zeros((0, 2))  # (unused: orthographic rows and columns, or perspective points)
+    if view.ortho:
+        rows, cols, reach = view.rows, view.cols, _reach(view, w)
+        pq, rays = none, np.zeros(0, bool)
+    else:
+        rows = cols = none
+        reach = np.zeros((0, 2), np.int64)
+        pq, rays = view.pq, view.rays_ok
+    parallel_map(lambda start: warp(start, min(start + _WARP_CHUNK, h * w), w, rows, cols, reach,
+                                    pq, rays, frame, k0, kp, kq, rgba_out, depth_out),
+                 [(start,) for start in range(0, h * w, _WARP_CHUNK)])
+
+
+def _reach(view, width):
+    """Orthographic: per final row ``y``, the columns ``[x0, x1)`` whose intermediate point
+    ``rows[y] + cols[x]`` may fall within a pixel of the intermediate image (its taps then
+    touch it), one column wider at each end than exact (the warp tests every pixel it does)."""
+    reach = np.zeros((len(view.rows), 2), np.int64)
+    reach[:, 1] = width
+    for k in range(2):
+        # The point's tap floor(v) - origin must lie in [-1, size): v in
+        # [origin - 1, origin + size).
+        lo = view.origin[k] - 1 - view.rows[:, k]
+        hi = view.origin[k] + view.size[k] - view.rows[:, k]
+        column = view.cols[:, k]
+        if column[-1] < column[0]:
+            lo, hi, column = -hi, -lo, -column
+        x0 = np.searchsorted(column, lo, side="left") - 1
+        x1 = np.searchsorted(column, hi, side="right") + 1
+        if column[-1] == column[0]:  # the same point all along the row
+            inside = (lo <= column[0]) & (column[0] < hi)
+            x0, x1 = np.where(inside, 0, width), np.where(inside, width, 0)
+        reach[:, 0] = np.maximum(reach[:, 0], x0)
+        reach[:, 1] = np.minimum(reach[:, 1], x1)
+    np.clip(reach, 0, width, out=reach)
+    return reach
