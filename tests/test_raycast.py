@@ -2,14 +2,18 @@
 volumes, closed forms and the reference, modes, depth, shading and degenerate input."""
 
 import json
+import tracemalloc
 
 import numpy as np
 import pytest
 
 from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM as BU, Camera, EVM,
-                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world)
+                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world,
+                             set_kernel_threads)
 from volumeevm_addon.phantoms import box_chords_mm
+from volumeevm_addon.rendering import _ray_march, _raycast
 from volumeevm_addon.rendering._raycast import _Blocks, render_raycast, render_raycast_navigate
+from volumeevm_addon.rendering._rays import camera_rays
 from render_helpers import MODES, XRAY, camera, const_tf, reference
 
 
@@ -332,3 +336,89 @@ def test_bad_input(ct):
     for name in ("jitter", "preintegrate"):
         with pytest.raises(VolumeEVMError, match=name):
             render_raycast_navigate(v, cam, tf, g, **{name: 1})
+
+
+# ---------------------------------------------------------------------------- kernels
+@pytest.mark.parametrize("mode, opts", [
+    ("over", {"jitter": True, "preintegrate": True, "shading": True, "step_mm": 1.5}),
+    ("under", {"shading": True}), ("xray", XRAY), ("mip", {})])
+def test_the_image_does_not_depend_on_threads_or_tiles(ct, mode, opts):
+    """Each ray is cast on its own: one thread or two, small tiles or large, the same bits
+    (and the navigation variant, the same image)."""
+    v, g, tf = bone(ct)
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(37, 29))
+    previous = set_kernel_threads(1)
+    try:
+        one = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=64, **opts)
+        set_kernel_threads(2)
+        two = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=64, **opts)
+        tiles = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=300, **opts)
+        navigated = render_raycast_navigate(v, cam, tf, g, mode=mode, chunk_rays=100, **opts)
+    finally:
+        set_kernel_threads(previous)
+    assert one[0][..., 3].max() > 0.5
+    for image in (two, tiles, navigated):
+        np.testing.assert_array_equal(image[0], one[0])
+        np.testing.assert_array_equal(image[1], one[1])
+
+
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_each_kernel_ray_is_the_cameras(ct, kind):
+    """The kernels make each pixel's ray themselves: the same rays, clipped the same way, as
+    the other renderers' (``camera_rays``)."""
+    v, g, _ = bone(ct)
+    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3, res=(13, 7), shift_x=0.1, shift_y=-0.05)
+    depth_in = np.random.default_rng(3).uniform(0.2, 0.8, cam.shape)
+    depth_in[0, :4] = 1e10
+    for stop in (None, depth_in):
+        rays = camera_rays(cam, g, v.shape, stop)
+        view = _raycast._view(cam, g, v.shape, np.asarray(v.spacing), stop)
+        for ray in range(13 * 7):
+            o, d, w, a0, kz, t0, t1 = _ray_march._pixel_ray(ray, view)
+            np.testing.assert_allclose(o, rays.o[ray], rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(d, rays.d[ray], rtol=1e-12)
+            np.testing.assert_allclose(w, rays.dirs[ray], rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose((a0, kz), (rays.a0[ray], rays.kz[ray]), rtol=1e-12,
+                                       atol=1e-12)
+            np.testing.assert_allclose((t0, t1), (rays.t0[ray], rays.t1[ray]), rtol=1e-12,
+                                       atol=1e-9)
+
+
+def test_leap_levels_are_the_largest_uniform_aligned_cubes():
+    """Hierarchical space leaping (brute force over a random block grid): each block's code
+    names the largest aligned cube of 2**L blocks holding it that is all invisible (L + 1) or
+    all visible (-(L + 1))."""
+    rng = np.random.default_rng(5)
+    visible = rng.uniform(size=(13, 9, 6)) < 0.05
+    visible[4:8, 0:8, 0:4] = True  # a visible interior
+    got = _raycast.leap_levels(visible)
+    assert got.dtype == np.int8 and got.shape == visible.shape
+
+    def cube(cell, level):  # the blocks of the aligned cube in the grid (rays go nowhere else)
+        lo = [(c >> level) << level for c in cell]
+        return visible[lo[0]:lo[0] + (1 << level), lo[1]:lo[1] + (1 << level),
+                       lo[2]:lo[2] + (1 << level)]
+
+    for cell in np.ndindex(*visible.shape):
+        code = int(got[cell])
+        assert code != 0 and (code < 0) == visible[cell]
+        level = abs(code) - 1
+        assert (cube(cell, level) == visible[cell]).all()
+        assert not (cube(cell, level + 1) == visible[cell]).all()
+    nothing = _raycast.leap_levels(np.zeros((3, 4, 5), bool))
+    np.testing.assert_array_equal(nothing, 4)  # one cube of 8 blocks: rays leap past the grid
+
+
+def test_a_render_needs_little_beyond_its_tables_and_image(ct):
+    """Once the tables are cached, a render allocates its image and little else: the rays
+    keep their state in the kernels, not in per-ray arrays."""
+    v, g, tf = skin(ct)
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(200, 160))
+    render_raycast(v, cam, tf, g, shading=True, jitter=True)  # tables made and cached
+    tracemalloc.start()
+    rgba, _ = render_raycast(v, cam, tf, g, shading=True, jitter=True)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert rgba[..., 3].max() > 0.5
+    image = 200 * 160 * (16 + 4)  # RGBA and depth, float32
+    assert peak < image + (1 << 20)  # measured: the image and 0.2 MiB (lookup tables)

@@ -10,7 +10,7 @@ import pytest
 from volumeevm_addon import (Camera, EVM, METHODS, TransferFunction, VolumeEVM, VolumeEVMError,
                              grid_to_world, openexr_module, render, write_exr, write_png)
 from volumeevm_addon._memory import format_bytes
-from volumeevm_addon.rendering._raycast import _Blocks, _DenseSampler
+from volumeevm_addon.rendering._raycast import _Blocks, _DenseTables
 from volumeevm_addon.rendering._render import check_samples, render_memory
 from render_helpers import camera, const_tf
 
@@ -240,12 +240,12 @@ def test_estimate_counts_the_tables_a_render_would_still_build():
         return render_memory(method, vevm, cam, tf_, g, {**over, **options})
 
     cold = {m: estimate(m) for m in ("raycast", "shear_warp", "splat")}
-    cold_side, cold_block = estimate("splat", side), estimate("raycast", block=4)
+    cold_side, cold_block = estimate("splat", side), estimate("raycast", block=2)
     cold_shaded = estimate("shear_warp", shading=True)
     for method in cold:
         render(vevm, front, tf, method=method)
         assert estimate(method) < cold[method]
-    assert estimate("raycast", block=4) == cold_block
+    assert estimate("raycast", block=2) == cold_block
     assert estimate("shear_warp", tf_=other) == cold["shear_warp"]
     assert estimate("shear_warp", shading=True) == cold_shaded
     assert estimate("splat", side) == cold_side
@@ -257,7 +257,7 @@ def test_ray_casting_tables_are_built_without_grid_sized_temporaries():
     bytes per voxel that whole-grid temporaries took."""
     vevm = VolumeEVM.from_array(_blob(64), 0.0)
     voxels = 66 ** 3  # the padded grid
-    sampler, peak = _traced_peak(lambda: _DenseSampler(vevm, False))
+    sampler, peak = _traced_peak(lambda: _DenseTables(vevm, False))
     assert sampler.table.nbytes == 8 * voxels
     assert peak <= 12 * voxels + (256 << 10)
     _, peak = _traced_peak(lambda: _Blocks(vevm, 8))

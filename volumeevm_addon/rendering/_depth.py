@@ -13,9 +13,10 @@ Without a threshold, depth would come from numerical dust: a bilinear tap weight
 rounding of a slice's shift) on an opaque voxel gives a sample of opacity 1e-16 beside
 transparent ones, which would count as a hit a whole slice in front of what is seen, or where
 nothing is seen, and which side of the dust a pixel falls on changes with one ulp of the camera
-matrix (with the CPU's BLAS kernel). :func:`visible` and :func:`attenuates` are the only places
-the renderers decide a hit for the depth; the colour and opacity they composite are not
-thresholded.
+matrix (with the CPU's BLAS kernel). :func:`visible` and :func:`attenuates` (and their
+thresholds, :func:`visible_threshold` and :func:`attenuation_threshold`, for compiled kernels
+that test one sample at a time) are the only places the renderers decide a hit for the depth;
+the colour and opacity they composite are not thresholded.
 """
 
 import math
@@ -25,7 +26,8 @@ import numpy as np
 from .._errors import VolumeEVMError
 from ._transfer import opacity_correction
 
-__all__ = ["VISIBLE_ALPHA", "VISIBLE_OPTICAL_DEPTH", "visible", "attenuates"]
+__all__ = ["VISIBLE_ALPHA", "VISIBLE_OPTICAL_DEPTH", "visible", "attenuates",
+           "visible_threshold", "attenuation_threshold"]
 
 VISIBLE_ALPHA = 2.0 ** -16
 """Opacity per unit length at and above which a sample is visible (gives the depth).
@@ -69,8 +71,14 @@ def visible(alpha, units):
         precision, so that the comparison does not depend on NumPy's casting rules.
     """
     alpha = np.asarray(alpha)
-    threshold = opacity_correction(VISIBLE_ALPHA, units).astype(alpha.dtype)
-    return (alpha > 0) & (alpha >= threshold)
+    return (alpha > 0) & (alpha >= visible_threshold(units, alpha.dtype))
+
+
+def visible_threshold(units, dtype):
+    """The opacity from which samples over ``units`` unit lengths are visible (:func:`visible`:
+    ``alpha > 0`` and ``alpha >= threshold``), rounded to ``dtype``: for compiled kernels,
+    which compare one sample at a time."""
+    return np.asarray(opacity_correction(VISIBLE_ALPHA, units)).astype(dtype)[()]
 
 
 def attenuates(tau, step_mm):
@@ -92,8 +100,13 @@ def attenuates(tau, step_mm):
         ``tau``'s precision.
     """
     tau = np.asarray(tau)
-    threshold = np.multiply(step_mm, VISIBLE_OPTICAL_DEPTH, dtype=np.float64).astype(tau.dtype)
-    return (tau > 0) & (tau >= threshold)
+    return (tau > 0) & (tau >= attenuation_threshold(step_mm, tau.dtype))
+
+
+def attenuation_threshold(step_mm, dtype):
+    """The optical depth from which X-ray samples over ``step_mm`` mm are visible
+    (:func:`attenuates`: ``tau > 0`` and ``tau >= threshold``), rounded to ``dtype``."""
+    return np.multiply(step_mm, VISIBLE_OPTICAL_DEPTH, dtype=np.float64).astype(dtype)[()]
 
 
 def checked_depth_in(depth_in, shape):

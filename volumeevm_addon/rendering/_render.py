@@ -21,6 +21,7 @@ the memory the render needs (:func:`render_memory`) against what is available
 (:func:`volumeevm_addon.check_memory`).
 """
 
+import functools
 import inspect
 import numbers
 
@@ -40,11 +41,12 @@ METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
 MAX_SAMPLES = 20_000_000_000
 """Most samples a render may take: covered pixels x samples per ray through the volume's box.
 
-Ray casting every sample (``skip_empty=False``) marched 3.5e6 samples per second on one core
-(CT head, 128² image; the reference is slower), so 2e10 samples are about an hour and a half
-where space leaping skips nothing: a step that asks for more would take hours, which is never
-what a user means (a step in the wrong unit, a typo). A 4K frame (3840 x 2160) of a 512³ volume
-at the ray casters' default step (half a voxel) is about 1.5e10 samples, still allowed.
+Ray casting every sample (``skip_empty=False``) marches 3e7 samples per second on one core
+(CT head, 128² image, the compiled caster; the navigation variant and the reference are 7 to
+100 times slower), so 2e10 samples are ten minutes at best and hours for the slower methods: a
+step that asks for more is never what a user means (a step in the wrong unit, a typo). A 4K
+frame (3840 x 2160) of a 512³ volume at the ray casters' default step (half a voxel) is about
+1.5e10 samples, still allowed.
 """
 
 # Memory model of each method, bytes, fitted to tracemalloc peaks (bench/bench_memory.py:
@@ -62,8 +64,9 @@ _GRID_BYTES = {
     "raycast": 10,
     # no dense table; the block grid is made through a temporary float32 grid and the mask
     "raycast_navigate": 7,
-    # per-axis slice layouts (codes over each slice's box, int32) and the region mask, beside
-    # the axis's densities table (_TABLE_METHODS)
+    # the region's runs come from the EVM's boxes (no grid-sized temporaries) beside the
+    # axis's densities table (_TABLE_METHODS); with skip_empty=False the dense layout made for
+    # each render: the transposed dense grid, its mask and its codes
     "shear_warp": 9,
     # per-axis sheets come from the region's voxels (_REGION_BYTES), beside the axis's
     # densities table (_TABLE_METHODS)
@@ -80,7 +83,7 @@ _SHADING_GRID_BYTES = {"raycast": 14, "shear_warp": 32, "reference": 32}
 when cached: shear-warp lights every voxel per view)."""
 _REGION_BYTES = {"splat": 56}
 """Per region voxel: splatting's sections (cells per slab) and culled voxel lists, per axis."""
-_PIXEL_BYTES = {"raycast": 640, "raycast_navigate": 640, "shear_warp": 24, "splat": 340,
+_PIXEL_BYTES = {"raycast": 32, "raycast_navigate": 32, "shear_warp": 24, "splat": 340,
                 "reference": 360}
 _INTERMEDIATE_BYTES = 40
 """Shear-warp, per intermediate pixel: the RGBA image, its rank and depth maps, slice buffers."""
@@ -204,10 +207,11 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         one sample per sheet; 3 removes the popping with the rays' sub-voxel phase at 2.2x
         the time. MIP always takes one.
     block : int
-        Default ``8`` (raycast, raycast_navigate). Edge in voxels of the space-leaping blocks.
+        Default ``4`` (raycast, raycast_navigate). Edge in voxels of the space-leaping blocks.
     chunk_rays : int
-        Default ``262144`` (raycast), ``16384`` (raycast_navigate), ``8192`` (reference). Rays
-        marched together: bounds the working memory; larger chunks take fewer Python steps.
+        Default ``1024`` (raycast, raycast_navigate), ``8192`` (reference). Ray casters: pixels
+        per task of the threads (square tiles; the image does not depend on it). Reference:
+        rays marched together (bounds the working memory).
     jitter : bool
         Default ``False`` (raycast, raycast_navigate). Offset each ray's samples by its pixel's
         fraction of a step (a fixed hash: the same image every run), so banding at coarse steps
@@ -420,9 +424,16 @@ def render_options(method):
     """
     if method not in METHODS:
         raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
+    return dict(_options_of(method))
+
+
+@functools.cache
+def _options_of(method):
+    """``render_options(method)`` as pairs, read from the renderer's signature once (it is
+    asked on every render; reading a signature costs a third of a millisecond)."""
     parameters = inspect.signature(_renderers()[method]).parameters.values()
-    return {p.name: p.default for p in parameters
-            if p.kind == p.KEYWORD_ONLY and p.name not in ("mode", "depth_in")}
+    return tuple((p.name, p.default) for p in parameters
+                 if p.kind == p.KEYWORD_ONLY and p.name not in ("mode", "depth_in"))
 
 
 def _tables_to_build(method, vevm, camera, tf, grid_to_world, options):
