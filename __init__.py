@@ -8,7 +8,7 @@ and the sidebar tab.
 import bpy
 
 from . import operators, ui
-from .blender import compositor, handlers, kernels, sidecar, tool_stack
+from .blender import compositor, gpu_viewport, handlers, kernels, sidecar, tool_stack
 from .operators import import_volume
 from .ui import panels, props
 
@@ -29,10 +29,13 @@ def register():
         bpy.utils.register_class(cls)
     bpy.types.TOPBAR_MT_file_import.append(import_volume.menu_import)
     bpy.types.STATUSBAR_HT_header.append(panels.draw_status)
-    handlers.install(compositor.HANDLERS + sidecar.HANDLERS + tool_stack.HANDLERS)
+    handlers.install(compositor.HANDLERS + sidecar.HANDLERS + tool_stack.HANDLERS
+                     + gpu_viewport.HANDLERS)
+    gpu_viewport.register()
 
 
 def unregister():
+    gpu_viewport.unregister()
     handlers.uninstall()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)
     bpy.types.TOPBAR_MT_file_import.remove(import_volume.menu_import)

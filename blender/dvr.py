@@ -12,6 +12,9 @@ script function :func:`render_dvr` run the same job):
    stop at the scene's geometry. The VolumeEVM is the tool stack's result when the volume has
    tools. The Render setting Resolution (``level`` of the core's ``method_options``, Auto by
    default) renders a volume much finer than the image's pixels from a coarser level of it.
+   The method ``"gpu"`` (:mod:`.gpu_dvr`, the same outputs) draws on the main thread right
+   after the scene pass; where no GPU context can be made the CPU ray caster renders instead,
+   with the same options, and the result's ``note`` says so.
 4. **Composite**: the core's ``composite_over`` (``out = dvr + (1 - dvr.a) · scene``) and
    ``output_depth`` (the DVR's depth where it is visible, else the scene's; axial, Blender
    units, 1e10 = nothing).
@@ -37,6 +40,7 @@ import bpy
 import numpy as np
 
 from ..volumeevm_addon import (
+    METHODS as CORE_METHODS,
     TransferFunction,
     VolumeEVMError,
     atomic_target,
@@ -44,8 +48,9 @@ from ..volumeevm_addon import (
     method_options,
     output_depth,
     render,
+    render_options,
 )
-from . import exr, images, jobs
+from . import exr, gpu_dvr, images, jobs
 from .camera import camera_from_blender
 from .objects import get_vevm, own_surface, render_volume, volume_object
 from .scene import SceneRender, render_layer, render_scene
@@ -56,6 +61,8 @@ from .transfer import ensure_ramp, transfer_function
 DEFAULT_IMAGE = "VolumeEVM Render"
 #: Custom property of the DVR image: the view it was rendered for (see :func:`view_signature`).
 VIEW_KEY = "volumeevm_view"
+#: The methods of Render VolumeEVM: the core's (CPU) and the GPU's (:mod:`.gpu_dvr`).
+METHODS = CORE_METHODS + (gpu_dvr.METHOD,)
 
 
 @dataclass
@@ -72,6 +79,7 @@ class DVRResult:
     exr_path: str = ""
     png_path: str = ""
     visible: bool = True  # False: nothing of the volume was seen (transparent DVR)
+    note: str = ""  # what the user should know: the GPU method fell back to the CPU
 
 
 def volume_for_render(vol_obj):
@@ -150,18 +158,28 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
                              f"{camera.shape[::-1]}")
     options = {"level": "auto", **(options or {})}  # the Render setting Resolution's default
     signature = view_signature(scene, camera_object)
+    drawn, note = None, ""
+    if method == gpu_dvr.METHOD:  # drawn here: GPU work belongs to the main thread
+        try:
+            drawn = gpu_dvr.render_gpu(vevm, camera, tf, mode=mode, depth_in=scene_pass.depth,
+                                       matrix_world=matrix_world, **options)
+        except gpu_dvr.GPUUnavailable as error:
+            method, note = "raycast", f"{error}: rendered with ray casting on the CPU instead"
 
     def steps():
         yield 0.2, f"volume render ({method}, {mode})"
-        dvr_rgba, dvr_depth = render(vevm, camera, tf, method=method, mode=mode,
-                                     depth_in=scene_pass.depth, matrix_world=matrix_world,
-                                     **options)
+        if drawn is None:
+            dvr_rgba, dvr_depth = render(vevm, camera, tf, method=method, mode=mode,
+                                         depth_in=scene_pass.depth, matrix_world=matrix_world,
+                                         **options)
+        else:
+            dvr_rgba, dvr_depth = drawn
         yield 0.9, "compositing"
         dvr_rgba = np.nan_to_num(np.asarray(dvr_rgba, np.float32))
         rgba = composite_over(dvr_rgba, scene_pass.rgba)
         depth = output_depth(dvr_depth, scene_pass.depth)
         return DVRResult(rgba, depth, dvr_rgba, np.asarray(dvr_depth, np.float32), scene_pass,
-                         visible=bool((dvr_rgba[..., 3] > 0).any()))
+                         visible=bool((dvr_rgba[..., 3] > 0).any()), note=note)
 
     def commit(result):  # all undone if it (or the operator's report) fails
         result.image = images.put_image(image_name, result.rgba)
@@ -180,6 +198,30 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     return jobs.Job(f"Render {vol_obj.name}", steps(), commit)
 
 
+def options_of(method):
+    """The options ``method`` (one of :data:`METHODS`) takes, with their defaults: the core's
+    ``render_options``, or the GPU's (:func:`.gpu_dvr.options`)."""
+    return gpu_dvr.options() if method == gpu_dvr.METHOD else render_options(method)
+
+
+def settings_options(settings, vol, method):
+    """The options of ``method`` that the Render settings (``Scene.volumeevm_render``) ask
+    for a volume object ``vol``: the core's ``method_options`` (the GPU's quality is the ray
+    caster's, less what the GPU does not have), X-ray's with ``mode="xray"``."""
+    gpu = method == gpu_dvr.METHOD
+    options = method_options("raycast" if gpu else method, settings.quality,
+                             tuple(vol.volumeevm.spacing), shading=settings.shading,
+                             termination=settings.termination, level=settings.resolution,
+                             slices_per_voxel=settings.slices_per_voxel,
+                             classification=settings.classification,
+                             jitter=settings.jitter, preintegrate=settings.preintegrate)
+    if gpu:
+        options = {k: v for k, v in options.items() if k in options_of(method) or k == "level"}
+    if settings.mode == "xray":
+        options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
+    return options
+
+
 def job_arguments(context, settings, volume_name=""):
     """The volume, transfer function and keyword arguments of :func:`render_dvr_job` that the
     Render settings (``Scene.volumeevm_render``) ask for."""
@@ -194,16 +236,9 @@ def job_arguments(context, settings, volume_name=""):
     vol = volume_object(vol)
     ensure_ramp(settings)
     tf = transfer_function(settings)
-    options = method_options(settings.method, settings.quality, tuple(vol.volumeevm.spacing),
-                             shading=settings.shading, termination=settings.termination,
-                             level=settings.resolution,
-                             slices_per_voxel=settings.slices_per_voxel,
-                             classification=settings.classification,
-                             jitter=settings.jitter, preintegrate=settings.preintegrate)
-    if settings.mode == "xray":
-        options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
     return vol, tf, dict(
-        method=settings.method, mode=settings.mode, options=options,
+        method=settings.method, mode=settings.mode,
+        options=settings_options(settings, vol, settings.method),
         image_name=settings.image_name or DEFAULT_IMAGE,
         exr_path=settings.exr_path if settings.use_exr else "",
         png_path=settings.png_path if settings.use_png else "",
@@ -225,10 +260,12 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     scene : bpy.types.Scene, optional
         Default: the context's scene.
     method, mode : str
-        As for the core's ``render`` (``"raycast"`` and ``"over"`` by default).
+        As for the core's ``render`` (``"raycast"`` and ``"over"`` by default), or the method
+        ``"gpu"`` (:func:`.gpu_dvr.render_gpu`; the CPU ray caster where no GPU context can
+        be made, said in the result's ``note``).
     options : dict, optional
-        Method options (see the core's ``method_options``); ``level`` is ``"auto"`` unless
-        given, as the Render setting Resolution is by default.
+        Method options (see the core's ``method_options``; :func:`options_of` for the GPU's);
+        ``level`` is ``"auto"`` unless given, as the Render setting Resolution is by default.
     camera_object : bpy.types.Object, optional
         Default: ``scene.camera``.
     image_name : str
@@ -243,7 +280,8 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     Returns
     -------
     DVRResult
-        Arrays, images and paths; ``visible`` is False if nothing of the volume was seen.
+        Arrays, images and paths; ``visible`` is False if nothing of the volume was seen;
+        ``note`` says when the GPU method fell back to the CPU.
 
     Raises
     ------

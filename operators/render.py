@@ -66,6 +66,8 @@ class VOLUMEEVM_OT_render_dvr(jobs.JobOperator, bpy.types.Operator):
     def finished(self, context, result):
         h, w = result.rgba.shape[:2]
         files = [p for p in (result.exr_path, result.png_path) if p]
+        if result.note:
+            self.report({"WARNING"}, result.note)
         if not result.visible:
             self.report({"WARNING"}, "The camera sees nothing of the volume (outside the view, "
                                      "hidden by scene geometry or transparent): the DVR is empty")
@@ -108,6 +110,9 @@ class VOLUMEEVM_OT_render_dvr_animation(bpy.types.Operator):
                 wm.progress_end()
         except jobs.REPORTED_ERRORS as error:
             return jobs.report_failure(self, error)
+        notes = {result.note for _, result in results if result.note}
+        for note in sorted(notes):
+            self.report({"WARNING"}, note)
         empty = [frame for frame, result in results if not result.visible]
         if empty:
             self.report({"WARNING"}, f"nothing of the volume seen in frames {empty}")

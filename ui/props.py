@@ -6,9 +6,10 @@ render settings). Bulk data never goes into ID properties: the dense volume stay
 cache in Python (``blender/runtime.py``) and the VolumeEVM in a ``.vevm`` sidecar file beside
 the .blend (``blender/sidecar.py``).
 
-The enums' identifiers come from one place each: the core's ``METHODS``, ``MODES``, ``LEVELS``
-and ``PRESETS``, the tool stack's ``TOOL_KINDS`` (only shear-warp's two classifications are
-listed here); the names and descriptions shown in the sidebar are written here.
+The enums' identifiers come from one place each: the Render methods of ``blender/dvr.py``
+(the core's ``METHODS`` and the GPU's), the core's ``MODES``, ``LEVELS`` and ``PRESETS``, the
+tool stack's ``TOOL_KINDS`` (only shear-warp's two classifications are listed here); the names
+and descriptions shown in the sidebar are written here.
 """
 
 import bpy
@@ -24,12 +25,12 @@ from bpy.props import (
     StringProperty,
 )
 
-from ..blender import tool_stack
-from ..blender.dvr import DEFAULT_IMAGE
+from ..blender import gpu_viewport, tool_stack
+from ..blender.dvr import DEFAULT_IMAGE, METHODS
 from ..blender.objects import render_volume
 from ..blender.transfer import load_preset
 from ..blender.volumes import HISTOGRAM_BINS
-from ..volumeevm_addon import LEVELS, METHODS, MODES, PRESETS
+from ..volumeevm_addon import LEVELS, MODES, PRESETS
 
 
 def enum_items(names, texts):
@@ -214,6 +215,8 @@ METHOD_ITEMS = enum_items(METHODS, {
                          "through the EVM (the report's slow baseline)"),
     "reference": ("Reference", "Dense float64 ray caster with a tiny step (accuracy oracle, "
                   "slow)"),
+    "gpu": ("GPU", "Ray casting on the graphics card through Blender's gpu module (the "
+                   "CPU ray caster where no GPU context can be made)"),
 })
 MODE_ITEMS = enum_items(MODES, {
     "over": ("Over", "Emission-absorption, front to back with early ray termination"),
@@ -257,6 +260,10 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
 
     volume: PointerProperty(name="Volume", type=bpy.types.Object, poll=_is_volume,
                             description="The volume to render (empty: the active volume)")
+    viewport: BoolProperty(
+        name="Viewport DVR", default=False, update=gpu_viewport.redraw,
+        description="Draw the selected volumes' DVR in the 3D viewports on the GPU, with this "
+                    "transfer function, mode, quality, resolution and early termination")
     method: EnumProperty(name="Method", items=METHOD_ITEMS, default="raycast")
     mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="over")
     quality: FloatProperty(

@@ -3,9 +3,9 @@ transfer function's colour ramp with the volume's histogram beside it, the rende
 
 import bpy
 
-from ..blender import jobs
+from ..blender import gpu_viewport, jobs
+from ..blender.dvr import options_of
 from ..blender.objects import render_volume
-from ..volumeevm_addon import render_options
 from .panels import draw_histogram
 
 #: Histogram rows drawn beside the ramp.
@@ -34,14 +34,19 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         vol = render_volume(context, settings)
         if settings.volume is None and vol is not None:
             layout.label(text=f"Rendering {vol.name}", icon="INFO")
+        layout.prop(settings, "viewport")
+        problem = gpu_viewport.problem(vol) if settings.viewport and vol is not None else ""
+        if problem:
+            layout.label(text=problem, icon="ERROR")
         col = layout.column(align=True)
         for name in ("method", "mode", "quality", "resolution", "termination"):
             col.prop(settings, name)
-        takes = render_options(settings.method)
+        takes = options_of(settings.method)
         for name in METHOD_SETTINGS:
             if name in takes:
                 col.prop(settings, name)
-        col.prop(settings, "shading")
+        if "shading" in takes:
+            col.prop(settings, "shading")
         if settings.mode == "xray":
             for name in XRAY_SETTINGS:
                 col.prop(settings, name)

@@ -36,6 +36,9 @@ from .readers import SUPPORTED_EXTENSIONS, read_volume
 from .rendering._camera import BACKGROUND_DEPTH, Camera
 from .rendering._compositing import composite_over, output_depth
 from .rendering._depth import VISIBLE_ALPHA
+from .rendering._gpu_inputs import (GPU_UNIFORMS_GLSL, GPUFrame, axial_from_window,
+                                    camera_from_viewport, gpu_frame, gpu_occupancy, gpu_region,
+                                    gpu_transfer_table, window_from_axial)
 from .rendering._images import exr_channels, openexr_module, read_exr, write_exr, write_png
 from .rendering._modes import MODES
 from .rendering._quality import method_options
@@ -51,6 +54,8 @@ __all__ = [
     "DerivedCache",
     "EVM",
     "EditStack",
+    "GPUFrame",
+    "GPU_UNIFORMS_GLSL",
     "LEVELS",
     "LIMIT_VARIABLE",
     "MAX_SAMPLES",
@@ -69,12 +74,18 @@ __all__ = [
     "VolumeEVMError",
     "atomic_target",
     "available_memory",
+    "axial_from_window",
     "box_evm",
+    "camera_from_viewport",
     "check_closed_mesh",
     "check_memory",
     "composite_over",
     "density_histogram",
     "exr_channels",
+    "gpu_frame",
+    "gpu_occupancy",
+    "gpu_region",
+    "gpu_transfer_table",
     "grid_to_world",
     "index_to_physical",
     "kernel_threads",
@@ -92,6 +103,7 @@ __all__ = [
     "tool_to_grid",
     "voxelize_mesh",
     "voxelize_mesh_evm",
+    "window_from_axial",
     "write_atomically",
     "write_exr",
     "write_png",

@@ -7,7 +7,8 @@ method; ``_render.py`` is the entry point that checks the inputs and dispatches 
 - ``_render.py``: :func:`~volumeevm_addon.render`, whatever the method (checks, memory, levels).
 - ``_shear_warp.py``: shear-warp (Lacroute & Levoy), parallel and perspective.
 - ``_splat.py``: sheet-buffer splatting (Westover), post-classified.
-- ``_raycast.py``: ray casting with the EVM as space-leaping structure, and its navigation mode.
+- ``_raycast.py``: ray casting with the EVM as space-leaping structure, and its navigation mode
+  (their compiled per-ray loops in ``_ray_march.py``).
 - ``_reference.py``: the dense float64 reference ray caster, the accuracy oracle of every method.
 - ``_camera.py``: a plain camera record that reproduces Blender's projection exactly.
 - ``_transfer.py``: transfer functions, piecewise-linear colour and opacity in the data's units.
@@ -20,6 +21,8 @@ method; ``_render.py`` is the entry point that checks the inputs and dispatches 
 - ``_images.py``: image files of the results: OpenEXR (R, G, B, A, Z) and PNG previews.
 - ``_compositing.py``: a volume render laid over a scene render (alpha over, output depth).
 - ``_quality.py``: one quality setting as each method's options (``method_options``).
+- ``_gpu_inputs.py``: the NumPy half of the GPU method (which draws on the Blender side,
+  ``blender/gpu_dvr.py``): checks, pixel rays, depth conversions, textures, uniforms.
 
 To add a method: write its ``render_<method>`` (and ``tables_to_build``) in a module of its own
 here, with the signature of the others and built on the shared pieces above, then name it in

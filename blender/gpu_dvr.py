@@ -1,0 +1,598 @@
+"""Direct volume rendering on the GPU through Blender's own ``gpu`` module: textures, shader,
+one draw routine, and the offscreen render.
+
+The core computes everything but the drawing (``gpu_frame``, ``gpu_region``,
+``gpu_occupancy``, ``gpu_transfer_table``: checks, the pixel rays, the region's RG texture,
+the empty-space blocks, the transfer-function table, the std140 uniforms); this module uploads
+them and draws one full-screen quad whose fragment shader marches the pixel's ray:
+
+- take the pixel's ray in index space from the two affine maps of the uniforms (its parameter
+  is axial depth), clip it to the grid's box, the clip range and the scene's depth
+  (``depth_in``, axial: a render's Z pass, or a viewport's depth buffer converted);
+- cut it into equal parts no longer than the step and sample each at its midpoint, as the
+  reference does: a trilinear fetch of ``(density·inside, inside)`` renormalised (boundary
+  policy "clamp"); each part counts only for its length in region cells (cut at cell
+  boundaries, as the CPU ray caster cuts it), so the region's surface is placed exactly;
+- classify after interpolation through the 1-D transfer-function texture, correct the opacity
+  for the part's length, composite front to back with early termination (over), sum the
+  attenuation (X-ray) or keep the maximum (MIP);
+- leap over the empty blocks of ``8³`` voxels around the sample, as far as the empty-space
+  texture says they reach (the same image);
+- write premultiplied RGBA and the axial depth of the front of the first visible part
+  (the core's depth rule), ``1e10`` where nothing is visible.
+
+Textures are made lazily on the first draw and kept per VolumeEVM (the region, and the
+empty-space blocks of its last few transfer functions and modes) and per transfer-function
+version (its table, the last few);
+the shader once per process. They are freed with the VolumeEVM, by :func:`free`, and on file
+load. Drawing saves and restores the GPU state it changes.
+
+A GPU context is needed on the calling (main) thread: Blender with a window has one; in
+background mode Blender 5.x makes one with ``gpu.init()``, Blender 4.5 after one small
+Workbench render (:func:`ensure_context`, which raises :class:`GPUUnavailable` when neither
+works, so the render can fall back to the CPU ray caster). Without EGL that attempt crashes
+Blender instead of failing, so it is made first in a process of its own.
+"""
+
+import inspect
+import subprocess
+import sys
+import weakref
+from contextlib import contextmanager
+
+import bpy
+import gpu
+import numpy as np
+from gpu_extras.batch import batch_for_shader
+
+from ..volumeevm_addon import (BACKGROUND_DEPTH, GPU_UNIFORMS_GLSL, VolumeEVMError, gpu_frame,
+                               gpu_occupancy, gpu_region, gpu_transfer_table)
+
+#: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).
+METHOD = "gpu"
+
+
+class GPUUnavailable(VolumeEVMError):
+    """No GPU context can be made on this thread (a headless machine without EGL, a worker
+    thread): the GPU method cannot draw."""
+
+
+_SENTINEL = -1.0
+"""The depth target's clear value: no pixel of a draw keeps it (the shader writes every
+pixel), so a pixel holding it means the draw was silently dropped."""
+
+_VERTEX = """
+void main()
+{
+  ndc = pos;
+  gl_Position = vec4(pos, 0.0, 1.0);
+}
+"""
+
+_FRAGMENT = """
+/* The line p = o + t d against the box [lo, hi]: narrows [t0, t1], false when it misses. */
+bool clip_box(vec3 o, vec3 d, vec3 lo, vec3 hi, inout float t0, inout float t1)
+{
+  for (int i = 0; i < 3; i++) {
+    if (d[i] == 0.0) {
+      if (o[i] < lo[i] || o[i] > hi[i]) {
+        return false;
+      }
+    }
+    else {
+      float a = (lo[i] - o[i]) / d[i];
+      float b = (hi[i] - o[i]) / d[i];
+      t0 = max(t0, min(a, b));
+      t1 = min(t1, max(a, b));
+    }
+  }
+  return t1 > t0;
+}
+
+/* Where the line leaves the box [lo, hi] (it is inside it). */
+float box_exit(vec3 o, vec3 d, vec3 lo, vec3 hi)
+{
+  float t = 3.0e38;
+  for (int i = 0; i < 3; i++) {
+    if (d[i] != 0.0) {
+      t = min(t, max((lo[i] - o[i]) / d[i], (hi[i] - o[i]) / d[i]));
+    }
+  }
+  return t;
+}
+
+/* Whether the cell of voxel c (clamped to the grid) is in the region. */
+bool in_region(ivec3 c)
+{
+  return texelFetch(region, clamp(c, ivec3(0), ivec3(params.grid.xyz) - 1), 0).g > 0.5;
+}
+
+/* The part of a ray from pf to pb (index space): the fraction of it lying in region cells, and
+ * where (as a fraction) its first piece in a region cell starts, -1 for none. The part is cut
+ * where it crosses cell boundaries (index m + 0.5; at most one per axis for steps up to a
+ * voxel), so the region's surface is placed exactly, as the CPU ray caster places it. */
+vec2 coverage(vec3 pf, vec3 pb)
+{
+  ivec3 cf = ivec3(floor(pf + 0.5));
+  ivec3 cb = ivec3(floor(pb + 0.5));
+  if (cf == cb) {
+    return in_region(cf) ? vec2(1.0, 0.0) : vec2(0.0, -1.0);
+  }
+  vec3 span = pb - pf;
+  vec3 cut = vec3(1.0);
+  for (int i = 0; i < 3; i++) {
+    if (cf[i] != cb[i]) {
+      cut[i] = clamp((float(max(cf[i], cb[i])) - 0.5 - pf[i]) / span[i], 0.0, 1.0);
+    }
+  }
+  /* sorted: e1 <= e2 <= e3 */
+  float e1 = min(cut.x, min(cut.y, cut.z));
+  float e3 = max(cut.x, max(cut.y, cut.z));
+  float e2 = cut.x + cut.y + cut.z - e1 - e3;
+  float edges[5] = float[5](0.0, e1, e2, e3, 1.0);
+  float part = 0.0;
+  float start = -1.0;
+  for (int j = 0; j < 4; j++) {
+    float piece = edges[j + 1] - edges[j];
+    if (piece > 0.0 && in_region(ivec3(floor(pf + (0.5 * (edges[j] + edges[j + 1])) * span + 0.5))))
+    {
+      part += piece;
+      if (start < 0.0) {
+        start = edges[j];
+      }
+    }
+  }
+  return vec2(part, start);
+}
+
+/* Straight colour and opacity per unit length of a density (linear in the table). */
+vec4 classify(float value)
+{
+  float x = clamp((value - params.table.x) * params.table.y, 0.0, params.table.z - 1.0);
+  return texture(tf_table, (x + 0.5) / params.table.z);
+}
+
+void main()
+{
+  out_color = vec4(0.0);
+  out_depth = BACKGROUND_DEPTH;
+  /* The pixel's ray in index space: o + t d at axial depth clip.z + t. */
+  vec3 o = (params.ray_origin * vec4(ndc, 1.0, 0.0)).xyz;
+  vec3 d = (params.ray_direction * vec4(ndc, 1.0, 0.0)).xyz;
+  float t0 = params.clip.x;
+  float t1 = params.clip.y;
+  if (params.image.z > 0.5) {
+    ivec2 pixel = ivec2((ndc * 0.5 + 0.5) * params.image.xy);
+    t1 = min(t1, texelFetch(depth_in, pixel, 0).r - params.clip.z);
+  }
+  vec3 n = params.grid.xyz;
+  if (!clip_box(o, d, vec3(-0.5), n - 0.5, t0, t1)) {
+    return;
+  }
+  /* Equal parts no longer than the step, sampled at their midpoints. */
+  float length_mm = (t1 - t0) * length(d * params.spacing.xyz);
+  float parts = max(ceil(length_mm / params.spacing.w * (1.0 - 1e-6)), 1.0);
+  float dt = (t1 - t0) / parts;
+  float part_mm = length_mm / parts;
+  float units = part_mm / params.table.w;
+  int mode = int(params.compositing.x);
+  bool skip = params.blocks.w > 0.5;
+  int block = int(params.grid.w);
+  ivec3 last_cell = ivec3(n) - 1;
+  vec3 to_texture = 1.0 / n;
+
+  vec4 acc = vec4(0.0);
+  float tau = 0.0;
+  float vmax = -3.0e38;
+  float t_depth = 0.0;
+  bool seen = false; /* t_depth holds the depth event */
+  ivec3 visible_block = ivec3(-1); /* the last block found visible */
+  int count = int(parts);
+  for (int k = 0; k < count; k++) {
+    float t = t0 + (float(k) + 0.5) * dt;
+    vec3 p = o + t * d;
+    ivec3 cell = clamp(ivec3(floor(p + 0.5)), ivec3(0), last_cell);
+    if (skip) {
+      ivec3 b = cell / block;
+      if (b != visible_block) {
+        float empty = texelFetch(occupancy, b, 0).r;
+        if (empty > 0.5) {
+          /* The blocks within empty - 1 of this one are empty: leap to one sample before the
+           * first midpoint past their cube (float rounding may leave that one inside: it is
+           * tested again). */
+          int r = int(empty) - 1;
+          vec3 lo = vec3((b - r) * block) - 0.5;
+          vec3 hi = min(vec3((b + r + 1) * block), n) - 0.5;
+          float exit_t = box_exit(o, d, lo, hi);
+          int first_after = int(floor((exit_t - t0) / dt - 0.5)) + 1;
+          k = max(k, first_after - 2);
+          continue;
+        }
+        visible_block = b;
+      }
+    }
+    /* (density, weight) summed over the region's voxels among the 8 neighbours: no weight,
+     * no part of the sample's part lies in a region cell (those cells are neighbours with
+     * weight); all the weight, all of it does (an outside cell would miss its >= 1/8). */
+    vec2 rg = texture(region, (p + 0.5) * to_texture).rg;
+    if (rg.y <= 0.0) {
+      continue;
+    }
+    vec2 cover = rg.y > 0.99999 ? vec2(1.0, 0.0) : coverage(p - 0.5 * dt * d, p + 0.5 * dt * d);
+    if (cover.x <= 0.0) {
+      continue;
+    }
+    float value = rg.x / rg.y;
+    float t_front = t + (cover.y - 0.5) * dt;
+    if (mode == MODE_XRAY) {
+      float mu = params.compositing.z * max(value - params.compositing.w, 0.0);
+      tau += mu * part_mm * cover.x;
+      if (!seen && mu > 0.0 && mu >= VISIBLE_OPTICAL_DEPTH) {
+        seen = true;
+        t_depth = t_front;
+      }
+    }
+    else if (mode == MODE_MIP) {
+      /* The part's front end, middle and back end (nudged into it), as the CPU ray caster:
+       * along a ray parallel to an axis the field is linear between voxel planes. */
+      for (int e = -1; e <= 1; e++) {
+        float te = t + float(e) * 0.4995 * dt;
+        vec3 q = o + te * d;
+        if (in_region(ivec3(floor(q + 0.5)))) {
+          vec2 qrg = e == 0 ? rg : texture(region, (q + 0.5) * to_texture).rg;
+          float qvalue = qrg.x / qrg.y;
+          if (qvalue > vmax) {
+            vmax = qvalue;
+            seen = true;
+            t_depth = te;
+          }
+        }
+      }
+    }
+    else {
+      vec4 c = classify(value);
+      float alpha = 1.0 - pow(1.0 - c.a, units * cover.x);
+      if (!seen && c.a > 0.0 && c.a >= VISIBLE_ALPHA) {
+        seen = true;
+        t_depth = t_front;
+      }
+      float weight = (1.0 - acc.a) * alpha;
+      acc += vec4(c.rgb * weight, weight);
+      if (acc.a >= params.compositing.y) {
+        break;
+      }
+    }
+  }
+  if (mode == MODE_XRAY) {
+    acc = vec4(1.0 - exp(-tau));
+  }
+  else if (mode == MODE_MIP) {
+    if (seen) {
+      vec4 c = classify(vmax);
+      acc = vec4(c.rgb * c.a, c.a);
+      if (!(c.a > 0.0 && c.a >= VISIBLE_ALPHA)) {
+        seen = false;
+      }
+    }
+  }
+  if (params.image.w > 0.5 && acc.a > 0.0) { /* sRGB display: encode the straight colour */
+    vec3 c = clamp(acc.rgb / acc.a, 0.0, 1.0);
+    c = mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
+    acc.rgb = c * acc.a;
+  }
+  out_color = acc;
+  if (seen) {
+    out_depth = params.clip.z + t_depth;
+  }
+}
+"""
+
+_shader = None
+_batch = None
+_volumes = weakref.WeakKeyDictionary()  # VolumeEVM -> _VolumeTextures
+_tables = {}  # transfer-function version -> 1-D texture
+_KEPT = 8
+"""Transfer-function tables kept, and empty-space textures per VolumeEVM (the latest used)."""
+_context = False
+
+
+class _VolumeTextures:
+    """One VolumeEVM's textures: the region, and its empty-space blocks per (transfer
+    function, mode, X-ray parameters)."""
+
+    def __init__(self, vevm):
+        self.region = _texture_3d(gpu_region(vevm), "RG32F")
+        self.occupancy = {}
+
+
+# ---------------------------------------------------------------------------- context
+def ensure_context():
+    """Make sure the calling thread can draw: in background mode make the process's GPU
+    context once (Blender 5.x: ``gpu.init()``; 4.5: a 4x4 Workbench render of a temporary
+    scene), then check that a texture can be made.
+
+    Raises
+    ------
+    GPUUnavailable
+        When no GPU context can be made (no EGL, a worker thread).
+    """
+    global _context
+    if _context:
+        return
+    try:
+        if bpy.app.background:
+            _probe()
+            if hasattr(gpu, "init"):
+                gpu.init()
+            else:
+                _workbench_render()
+        gpu.types.GPUTexture((1, 1), format="R32F")
+    except (SystemError, RuntimeError) as error:
+        raise GPUUnavailable(f"no GPU context ({error})") from error
+    _context = True
+
+
+_PROBE = """
+import bpy, gpu
+if hasattr(gpu, "init"):
+    gpu.init()
+else:
+    render = bpy.context.scene.render
+    render.engine = "BLENDER_WORKBENCH"
+    render.resolution_x = render.resolution_y = 4
+    bpy.ops.render.render()
+gpu.types.GPUTexture((1, 1), format="R32F")
+"""
+"""What :func:`ensure_context` does in background mode, for a process of its own."""
+
+
+def _probe():
+    """Make a GPU context in another Blender process first: without EGL, making one crashes
+    Blender (a segmentation fault, not an exception), which must not take this process down.
+
+    Raises
+    ------
+    RuntimeError
+        When that process fails.
+    """
+    if bpy.app.binary_path:  # Blender
+        command = [bpy.app.binary_path, "--background", "--factory-startup",
+                   "--python-exit-code", "1", "--python-expr", _PROBE]
+    else:  # the bpy module
+        command = [sys.executable, "-c", _PROBE]
+    try:
+        run = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise RuntimeError(f"a test process could not run: {error}") from error
+    if run.returncode != 0:
+        raise RuntimeError(f"a test process failed with exit code {run.returncode}")
+
+
+def _workbench_render():
+    """Render a 4x4 Workbench image of a temporary scene with a temporary camera: Blender 4.5
+    keeps the GPU context it makes for the rest of the process."""
+    scene = bpy.data.scenes.new("VolumeEVM GPU context")
+    camera_data = bpy.data.cameras.new("VolumeEVM GPU context")
+    camera = bpy.data.objects.new("VolumeEVM GPU context", camera_data)
+    try:
+        scene.collection.objects.link(camera)
+        scene.camera = camera
+        scene.render.engine = "BLENDER_WORKBENCH"
+        scene.render.resolution_x = scene.render.resolution_y = 4
+        scene.render.resolution_percentage = 100
+        bpy.ops.render.render(scene=scene.name)
+    finally:
+        bpy.data.objects.remove(camera)
+        bpy.data.cameras.remove(camera_data)
+        bpy.data.scenes.remove(scene)
+
+
+# ---------------------------------------------------------------------------- resources
+def float_buffer(array):
+    """A flat float32 ``gpu.types.Buffer`` sharing ``array``'s memory (a float32 C-contiguous
+    copy where it is not one), to upload it or to read pixels into it: a NumPy array handed to
+    ``Buffer`` is reinterpreted, not converted, and multi-dimensional Buffers come out
+    transposed on Blender 4.5."""
+    flat = np.ascontiguousarray(array, dtype=np.float32).ravel()
+    return gpu.types.Buffer("FLOAT", flat.size, flat)
+
+
+def _texture(size, texture_format, what, array=None):
+    """A texture of ``size`` (x first), filled from ``array`` (x fastest) if given; a size or
+    memory the GPU refuses raises :class:`VolumeEVMError` naming ``what``."""
+    data = {} if array is None else {"data": float_buffer(array)}  # 4.5 refuses data=None
+    try:
+        return gpu.types.GPUTexture(size, format=texture_format, **data)
+    except RuntimeError as error:
+        raise VolumeEVMError(f"{what}: the GPU cannot hold a "
+                             f"{'x'.join(str(n) for n in np.ravel(size))} "
+                             f"{texture_format} texture ({error}); render a coarser level "
+                             f"or a smaller image") from error
+
+
+def _texture_3d(array, texture_format):
+    """A 3D texture of a ``(Z, Y, X[, C])`` float32 array (x fastest)."""
+    return _texture(array.shape[2::-1], texture_format, "vevm", array)
+
+
+def _shader_and_batch():
+    """The ray-marching shader and its full-screen quad, made once."""
+    global _shader, _batch
+    if _shader is None:
+        info = gpu.types.GPUShaderCreateInfo()
+        info.typedef_source(GPU_UNIFORMS_GLSL)
+        info.uniform_buf(0, "VolumeParams", "params")
+        info.sampler(0, "FLOAT_3D", "region")
+        info.sampler(1, "FLOAT_3D", "occupancy")
+        info.sampler(2, "FLOAT_1D", "tf_table")
+        info.sampler(3, "FLOAT_2D", "depth_in")
+        interface = gpu.types.GPUStageInterfaceInfo("volumeevm_dvr")
+        interface.smooth("VEC2", "ndc")
+        info.vertex_in(0, "VEC2", "pos")
+        info.vertex_out(interface)
+        info.fragment_out(0, "VEC4", "out_color")
+        info.fragment_out(1, "FLOAT", "out_depth")
+        info.vertex_source(_VERTEX)
+        info.fragment_source(_FRAGMENT)
+        _shader = gpu.shader.create_from_info(info)
+        _batch = batch_for_shader(_shader, "TRI_STRIP",
+                                  {"pos": ((-1, -1), (1, -1), (-1, 1), (1, 1))})
+    return _shader, _batch
+
+
+def _tf_key(tf):
+    """A transfer function's version: its control points and unit length (None for X-ray)."""
+    return None if tf is None else (tf.points.tobytes(), tf.unit_length_mm)
+
+
+def _table_texture(tf):
+    """The 1-D transfer-function texture of ``tf``'s version (a few versions kept)."""
+    key = _tf_key(tf)
+    texture = _tables.pop(key, None)
+    if texture is None:
+        table = gpu_transfer_table(tf)[0]
+        texture = _texture(len(table), "RGBA32F", "tf", table)
+    _keep(_tables, key, texture)
+    return texture
+
+
+def _keep(textures, key, texture):
+    """Put ``texture`` under ``key`` as the most recently used, dropping the oldest beyond
+    :data:`_KEPT`."""
+    textures.pop(key, None)
+    textures[key] = texture
+    while len(textures) > _KEPT:
+        textures.pop(next(iter(textures)))
+
+
+def _textures(frame, tf, xray):
+    """The region and occupancy textures of the frame's VolumeEVM, made on first use."""
+    volume = _volumes.get(frame.vevm)
+    if volume is None:
+        volume = _volumes[frame.vevm] = _VolumeTextures(frame.vevm)
+    key = (_tf_key(tf), frame.mode, xray)
+    occupancy = volume.occupancy.get(key)
+    if occupancy is None:
+        blocks = gpu_occupancy(frame.vevm, tf, mode=frame.mode, xray_scale=xray[0],
+                               xray_offset=xray[1])
+        occupancy = _texture_3d(blocks, "R32F")
+    _keep(volume.occupancy, key, occupancy)
+    return volume.region, occupancy
+
+
+def free():
+    """Drop every texture and the shader (add-on unregistered, file loaded)."""
+    global _shader, _batch
+    _volumes.clear()
+    _tables.clear()
+    _shader = _batch = None
+
+
+# ---------------------------------------------------------------------------- drawing
+@contextmanager
+def restored_state(blend="NONE"):
+    """Set the blend mode and switch depth test and depth writes off for a draw; put back what
+    was set before, whatever happens."""
+    saved = gpu.state.blend_get(), gpu.state.depth_test_get(), gpu.state.depth_mask_get()
+    try:
+        gpu.state.blend_set(blend)
+        gpu.state.depth_test_set("NONE")
+        gpu.state.depth_mask_set(False)
+        yield
+    finally:
+        gpu.state.blend_set(saved[0])
+        gpu.state.depth_test_set(saved[1])
+        gpu.state.depth_mask_set(saved[2])
+
+
+def draw(frame, tf, *, depth_texture=None, xray=(1.0, 0.0), blend="NONE"):
+    """Draw the volume of ``frame`` (the core's ``gpu_frame``) into the bound framebuffer: one
+    full-screen quad, RGBA (premultiplied) to colour slot 0 and axial depth to slot 1.
+
+    The one draw routine of the offscreen render and the viewport.
+
+    Parameters
+    ----------
+    frame : GPUFrame
+    tf : TransferFunction or None
+        The frame's transfer function (None for X-ray).
+    depth_texture : gpu.types.GPUTexture, optional
+        Axial depth where rays stop (R32F, the frame's image size, bottom row first); None:
+        the frame's own ``depth_in`` (or none).
+    xray : (float, float)
+        The frame's ``xray_scale`` and ``xray_offset`` (they select the occupancy blocks).
+    blend : str
+        ``gpu.state.blend_set`` mode for the draw: ``"NONE"`` offscreen (the values as
+        computed), ``"ALPHA_PREMULT"`` over a viewport.
+    """
+    shader, batch = _shader_and_batch()
+    region, occupancy = _textures(frame, tf, tuple(xray))
+    if depth_texture is None:
+        depth = frame.depth_in
+        if depth is None:
+            depth = np.full((1, 1), BACKGROUND_DEPTH, np.float32)
+        depth_texture = _texture(depth.shape[::-1], "R32F", "depth_in", depth)
+    uniforms = gpu.types.GPUUniformBuf(float_buffer(frame.uniforms))
+    with restored_state(blend):
+        shader.bind()
+        shader.uniform_block("params", uniforms)
+        shader.uniform_sampler("region", region)
+        shader.uniform_sampler("occupancy", occupancy)
+        shader.uniform_sampler("tf_table", _table_texture(tf))
+        shader.uniform_sampler("depth_in", depth_texture)
+        batch.draw(shader)
+
+
+def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None,
+               level="full", step_mm=None, termination=0.99, skip_empty=True,
+               xray_scale=1.0, xray_offset=0.0):
+    """Render ``vevm`` seen by ``camera`` on the GPU: the core's ``render`` for the GPU.
+
+    Same arguments and outputs as the core's ``render(..., method="raycast")`` with the
+    options the GPU method has (``step_mm``, ``termination``, ``skip_empty``, X-ray's); the
+    ray marcher samples as the reference does (module docstring).
+
+    Returns
+    -------
+    rgba : (H, W, 4) ndarray of np.float32
+        Premultiplied, row 0 at the top.
+    depth : (H, W) ndarray of np.float32
+        Axial depth of the first visible part, 1e10 where none.
+
+    Raises
+    ------
+    VolumeEVMError
+        For bad input (the core's ``gpu_frame``), a volume or image larger than the GPU's
+        textures, or a draw the driver dropped.
+    GPUUnavailable
+        When no GPU context can be made (the caller falls back to the CPU).
+    """
+    frame = gpu_frame(vevm, camera, tf, mode=mode, depth_in=depth_in, matrix_world=matrix_world,
+                      level=level, step_mm=step_mm, termination=termination,
+                      skip_empty=skip_empty, xray_scale=xray_scale, xray_offset=xray_offset)
+    h, w = camera.shape
+    rgba = np.zeros((h, w, 4), np.float32)
+    depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)
+    if frame.vevm.evm.is_empty():
+        return rgba, depth
+    ensure_context()
+    color_target = _texture((w, h), "RGBA32F", "camera")
+    depth_target = _texture((w, h), "R32F", "camera")
+    framebuffer = gpu.types.GPUFrameBuffer(color_slots=(color_target, depth_target))
+    with framebuffer.bind():
+        framebuffer.clear(color=(_SENTINEL, 0.0, 0.0, 0.0))
+        draw(frame, tf, xray=(xray_scale, xray_offset))
+        framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT", data=float_buffer(rgba))
+        framebuffer.read_color(0, 0, w, h, 1, 1, "FLOAT", data=float_buffer(depth))
+    if (depth == _SENTINEL).any():
+        raise VolumeEVMError("the GPU dropped the volume's draw (its driver drew nothing); "
+                             "render with a CPU method")
+    return np.flipud(rgba).copy(), np.flipud(depth).copy()
+
+
+def options():
+    """The options of :func:`render_gpu` with their defaults, as the core's ``render_options``
+    gives a CPU method's (``mode``, ``depth_in``, ``matrix_world`` and ``level`` aside)."""
+    parameters = inspect.signature(render_gpu).parameters.values()
+    return {p.name: p.default for p in parameters if p.kind == p.KEYWORD_ONLY
+            and p.name not in ("mode", "depth_in", "matrix_world", "level")}

@@ -1,0 +1,205 @@
+"""Render the GPU test cases in a Blender process of their own and save the images.
+
+Run by ``test_gpu_render.py`` with the interpreter of the bpy line under test::
+
+    python tests/gpu_runner.py OUT.npz DATA_DIR
+
+It makes a GPU context (:func:`blender.gpu_dvr.ensure_context`), renders every case of
+:data:`gpu_cases.CASES` with the GPU method and saves ``<case>_rgba`` and ``<case>_depth``, plus
+``meta`` (JSON): whether a context was made (and why not), the GPU, each case's error and time,
+and whether drawing put the GPU state back. Then the extension is registered and Render
+VolumeEVM's job renders a scene with the GPU method, the CPU ray caster and the GPU's fallback
+(``scene_*`` arrays, the fallback's note in ``meta``), and the viewport's drawing goes over
+Blender's Solid drawing of that scene (``viewport_*`` arrays, the VolumeEVM in ``OUT.vevm``). A crash or a missing context here fails or skips
+the GPU tests, never the rest of the suite.
+"""
+
+import importlib
+import json
+import sys
+import time
+import traceback
+from pathlib import Path
+
+TESTS = Path(__file__).resolve().parent
+sys.path[:0] = [str(TESTS.parent), str(TESTS)]
+
+import bpy  # noqa: E402
+import gpu  # noqa: E402
+import numpy as np  # noqa: E402
+
+import gpu_cases  # noqa: E402
+from sample_blends.make_demo import load_extension  # noqa: E402
+
+
+def state():
+    return gpu.state.blend_get(), gpu.state.depth_test_get(), gpu.state.depth_mask_get()
+
+
+def state_restored(gpu_dvr, data_dir):
+    """Draw with a state unlike the draw's own set; is it the same afterwards?"""
+    vevm, cam, tf, options = gpu_cases.case("irregular_over_ortho", data_dir)
+    gpu.state.blend_set("ADDITIVE")
+    gpu.state.depth_test_set("LESS_EQUAL")
+    gpu.state.depth_mask_set(True)
+    before = state()
+    gpu_dvr.render_gpu(vevm, cam, tf, **options)
+    after = state()
+    gpu.state.blend_set("NONE")
+    gpu.state.depth_test_set("NONE")
+    gpu.state.depth_mask_set(False)
+    return before == after and before[0] == "ADDITIVE"
+
+
+def scene_renders(ext, arrays, out):
+    """Render VolumeEVM's job with the method "gpu" and with "raycast" (the same options) over
+    a Cycles scene with a plane in front of part of the skull, and with the GPU unavailable
+    (the fallback): saves ``scene_<what>_<name>`` arrays, returns the fallback's note."""
+    import math
+
+    from volumeevm.blender import api, dvr, gpu_dvr
+    from volumeevm.volumeevm_addon import TransferFunction
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    vol = api.import_volume(TESTS.parent / "sample_blends" / "data" / "ct_skull_cgal.npy")
+    api.build(vol, 2.9)
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam)
+    cam.location = (0.124, -0.6, 0.115)
+    cam.rotation_euler = (math.pi / 2, 0.0, 0.0)
+    cam.data.clip_start, cam.data.clip_end = 0.01, 10.0
+    scene.camera = cam
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples = 1
+    scene.cycles.filter_width = 0.01
+    scene.render.resolution_x, scene.render.resolution_y = 64, 48
+    scene.render.film_transparent = True
+    mesh = bpy.data.meshes.new("Plane")
+    mesh.from_pydata([(-0.1, -0.1, 0), (0.1, -0.1, 0), (0.1, 0.1, 0), (-0.1, 0.1, 0)], [],
+                     [(0, 1, 2, 3)])
+    plane = bpy.data.objects.new("Plane", mesh)
+    plane.location, plane.rotation_euler = (0.02, -0.2, 0.115), (math.pi / 2, 0.0, 0.0)
+    scene.collection.objects.link(plane)
+    tf = TransferFunction(gpu_cases.SKULL_TF)  # the extension's own class: the job checks it
+    options = {"step_mm": 0.25, "termination": 1.0, "level": "full"}
+    results = {"gpu": dvr.render_dvr(vol, tf, method="gpu", options=options),
+               "raycast": dvr.render_dvr(vol, tf, method="raycast", options=options)}
+    ensure = gpu_dvr.ensure_context
+
+    def unavailable():
+        raise gpu_dvr.GPUUnavailable("no GPU context (simulated)")
+
+    gpu_dvr.ensure_context = unavailable
+    try:
+        results["fallback"] = dvr.render_dvr(vol, tf, method="gpu", options=options)
+    finally:
+        gpu_dvr.ensure_context = ensure
+    for name, result in results.items():
+        for what in ("rgba", "depth", "dvr_rgba", "dvr_depth"):
+            arrays[f"scene_{what}_{name}"] = getattr(result, what)
+    arrays["scene_depth_in"] = results["gpu"].scene.depth
+    arrays["scene_colour_in"] = results["gpu"].scene.rgba
+    viewport(vol, tf, options, arrays, out)
+    return {name: result.note for name, result in results.items()}
+
+
+def viewport(vol, tf, options, arrays, out):
+    """The viewport's drawing over Blender's own Solid drawing of the same scene (offscreen
+    ``draw_view3d`` with the scene camera's matrices): saves the Solid image and depth, the
+    composite, the matrices and the VolumeEVM (``<out>.vevm``) for the reference."""
+    from mathutils import Matrix
+
+    from volumeevm.blender import api, gpu_viewport
+    from volumeevm.blender.camera import camera_from_blender
+
+    scene = bpy.context.scene
+    area = next(a for a in bpy.data.screens["Layout"].areas if a.type == "VIEW_3D")
+    space = area.spaces.active
+    space.shading.type = "SOLID"
+    space.overlay.show_overlays = False  # the grid and the volume's wire box write depth here
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    camera = camera_from_blender(scene)
+    projection = camera.matrix_projection()
+    view = np.linalg.inv(camera.matrix_world)
+    h, w = camera.shape
+    offscreen = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
+    offscreen.draw_view3d(scene, bpy.context.view_layer, space, region, Matrix(view.tolist()),
+                          Matrix(projection.tolist()))
+    solid = np.empty((h, w, 4), np.float32)
+    window = np.empty((h, w), np.float32)
+    composite = np.empty((h, w, 4), np.float32)
+    with offscreen.bind():
+        framebuffer = gpu.state.active_framebuffer_get()
+        framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
+                               data=gpu.types.Buffer("FLOAT", solid.size, solid))
+        framebuffer.read_depth(0, 0, w, h, data=gpu.types.Buffer("FLOAT", window.size, window))
+        gpu_viewport.draw_volume(api.get_vevm(vol), tf, projection, view, (w, h),
+                                 matrix_world=np.array(vol.matrix_world), **options)
+        framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
+                               data=gpu.types.Buffer("FLOAT", composite.size, composite))
+        for srgb in (False, True):  # the DVR alone, scene-linear and for an sRGB display
+            alone = np.empty((h, w, 4), np.float32)
+            framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
+            gpu_viewport.draw_volume(api.get_vevm(vol), tf, projection, view, (w, h),
+                                     matrix_world=np.array(vol.matrix_world), srgb=srgb,
+                                     **options)
+            framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
+                                   data=gpu.types.Buffer("FLOAT", alone.size, alone))
+            arrays[f"viewport_alone_{'srgb' if srgb else 'linear'}"] = np.flipud(alone)
+    offscreen.free()
+    arrays.update(viewport_solid=np.flipud(solid), viewport_window_depth=np.flipud(window),
+                  viewport_composite=np.flipud(composite), viewport_projection=projection,
+                  viewport_view=view, viewport_matrix_world=np.array(vol.matrix_world))
+    api.get_vevm(vol).save(Path(out).with_suffix(".vevm"))
+
+
+def main(out, data_dir):
+    ext = load_extension()
+    from volumeevm.blender import gpu_dvr
+
+    meta = {"context": True, "reason": "", "bpy": bpy.app.version_string, "errors": {},
+            "times": {}}
+    arrays = {}
+    try:
+        gpu_dvr.ensure_context()
+    except gpu_dvr.GPUUnavailable as error:
+        meta.update(context=False, reason=str(error))
+    if meta["context"]:
+        meta["gpu"] = f"{gpu.platform.renderer_get()} ({gpu.platform.backend_type_get()})"
+        for name in gpu_cases.CASES:
+            try:
+                vevm, cam, tf, options = gpu_cases.case(name, data_dir)
+                start = time.perf_counter()
+                rgba, depth = gpu_dvr.render_gpu(vevm, cam, tf, **options)
+                meta["times"][name] = time.perf_counter() - start
+                arrays[f"{name}_rgba"], arrays[f"{name}_depth"] = rgba, depth
+            except Exception:  # noqa: BLE001 (reported to the test of this case)
+                meta["errors"][name] = traceback.format_exc()
+        meta["state_restored"] = state_restored(gpu_dvr, data_dir)
+        try:  # larger than llvmpipe's 3D textures (2048)
+            gpu_dvr._texture_3d(np.zeros((1, 1, 16385, 2), np.float32), "RG32F")
+            meta["too_large"] = ""
+        except gpu_dvr.VolumeEVMError as error:
+            meta["too_large"] = str(error)
+        importlib.import_module(f"{ext.__name__}.blender.api")
+        ext.register()
+        from volumeevm.blender import gpu_viewport
+
+        handlers = {"registered": gpu_viewport._handle is not None}
+        try:
+            meta["scene_notes"] = scene_renders(ext, arrays, out)
+            handlers["textures kept"] = len(gpu_dvr._volumes) > 0
+            bpy.ops.wm.read_factory_settings(use_empty=True)  # a file load
+            handlers["freed on load"] = len(gpu_dvr._volumes) == 0
+        except Exception:  # noqa: BLE001 (reported to the tests of the render job)
+            meta["errors"]["scene"] = traceback.format_exc()
+        finally:
+            ext.unregister()
+        handlers["removed"] = gpu_viewport._handle is None and gpu_dvr._shader is None
+        meta["viewport_handlers"] = handlers
+    np.savez(out, meta=np.array(json.dumps(meta)), **arrays)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], Path(sys.argv[2]))

@@ -1,0 +1,291 @@
+"""The GPU method (``blender/gpu_dvr.py``) against the NumPy reference, never golden images:
+the box chord law and Gaussian blobs in closed form, the CT head within the CPU ray caster's
+bounds at the same step, skipping on and off identical, the early-termination bound,
+``depth_in``, the region's boundary policy in every mode, and the GPU state put back.
+
+The images come from ``gpu_runner.py``, run once per test session in a Blender process of its
+own with this interpreter (so each bpy line renders its own). Without a GPU context the tests
+skip; with ``VOLUMEEVM_REQUIRE_GPU=1`` (CI) that is a failure.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import gpu_cases
+from volumeevm_addon import (BACKGROUND_DEPTH, TransferFunction, VolumeEVM, axial_from_window,
+                             camera_from_viewport, composite_over, grid_to_world, phantoms,
+                             render)
+from volumeevm_addon.metrics import rmse
+
+RUNNER = Path(__file__).resolve().parent / "gpu_runner.py"
+REQUIRE = "VOLUMEEVM_REQUIRE_GPU"
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory, data_dir):
+    """The runner's images and report."""
+    out = tmp_path_factory.mktemp("gpu") / "gpu.npz"
+    run = subprocess.run([sys.executable, str(RUNNER), str(out), str(data_dir)],
+                         capture_output=True, text=True, timeout=1200)
+    if run.returncode != 0 or not out.exists():
+        pytest.fail(f"the GPU runner failed (exit {run.returncode}):\n{run.stderr[-4000:]}")
+    with np.load(out) as data:
+        arrays = {key: data[key] for key in data.files}
+    meta = json.loads(str(arrays.pop("meta")))
+    meta["vevm"] = out.with_suffix(".vevm")
+    if not meta["context"]:
+        message = f"no GPU context on bpy {meta['bpy']}: {meta['reason']}"
+        if os.environ.get(REQUIRE) == "1":
+            pytest.fail(f"{message} ({REQUIRE}=1)")
+        pytest.skip(message)
+    return arrays, meta
+
+
+@pytest.fixture
+def gpu(rendered):
+    """``gpu(name)``: the GPU's (rgba, depth) for a case, failing with the runner's error."""
+    arrays, meta = rendered
+
+    def images(name):
+        if name in meta["errors"]:
+            pytest.fail(f"{name} on the GPU:\n{meta['errors'][name]}")
+        return arrays[f"{name}_rgba"], arrays[f"{name}_depth"]
+
+    return images
+
+
+def reference(name, data_dir, **overrides):
+    """The reference render of a case (its step: the reference's own, unless ``overrides``)."""
+    vevm, cam, tf, options = gpu_cases.case(name, data_dir)
+    keep = {k: options[k] for k in ("mode", "depth_in", "xray_scale", "xray_offset")
+            if k in options}
+    return render(vevm, cam, tf, method="reference", **keep, **overrides)
+
+
+def drawn(rgba, least=0.5):
+    """Something was drawn: the 4.5 driver once dropped a draw silently."""
+    assert rgba[..., 3].max() > least and (rgba[..., 3] == 0).any()
+
+
+# ---------------------------------------------------------------------------- closed forms
+@pytest.mark.parametrize("name", ["box_ortho", "box_persp"])
+def test_box_chord_law(gpu, name, data_dir):
+    """A homogeneous box at a coarse step (0.45 mm, anisotropic voxels): ``1 - (1 - a)^L`` for
+    the exact chord, since each part counts only its length inside the region; the depth is
+    where the ray enters the box."""
+    rgba, depth = gpu(name)
+    drawn(rgba)
+    vevm, cam, _, _ = gpu_cases.case(name, data_dir)
+    g = grid_to_world(vevm.spacing, vevm.origin)
+    chords = phantoms.box_chords_mm(cam, g, gpu_cases.BOX["lo"], gpu_cases.BOX["hi"])
+    alpha = 1 - (1 - gpu_cases.BOX_ALPHA) ** chords
+    np.testing.assert_allclose(rgba[..., 3], alpha, atol=2e-5)  # measured 3e-6
+    np.testing.assert_allclose(rgba[..., 1], 0.6 * rgba[..., 3], atol=1e-6)
+    _, ref_depth = reference(name, data_dir)
+    np.testing.assert_array_equal(depth < BACKGROUND_DEPTH, ref_depth < BACKGROUND_DEPTH)
+    seen = depth < BACKGROUND_DEPTH
+    np.testing.assert_allclose(depth[seen], ref_depth[seen], rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["blobs_ortho", "blobs_persp"])
+def test_blobs_closed_form(gpu, name, data_dir):
+    """The reference's own bounds against the continuous closed form (test_phantoms), and
+    close to the reference itself."""
+    rgba, _ = gpu(name)
+    drawn(rgba, 0.85)
+    vevm, cam, _, _ = gpu_cases.case(name, data_dir)
+    g = grid_to_world(vevm.spacing, vevm.origin)
+    blob = gpu_cases.BLOB
+    alpha = -np.expm1(-phantoms.blobs_optical_depth(cam, g, vevm.spacing, blob["centres"],
+                                                    blob["sigmas"], blob["amplitudes"],
+                                                    gpu_cases.BLOB_K))
+    err = rgba[..., 3] - alpha
+    assert np.sqrt(np.mean(err**2)) <= 0.0025 and np.abs(err).max() <= 0.01
+    ref, _ = reference(name, data_dir)
+    assert rmse(rgba, ref) < 1e-4  # measured 2e-5
+
+
+# ---------------------------------------------------------------------------- real volume
+@pytest.mark.parametrize("name", ["head_ortho", "head_persp"])
+def test_ct_head_within_the_ray_casters_bounds(gpu, name, data_dir):
+    """The CT head (bone), default step (half a voxel): the CPU ray caster's bounds of
+    test_raycast (mean, 99th percentile, worst), no more than 1.2 times its RMSE at the same
+    step; silhouette and depth of the region's surface as the reference's."""
+    rgba, depth = gpu(name)
+    drawn(rgba)
+    vevm, cam, tf, options = gpu_cases.case(name, data_dir)
+    ref, ref_depth = reference(name, data_dir)
+    err = np.abs(rgba - ref).max(axis=-1)
+    assert err.mean() < 0.001 and np.percentile(err, 99) < 0.02 and err.max() < 0.1
+    cpu, _ = render(vevm, cam, tf, method="raycast", **options)
+    assert rmse(rgba, ref) <= 1.2 * rmse(cpu, ref) + 1e-5
+    np.testing.assert_array_equal(depth < BACKGROUND_DEPTH, ref_depth < BACKGROUND_DEPTH)
+    seen = depth < BACKGROUND_DEPTH
+    assert np.percentile(np.abs(depth - ref_depth)[seen], 99) < 1e-6
+
+
+def test_skipping_changes_nothing(gpu):
+    """Empty-space skipping leaps only over samples that add exact zeros."""
+    rgba, depth = gpu("head_persp")
+    dense_rgba, dense_depth = gpu("head_persp_noskip")
+    drawn(rgba)
+    np.testing.assert_array_equal(rgba, dense_rgba)
+    np.testing.assert_array_equal(depth, dense_depth)
+
+
+def test_early_termination_bound(gpu):
+    """Stopping at 0.99 opacity changes a pixel by at most 0.01, and only pixels that reach it."""
+    full, full_depth = gpu("head_persp")
+    term, term_depth = gpu("head_persp_term")
+    drawn(term)
+    assert np.abs(term - full).max() <= 0.01 + 1e-6
+    below = full[..., 3] < 0.985
+    np.testing.assert_array_equal(term[below], full[below])
+    assert (term[~below] != full[~below]).any()
+    np.testing.assert_array_equal(term_depth, full_depth)
+
+
+def test_depth_in_stops_the_rays(gpu, data_dir):
+    """A tilted plane's axial depth (a render's Z pass) cuts every ray, as in the reference."""
+    rgba, depth = gpu("head_persp_depth")
+    drawn(rgba, 0.3)
+    ref, ref_depth = reference("head_persp_depth", data_dir)
+    full, _ = gpu("head_persp")
+    assert (full[..., 3] - rgba[..., 3]).max() > 0.3  # the plane hides part of the volume
+    err = np.abs(rgba - ref).max(axis=-1)
+    assert err.mean() < 0.001 and np.percentile(err, 99) < 0.02
+    _, _, _, options = gpu_cases.case("head_persp_depth", data_dir)
+    seen = depth < BACKGROUND_DEPTH
+    assert (depth[seen] <= options["depth_in"][seen] + 1e-6).all()
+    np.testing.assert_array_equal(seen, ref_depth < BACKGROUND_DEPTH)
+
+
+@pytest.mark.parametrize("name", ["head_persp_xray", "head_persp_mip"])
+def test_xray_and_mip_on_the_head(gpu, name, data_dir):
+    """The CPU ray caster's bounds (test_raycast's MIP bounds; X-ray: measured mean 2e-4,
+    99th percentile 1.6e-3): MIP also evaluates each part's two ends, as it does."""
+    rgba, depth = gpu(name)
+    drawn(rgba, 0.3)
+    ref, ref_depth = reference(name, data_dir)
+    err = np.abs(rgba - ref).max(axis=-1)
+    assert err.mean() < 0.005 and np.percentile(err, 99) < 0.03
+    assert ((depth < BACKGROUND_DEPTH) != (ref_depth < BACKGROUND_DEPTH)).sum() <= 5
+
+
+# ---------------------------------------------------------------------------- region policy
+@pytest.mark.parametrize("name", ["irregular_over_ortho", "irregular_under_ortho",
+                                  "irregular_xray_persp", "irregular_mip_persp"])
+def test_region_boundary_policy(gpu, name, data_dir):
+    """Random densities in a random region: the renormalised interpolation over region voxels
+    and the region's cells placed exactly, in every mode (a 0.2 mm step)."""
+    rgba, depth = gpu(name)
+    drawn(rgba, 0.3)
+    ref, ref_depth = reference(name, data_dir)
+    assert rmse(rgba, ref) < (0.02 if "mip" in name else 2e-3)  # measured 0.0096, 6e-4
+    seen = (depth < BACKGROUND_DEPTH) & (ref_depth < BACKGROUND_DEPTH)
+    assert ((depth < BACKGROUND_DEPTH) != (ref_depth < BACKGROUND_DEPTH)).sum() <= 3
+    # The region's cells are placed exactly; MIP's maximum is sampled (half a step: 1e-4).
+    assert np.median(np.abs(depth - ref_depth)[seen]) < (1e-4 if "mip" in name else 1e-6)
+
+
+def test_under_is_over(gpu):
+    over, _ = gpu("irregular_over_ortho")
+    under, _ = gpu("irregular_under_ortho")
+    np.testing.assert_allclose(under, over, atol=1e-6)
+
+
+def test_gpu_state_restored(rendered):
+    assert rendered[1]["state_restored"]
+
+
+def test_a_volume_too_large_for_the_gpu_is_refused(rendered):
+    assert rendered[1]["too_large"].startswith("vevm: the GPU cannot hold a 16385x1x1 RG32F")
+
+
+# ---------------------------------------------------------------------------- render job
+@pytest.fixture
+def job(rendered):
+    """``job(key)``: an array of Render VolumeEVM's results in the runner's scene
+    (``scene_<what>_<method>``; the scene pass: ``scene_depth_in``, ``scene_colour_in``)."""
+    arrays, meta = rendered
+    if "scene" in meta["errors"]:
+        pytest.fail(f"Render VolumeEVM in the runner:\n{meta['errors']['scene']}")
+    return lambda key: arrays[f"scene_{key}"]
+
+
+def test_render_job_with_the_gpu_method(job):
+    """Render VolumeEVM with the method "gpu" gives the CPU ray caster's outputs at the same
+    step: premultiplied RGBA within its error, the same axial depth, rays stopped at the
+    scene's Z pass (a plane hides part of the skull), the same composite rule."""
+    gpu_rgba, cpu_rgba = job("dvr_rgba_gpu"), job("dvr_rgba_raycast")
+    drawn(gpu_rgba)
+    assert rmse(gpu_rgba, cpu_rgba) < 1e-4  # measured 1.4e-6
+    gpu_depth, cpu_depth = job("dvr_depth_gpu"), job("dvr_depth_raycast")
+    np.testing.assert_array_equal(gpu_depth < BACKGROUND_DEPTH, cpu_depth < BACKGROUND_DEPTH)
+    seen = gpu_depth < BACKGROUND_DEPTH
+    assert np.median(np.abs(gpu_depth - cpu_depth)[seen]) < 1e-6
+    covered = job("depth_in") < BACKGROUND_DEPTH
+    assert 0.1 < covered.mean() < 0.9
+    assert not gpu_rgba[covered].any() and (gpu_rgba[~covered][..., 3] > 0.5).any()
+    assert (gpu_depth[seen] <= job("depth_in")[seen]).all()
+    behind = job("colour_in")
+    np.testing.assert_allclose(job("rgba_gpu"), gpu_rgba + (1 - gpu_rgba[..., 3:4]) * behind,
+                               atol=1e-6)
+    np.testing.assert_array_equal(job("depth_gpu"), np.where(seen, gpu_depth, job("depth_in")))
+
+
+def test_render_job_falls_back_to_the_cpu(job, rendered):
+    """Without a GPU context the method "gpu" renders with the CPU ray caster and says so."""
+    notes = rendered[1]["scene_notes"]
+    assert notes["gpu"] == "" and notes["raycast"] == ""
+    assert "no GPU context" in notes["fallback"] and "ray casting" in notes["fallback"]
+    np.testing.assert_array_equal(job("dvr_rgba_fallback"), job("dvr_rgba_raycast"))
+    np.testing.assert_array_equal(job("dvr_depth_fallback"), job("dvr_depth_raycast"))
+
+
+# ---------------------------------------------------------------------------- viewport
+def test_viewport_draw_over_solid_equals_the_reference_composite(job, rendered):
+    """The viewport's drawing over Blender's own Solid drawing (offscreen ``draw_view3d``, the
+    scene camera's matrices, overlays off): its depth buffer stops the rays (the plane hides
+    part of the skull, as the render's Z pass does) and the premultiplied DVR goes over the
+    Solid colour: the reference composite (measured RMSE 1e-6)."""
+    arrays, meta = rendered
+    solid, window = arrays["viewport_solid"], arrays["viewport_window_depth"]
+    h, w = window.shape
+    camera = camera_from_viewport(arrays["viewport_projection"], arrays["viewport_view"], w, h)
+    depth_in = axial_from_window(window, camera)
+    seen = depth_in < BACKGROUND_DEPTH
+    np.testing.assert_array_equal(seen, job("depth_in") < BACKGROUND_DEPTH)
+    np.testing.assert_allclose(depth_in[seen], job("depth_in")[seen], rtol=1e-5)
+    ref, _ = render(VolumeEVM.load(meta["vevm"]), camera, TransferFunction(gpu_cases.SKULL_TF),
+                    method="reference", depth_in=depth_in,
+                    matrix_world=arrays["viewport_matrix_world"])
+    drawn(ref)
+    composite = arrays["viewport_composite"]
+    assert np.abs(composite - solid).max() > 0.3  # the volume was drawn
+    assert rmse(composite, composite_over(ref, solid)) < 1e-4
+
+
+def test_viewport_colour_for_an_srgb_display(job, rendered):
+    """With ``srgb`` the straight colour goes through the sRGB transfer function and is
+    premultiplied again (the viewport's overlay is display-referred); opacity unchanged."""
+    linear, srgb = rendered[0]["viewport_alone_linear"], rendered[0]["viewport_alone_srgb"]
+    drawn(linear)
+    alpha = linear[..., 3:]
+    np.testing.assert_array_equal(srgb[..., 3:], alpha)
+    straight = np.clip(linear[..., :3] / np.where(alpha > 0, alpha, 1), 0, 1)
+    encoded = np.where(straight <= 0.0031308, 12.92 * straight,
+                       1.055 * straight ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(srgb[..., :3], encoded * alpha, atol=1e-5)
+    assert (srgb[..., :3] > linear[..., :3] + 0.05).any()
+
+
+def test_viewport_handler_and_textures_follow_registration_and_file_loads(job, rendered):
+    assert rendered[1]["viewport_handlers"] == {"registered": True, "textures kept": True,
+                                                "freed on load": True, "removed": True}
