@@ -36,8 +36,12 @@ inter-quartile range are reported. Apart from frame time: building the VolumeEVM
 method's first call on a fresh VolumeEVM and transfer function (classification tables,
 gradients, the densities tables of other traversal orders: the per-transfer-function and
 per-view preparation), the tables it built, and the peak of Python/NumPy allocations during
-that call (``tracemalloc``) against the VolumeEVM's and the dense volume's bytes. The machine
-has 2 cores shared with other work: compare ratios within one run, not absolute numbers.
+that call (``tracemalloc``) against the VolumeEVM's and the dense volume's bytes; and each
+method's first use of its compiled kernels (:func:`first_use`: a fresh process rendering the CT
+head with an empty kernel cache, which compiles, then one that loads them from the cache). Our
+kernels run on ``kernel_threads()`` threads (all cores), VTK on its default threads (all cores),
+VolPack on one. The machine has 2 cores shared with other work: compare ratios within one run,
+not absolute numbers.
 References are cached in ``bench/results/cache/`` keyed by the scene and
 ``volumeevm_addon/rendering/_reference.py``.
 
@@ -61,6 +65,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -79,6 +84,7 @@ from volumeevm_addon import (  # noqa: E402
     TransferFunction,
     VolumeEVM,
     grid_to_world,
+    kernel_threads,
     phantoms,
     render,
     write_atomically,
@@ -88,8 +94,10 @@ from volumeevm_addon.metrics import image_errors  # noqa: E402
 DATA = REPO.parent / "shared" / "data"
 OURS = tuple(m for m in METHODS if m != "reference")
 EPSILONS = (0.02, 0.01, 0.005)
-TARGETS = {"best_ours_faster_than_vtk_at_equal_error": True,
-           "shear_warp_faster_than_volpack_at_equal_or_lower_error": True}
+TARGETS = {"speedup_vs_vtk_at_vtk_error_at_least": 2.0,
+           "shear_warp_time_over_volpack_at_volpack_error_at_most": 1.0}
+"""Issue 11's targets: at VTK's error our fastest method at least 2x VTK's speed (every dataset,
+both views); shear-warp at VolPack's error (or lower) within 1.0x VolPack's frame time."""
 
 
 # ----------------------------------------------------------------------------- datasets
@@ -289,6 +297,49 @@ def reference(vevm, cam, tf, cache_dir, name):
 
 
 # ----------------------------------------------------------------------------- measuring
+FIRST_USE = """
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+import volumeevm_addon
+volumeevm_addon.set_kernel_cache_dir(sys.argv[2])
+from bench.bench_dvr import scene
+vevm, cam, tf = scene(sys.argv[3], "ortho")
+times = []
+for _ in range(2):
+    t0 = time.perf_counter()
+    volumeevm_addon.render(vevm, cam, tf, method=sys.argv[4])
+    times.append(time.perf_counter() - t0)
+print(json.dumps({"first_call_s": times[0], "second_call_s": times[1]}))
+"""
+
+
+def scene(name, view):
+    """``(vevm, camera, tf)`` of a dataset's view, as the bench renders it."""
+    _, make, threshold, size, azimuth, elevation, persp = DATASETS[name]
+    array, spacing, tf = make()
+    region = float(array.min()) if threshold is None else threshold
+    g = grid_to_world(spacing, (0.0, 0.0, 0.0))
+    cam = cameras(array.shape, g, size, azimuth, elevation, persp)[view]
+    return VolumeEVM.from_array(array, region, spacing=spacing), cam, tf
+
+
+def first_use(methods, dataset="ct_head"):
+    """Per method, its first renders of ``dataset`` (orthographic) in two fresh processes
+    sharing a new kernel cache: the first compiles the kernels, the second loads them; each
+    renders twice (the first call also builds the method's tables)."""
+    out = {}
+    for method in methods:
+        print(f"[bench_dvr] first use of {method}'s kernels (two fresh processes)", flush=True)
+        with tempfile.TemporaryDirectory() as cache:
+            command = [sys.executable, "-c", FIRST_USE, str(REPO), cache, dataset, method]
+            compiling, loading = (json.loads(subprocess.run(
+                command, check=True, capture_output=True, text=True).stdout) for _ in range(2))
+        out[method] = {"dataset": dataset, "compiling_first_call_s": compiling["first_call_s"],
+                       "loading_first_call_s": loading["first_call_s"],
+                       "second_call_s": loading["second_call_s"]}
+    return out
+
+
 def frame_times(call, repeat):
     """One untimed warm-up, then ``repeat`` timed calls: (median, IQR, last image)."""
     rgba = call()
@@ -425,7 +476,7 @@ def groups(rows):
 
 
 def target_checks(rows):
-    """The issue's two targets per dataset and view, stated plainly.
+    """The issue's two targets (:data:`TARGETS`) per dataset and view, stated plainly.
 
     VTK: the error of VTK at its default sample distance (1 voxel); our fastest point at that
     error against VTK's fastest point at that error (any sample distance). VolPack: our fastest
@@ -443,7 +494,8 @@ def target_checks(rows):
             if best:
                 entry.update(best_at_vtk_error=f"{best['method']} {best['setting']}",
                              speedup_vs_vtk=v["frame_s"] / best["frame_s"],
-                             vtk_target_met=best["frame_s"] < v["frame_s"])
+                             vtk_target_met=v["frame_s"] / best["frame_s"]
+                             >= TARGETS["speedup_vs_vtk_at_vtk_error_at_least"])
             else:
                 entry.update(best_at_vtk_error=None, vtk_target_met=False)
         vp = [r for r in by.get("volpack", []) if r["options"].get("max_ray_opacity") == 1.0]
@@ -454,7 +506,8 @@ def target_checks(rows):
             if best:
                 entry.update(shear_warp_at_volpack_error=best["setting"],
                              shear_warp_time_over_volpack=best["frame_s"] / v["frame_s"],
-                             volpack_target_met=best["frame_s"] < v["frame_s"])
+                             volpack_target_met=best["frame_s"] / v["frame_s"]
+                             <= TARGETS["shear_warp_time_over_volpack_at_volpack_error_at_most"])
             else:
                 entry.update(shear_warp_at_volpack_error=None, volpack_target_met=False)
         out.append(entry)
@@ -595,7 +648,9 @@ def summary(rows, info, checks, facts):
              f"{facts['machine']}; Python {facts['python']}, NumPy {facts['numpy']}, "
              f"VTK {facts['versions'].get('vtk')}, libvolpack1-dev "
              f"{facts['versions'].get('libvolpack1-dev')}; load average "
-             f"{facts['load_average_at_start']} at start. Frame time: median of the timed runs. "
+             f"{facts['load_average_at_start']} at start; our kernels on {facts['threads']} "
+             "threads, VTK on its default threads, VolPack on one. "
+             "Frame time: median of the timed runs. "
              "Error: RMSE of premultiplied RGBA against the reference renderer. "
              "A cell gives the frame time of the fastest setting that reaches the error "
              "(and that setting); — = no setting does.", ""]
@@ -614,6 +669,12 @@ def summary(rows, info, checks, facts):
                          f"{method} | {_ms(p['first_call_s'])} | "
                          f"{p['tables_mb']:.1f} MB | "
                          f"{p['peak_alloc_mb']:.0f} MB |")
+    lines += ["", "## Kernels' first use (fresh processes, orthographic view)", "",
+              "| method | dataset | first call, empty kernel cache (compiling) "
+              "| first call, kernels loaded from the cache | second call |", "|---|---|---|---|---|"]
+    for method, f in facts.get("first_use", {}).items():
+        lines.append(f"| {method} | {f['dataset']} | {_ms(f['compiling_first_call_s'])} | "
+                     f"{_ms(f['loading_first_call_s'])} | {_ms(f['second_call_s'])} |")
     lines += ["", "## Targets", ""]
     for c in checks:
         parts = []
@@ -684,10 +745,12 @@ def main():
     args.peers = [p for p in args.peers.split(",") if p]
     args.out.mkdir(parents=True, exist_ok=True)
     facts = {**run_facts(), "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-                                       f"{cpu_model()}", "versions": versions()}
+                                       f"{cpu_model()}", "versions": versions(),
+             "threads": kernel_threads()}
     rows, info = [], {}
     for name in names:
         run_dataset(name, args, rows, info)
+    facts["first_use"] = first_use(args.methods)
     checks = target_checks(rows)
     text = summary(rows, info, checks, facts)
     print()
@@ -699,7 +762,8 @@ def main():
     write_json(args.out / "bench_dvr.json", {
         "benchmark": "dvr speed against accuracy", **facts,
         "load_average_end": round(os.getloadavg()[0], 2),
-        "timing": f"median of {args.repeat} timed runs after one warm-up",
+        "timing": f"median of {args.repeat} timed runs after one warm-up, "
+                  f"{facts['threads']} kernel threads",
         "error": "RMSE etc. of premultiplied RGBA; ours vs the reference of the VolumeEVM, "
                  "peers vs the reference of the whole volume; peers' 8-bit images /255",
         "targets": TARGETS, "target_results": checks, "datasets": info})

@@ -4,13 +4,15 @@ Each table sits in README.md between marker comments that say what goes there::
 
     <!-- bench:evm_core -->                       ... <!-- /bench:evm_core -->
     <!-- bench:speed_accuracy:ct_head:ortho -->   ... <!-- /bench:speed_accuracy:ct_head:ortho -->
+    <!-- bench:dvr_targets -->                    ... <!-- /bench:dvr_targets -->
 
 ``bench:evm_core`` is built from ``bench_evm.json``; ``bench:speed_accuracy:<dataset>:<view>``
 is the time-to-ε table of that dataset and view, built from ``speed_accuracy.csv`` (the runs)
 and ``bench_dvr.json`` (the scene and the run's facts) by the same code as
-``speed_accuracy.md``. Each block names the commit and the machine of its results. ``make bench``
-runs this script last; ``--check`` rewrites nothing and exits with 1 when the README differs
-from what the results give (``tests/test_readme_tables.py``), so the README cannot drift.
+``speed_accuracy.md``; ``bench:dvr_targets`` from ``bench_dvr.json``'s target checks. Each
+block names the commit and the machine of its results. ``make bench`` runs this script last;
+``--check`` rewrites nothing and exits with 1 when the README differs from what the results
+give (``tests/test_readme_tables.py``), so the README cannot drift.
 
 Usage: ``python bench/readme_tables.py [--check] [--readme README.md] [--results bench/results]``
 """
@@ -96,10 +98,40 @@ def speed_accuracy(results, dataset, view):
             + _facts(result, result["timing"]), "", *time_table(by)]
 
 
+def dvr_targets(results):
+    """Issue 11's two DVR targets per dataset and view (``bench_dvr.json``), in one table."""
+    result = json.loads((results / "bench_dvr.json").read_text())
+    targets = result["targets"]
+    vtk_goal = targets["speedup_vs_vtk_at_vtk_error_at_least"]
+    volpack_goal = targets["shear_warp_time_over_volpack_at_volpack_error_at_most"]
+    lines = [_facts(result, result["timing"]), "",
+             f"| dataset (view) | VTK's error (its time) | our fastest there | vs VTK (≥ {vtk_goal:g}× "
+             f"faster) | VolPack's error (its time) | shear-warp there | vs VolPack (≤ "
+             f"{volpack_goal:g}× its time) |", "|---" * 7 + "|"]
+    for c in result["target_results"]:
+        cells = [f"{c['dataset']} ({c['view']})"]
+        if "vtk_rmse" in c:
+            best = c.get("best_at_vtk_error")
+            cells += [f"{c['vtk_rmse']:.4f} ({c['vtk_s'] * 1000:.0f} ms)", best or "none",
+                      f"{c['speedup_vs_vtk']:.2f}× — {'met' if c['vtk_target_met'] else 'not met'}"
+                      if best else "not met"]
+        else:
+            cells += ["", "", ""]
+        if "volpack_rmse" in c:
+            best = c.get("shear_warp_at_volpack_error")
+            cells += [f"{c['volpack_rmse']:.4f} ({c['volpack_s'] * 1000:.0f} ms)", best or "none",
+                      f"{c['shear_warp_time_over_volpack']:.1f}× — "
+                      f"{'met' if c['volpack_target_met'] else 'not met'}" if best else "not met"]
+        else:
+            cells += ["—", "", ""]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def block(name, results):
     """The Markdown lines of the block ``name`` (the marker's name)."""
     kind, *args = name.split(":")
-    makers = {"evm_core": evm_core, "speed_accuracy": speed_accuracy}
+    makers = {"evm_core": evm_core, "speed_accuracy": speed_accuracy, "dvr_targets": dvr_targets}
     if kind not in makers:
         raise SystemExit(f"README.md: unknown benchmark block <!-- bench:{name} -->")
     return makers[kind](results, *args)
