@@ -22,7 +22,9 @@ threshold; shear-warp: intermediate image scale, interpolated slices per voxel s
 post-classification; splatting: kernel radius and width, the cross-fade of sheet families
 near the principal-axis switch, sub-slabs per sheet; VolPack: its defaults and the speed
 settings its manual suggests; VTK ``vtkFixedPointVolumeRayCastMapper``: sample distance. How the
-peers are matched to our scene is written in ``bench/peers/``.
+peers are matched to our scene is written in ``bench/peers/``. Our GPU method (Blender's ``gpu``
+module) runs over its step in a Blender process of its own (``bench/peers/gpu_peer.py``),
+labelled with the GPU that drew it (here Mesa llvmpipe: software OpenGL on the same CPU cores).
 
 Error: RMSE over all pixels and the four channels of premultiplied RGBA (the primary measure of
 the notes; ``image_errors`` gives the others, all in the CSV). Ours are compared with the
@@ -52,7 +54,7 @@ the datasets, scenes and preparation, the targets; the runs themselves are in th
 ``dvr_<dataset>_<view>.png`` (each method's default image beside the reference).
 
 Usage: ``python bench/bench_dvr.py [--out bench/results] [--repeat 3]
-[--datasets blobs,ml41,...] [--methods ...] [--peers volpack,vtk] [--quick]``
+[--datasets blobs,ml41,...] [--methods ...] [--peers volpack,vtk] [--no-gpu] [--quick]``
 """
 
 import argparse
@@ -179,6 +181,8 @@ SWEEPS = {
     "splat": (_grid(kernel_radius=(1.0, 1.5, 2.0), kernel_sigma=(0.4, 0.6))
               + _grid(blend=(0.0,)) + _grid(substeps=(2, 3))),
 }
+GPU_SWEEP = [{}] + _grid(step_mm=(2.0, 1.0, 0.25))
+"""The GPU method's settings (``step_mm`` in voxels as above; its default is half a voxel)."""
 PEER_SWEEPS = {
     "volpack": ({"min_voxel_opacity": 0.0, "max_ray_opacity": 1.0},
                 {"min_voxel_opacity": 0.05, "max_ray_opacity": 0.95}),
@@ -367,6 +371,32 @@ def preparation(make_vevm, make_tf, cam, method):
             "tables_mb": vevm.size_report()["tables_bytes"] / 2 ** 20}
 
 
+def gpu_rows(name, view, voxel_mm, repeat, base, ref, rows, images, info):
+    """Our GPU method over :data:`GPU_SWEEP` in a Blender process (``peers/gpu_peer.py``):
+    adds its rows, labelled with the GPU that drew them; a failure is reported, not hidden."""
+    import gpu_peer
+
+    settings_ = [{k: v * voxel_mm for k, v in s.items()} for s in GPU_SWEEP]
+    try:
+        renderer, results = gpu_peer.render(name, view, settings_, repeat)
+    except RuntimeError as exc:
+        print(f"[bench_dvr]   gpu failed: {exc}")
+        info.setdefault("peer_failures", []).append(f"{name}/{view}/gpu: {exc}")
+        return
+    method = ("gpu (llvmpipe, software OpenGL)" if "llvmpipe" in renderer.lower()
+              else f"gpu ({renderer})")
+    info["gpu_renderer"] = renderer
+    for options, result in zip(settings_, results):
+        q1, med, q3 = np.percentile(result["frames_s"], (25, 50, 75))
+        if not options:
+            images["gpu"] = result["rgba"]
+        rows.append({**base, "method": method, "kind": "gpu", "setting": label(options),
+                     "options": options, "frame_s": float(med), "frame_iqr_s": float(q3 - q1),
+                     **image_errors(result["rgba"], ref)})
+        print(f"[bench_dvr]   gpu {label(options):55s} {med:8.4f} s  "
+              f"RMSE {rows[-1]['rmse']:.5f}", flush=True)
+
+
 def run_peer(peer, array, g, spacing, cam, tf, opts, repeat):
     if peer == "volpack":
         import volpack_peer
@@ -425,6 +455,8 @@ def run_dataset(name, args, rows, info):
                              **image_errors(rgba, ref)})
                 print(f"[bench_dvr]   {method:17s} {label(options):55s} {med:8.4f} s  "
                       f"RMSE {rows[-1]['rmse']:.5f}", flush=True)
+        if args.gpu:
+            gpu_rows(name, view, voxel_mm, args.repeat, base, ref, rows, images, info)
         for peer in args.peers:
             if peer == "volpack" and not cam.is_ortho:
                 continue  # VolPack has no perspective projection
@@ -516,7 +548,9 @@ def target_checks(rows):
 
 # ----------------------------------------------------------------------------- outputs
 COLOURS = {"shear_warp": "tab:blue", "splat": "tab:green", "raycast": "tab:orange",
-           "raycast_navigate": "tab:brown", "volpack": "tab:red", "vtk": "tab:purple"}
+           "raycast_navigate": "tab:brown", "volpack": "tab:red", "vtk": "tab:purple",
+           "gpu": "tab:cyan"}
+MARKERS = {"ours": "o", "peer": "s", "gpu": "^"}
 
 
 def save_chart(path, rows):
@@ -535,8 +569,8 @@ def save_chart(path, rows):
     fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 4.3 * nrows), squeeze=False)
     for ax, ((dataset, view), by) in zip(axes.flat, panels):
         for method, points in by.items():
-            c = COLOURS.get(method, "black")
-            marker = "s" if points[0]["kind"] == "peer" else "o"
+            c = COLOURS.get(method.split(" ")[0], "black")
+            marker = MARKERS[points[0]["kind"]]
             ax.scatter([p["frame_s"] for p in points], [max(p["rmse"], 1e-5) for p in points],
                        color=c, marker=marker, s=14, alpha=0.6)
             front = pareto(points)
@@ -737,6 +771,8 @@ def main():
     parser.add_argument("--quick", action="store_true",
                         help=f"datasets {','.join(QUICK)} unless given, 3 settings per method")
     parser.add_argument("--no-images", dest="images", action="store_false")
+    parser.add_argument("--no-gpu", dest="gpu", action="store_false",
+                        help="leave out the GPU method (it needs the bpy module)")
     args = parser.parse_args()
     names = [d for d in args.datasets.split(",") if d]
     if args.quick and args.datasets == parser.get_default("datasets"):
