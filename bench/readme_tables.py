@@ -48,6 +48,11 @@ def _times(ratio):
     return f"{text} faster" if float(f"{ratio:.1f}") > 1.0 else text
 
 
+def _ms(seconds):
+    """A frame time in milliseconds, with a decimal below 10 ms (VolPack's small frames)."""
+    return f"{seconds * 1000:.1f} ms" if seconds < 0.01 else f"{seconds * 1000:.0f} ms"
+
+
 def _target(measured, target, at_least, where=""):
     """The target column: the bound and whether the measured value meets it."""
     met = measured >= target if at_least else measured <= target
@@ -56,33 +61,51 @@ def _target(measured, target, at_least, where=""):
 
 
 def evm_core(results):
-    """The EVM core table (``bench_evm.json``): one column per threshold."""
+    """The EVM core table (``bench_evm.json``): one column per CT threshold and MRI, and the
+    kernels' first use."""
     result = json.loads((results / "bench_evm.json").read_text())
-    rows, targets, measured = result["rows"], result["targets"], result["measured"]
-    speed = "extract_mesh_speedup_vs_marching_cubes"
+    rows, mris = result["rows"], result["mri_rows"]
+    targets, measured, kernels = result["targets"], result["measured"], result["kernels"]
+    surfaces = rows + mris
+    speed, vtk = ("extract_mesh_speedup_vs_marching_cubes",
+                  "extract_mesh_speedup_vs_vtk_flying_edges")
 
     def line(label, cells, target=""):
+        cells = list(cells) + [""] * (len(surfaces) - len(cells))  # CT-only rows
         return "|" + "|".join(f" {c} " if c else " " for c in (label, *cells, target)) + "|"
 
-    head = [f"{r['case']} ({r['threshold_hu']:g} HU)".replace("-", "−") for r in rows]
+    head = ([f"CT {r['case']} ({r['threshold_hu']:g} HU)".replace("-", "−") for r in rows]
+            + [f"{r['case']} (≥ {r['threshold_hu']:g})" for r in mris])
     return [
-        _facts(result, result["timing"]), "",
+        _facts(result, result["timing"] + f"; {rows[0]['threads']} threads"), "",
         line("", head, "target"),
-        "|---" * (len(rows) + 2) + "|",
+        "|---" * (len(surfaces) + 2) + "|",
         line("voxels / extreme vertices",
-             [f"{r['voxels']:,} / {r['extreme_vertices']:,}" for r in rows]),
-        line("EVM extraction + closed mesh vs scikit-image `marching_cubes`",
-             [_times(r[speed]) for r in rows], _target(measured[speed], targets[speed], True)),
+             [f"{r['voxels']:,} / {r['extreme_vertices']:,}" for r in surfaces]),
+        line("EVM extraction + closed mesh, 1 thread / all",
+             [f"{r['evm_extract_mesh_1thread_s'] * 1000:.0f} / {r['evm_extract_mesh_s'] * 1000:.0f}"
+              " ms" for r in surfaces]),
+        line("… vs scikit-image `marching_cubes` (one thread)",
+             [_times(r[speed]) for r in surfaces],
+             _target(measured[speed], targets[speed], True)),
+        line("… vs VTK flying edges (same threads)", [f"{r[vtk]:.2f}×" for r in surfaces],
+             _target(measured[vtk], targets[vtk], True)),
         line("mesh polygons per unit voxel face",
-             [f"{r['mesh_faces_per_unit_face']:.3f}" for r in rows],
+             [f"{r['mesh_faces_per_unit_face']:.3f}" for r in surfaces],
              _target(measured["mesh_faces_per_unit_face_bone"],
                      targets["mesh_faces_per_unit_face_bone"], False, " (bone)")),
         line("cut by a box / a sphere: sweep vs dense Boolean + re-extraction",
-             [f"{r['cut_box_speedup_vs_dense']:.1f}× / {_times(r['cut_sphere_speedup_vs_dense'])}"
+             [f"{r['cut_box_speedup_vs_dense']:.1f}× / {r['cut_sphere_speedup_vs_dense']:.1f}×"
               for r in rows]),
         line("VolumeEVM bytes vs the dense array", [f"{r['bytes_vs_dense']:.3f}" for r in rows],
              _target(measured["bytes_vs_dense_bone"], targets["bytes_vs_dense_bone"], False,
                      " (bone)")),
+        "",
+        f"Kernels' first use ({kernels['case']}, a fresh process): "
+        f"{kernels['cold_first_call_s']:.1f} s with an empty kernel cache (compiling), "
+        f"{kernels['warm_first_call_s'] * 1000:.0f} ms with it filled (loading), against "
+        f"{kernels['compiled_call_s'] * 1000:.0f} ms once loaded; importing the package takes "
+        f"{kernels['package_import_s'] * 1000:.0f} ms.",
     ]
 
 
@@ -112,14 +135,14 @@ def dvr_targets(results):
         cells = [f"{c['dataset']} ({c['view']})"]
         if "vtk_rmse" in c:
             best = c.get("best_at_vtk_error")
-            cells += [f"{c['vtk_rmse']:.4f} ({c['vtk_s'] * 1000:.0f} ms)", best or "none",
+            cells += [f"{c['vtk_rmse']:.4f} ({_ms(c['vtk_s'])})", best or "none",
                       f"{c['speedup_vs_vtk']:.2f}× — {'met' if c['vtk_target_met'] else 'not met'}"
                       if best else "not met"]
         else:
             cells += ["", "", ""]
         if "volpack_rmse" in c:
             best = c.get("shear_warp_at_volpack_error")
-            cells += [f"{c['volpack_rmse']:.4f} ({c['volpack_s'] * 1000:.0f} ms)", best or "none",
+            cells += [f"{c['volpack_rmse']:.4f} ({_ms(c['volpack_s'])})", best or "none",
                       f"{c['shear_warp_time_over_volpack']:.1f}× — "
                       f"{'met' if c['volpack_target_met'] else 'not met'}" if best else "not met"]
         else:
