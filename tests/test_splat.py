@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM as BU, Camera, EVM,
-                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world, phantoms)
+                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world, phantoms,
+                             set_kernel_threads)
 from volumeevm_addon.metrics import popping_index, rmse, temporal_errors
 from volumeevm_addon.rendering import _splat
 from volumeevm_addon.rendering._splat import (_family_weights, _sheets, _slices_dense,
@@ -351,6 +352,31 @@ def test_blend_keeps_the_closed_form_and_exactness(ct):
     assert r1[..., 3].max() > 0.5
     np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
     np.testing.assert_allclose(d1, d0, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------- kernels
+@pytest.mark.parametrize("kind, mode, opts", [
+    ("ORTHO", "over", {"shading": True, "substeps": 2}), ("PERSP", "over", {"shading": True}),
+    ("PERSP", "under", {"substeps": 3}), ("ORTHO", "xray", {"xray_scale": 2e-4}),
+    ("PERSP", "mip", {})])
+def test_the_image_does_not_depend_on_threads_or_bands(ct, kind, mode, opts, monkeypatch):
+    """Each band of a sheet's window rows is splatted on its own and adds a pixel's
+    contributions in voxel order: one thread or two, bands of 3 rows or 64, the same bits."""
+    v, g, tf = region(ct, -300, "ct_bone")
+    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3 if kind == "ORTHO" else 0.0, res=(37, 29))
+    previous = set_kernel_threads(1)
+    try:
+        one = render_splat(v, cam, tf, g, mode=mode, **opts)
+        set_kernel_threads(2)
+        two = render_splat(v, cam, tf, g, mode=mode, **opts)
+        monkeypatch.setattr(_splat, "_BAND_ROWS", 3)
+        bands = render_splat(v, cam, tf, g, mode=mode, **opts)
+    finally:
+        set_kernel_threads(previous)
+    assert one[0][..., 3].max() > 0.3
+    for image in (two, bands):
+        np.testing.assert_array_equal(image[0], one[0])
+        np.testing.assert_array_equal(image[1], one[1])
 
 
 # ---------------------------------------------------------------------------- degenerate

@@ -103,6 +103,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import parallel_map
 from ..model._densities import TABLE_ORDERS
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
@@ -111,14 +112,18 @@ from ._gradients import region_gradients
 from ._modes import finish_mode
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
+from ._splat_kernels import Buffer, Crossings, Footprint, Slab, Voxels, splat_rows
 
 __all__ = ["render_splat"]
 
 _FOOTPRINT_SIZE = 1024
 _CULL_INVISIBLE = True
 """Drop voxels whose whole neighbourhood is transparent (they cannot change the image)."""
-_PAIRS = 1 << 22
-"""Voxel-pixel pairs scattered at once (bounds memory)."""
+_BAND_ROWS = 64
+"""Window rows a kernel call splats (the calls run on all threads)."""
+_NONE2 = np.zeros((0, 2))
+_NONE3 = np.zeros((0, 3))
+"""What the kernel gets for unused per-voxel terms (perspective; unshaded)."""
 
 
 def _section_voxels(section):
@@ -601,10 +606,13 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
     b_ax, c_ax = ["xyz".index(ch) for ch in TABLE_ORDERS[axis][1:]]
     img, entered = _crossings(view.rays, axis, b_ax, c_ax, vevm.spacing)
     img = {k: v.reshape(h, w) for k, v in img.items()}
+    crossings = Crossings(*(np.ascontiguousarray(img[key], dtype=np.float64) for key in (
+        "tA", "iA", "span", "t0", "t1", "B0", "B1", "C0", "C1", "dB", "dC")))
     get = (_slices_evm if skip_empty else _slices_dense)(vevm, axis)
     sheets = _sheets(get, _sheet_order(vevm.shape[axis], axis, view, mode))
 
     ftab, fscale = _footprint_table(kernel.sigma, kernel.radius)
+    fscale = np.float32(fscale)
     colouring = None
     if mode != "xray":
         lo, hi = tf.value_range
@@ -625,6 +633,7 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
         cull = _culler(get, _kept_voxels(vevm, axis, rule) if skip_empty else {}, visible,
                        substeps)
     projection = _Projection.of_view(view, (axis, b_ax, c_ax))
+    drift = np.zeros(2, np.float32)  # perspective: per pixel, from the crossings
     if camera.is_ortho:
         ortho_offsets = {}  # the same footprint for every voxel and sheet
         fwd_i = projection.fwd_i
@@ -683,38 +692,24 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
         else:
             offsets = _window_offsets(uv, sheet.uvb, sheet.uvc, u[:, b_ax], u[:, c_ax], hu, hv,
                                       reach, True)
-        # Per window pixel: the crossing point, the drift, and the part of the slab
-        # a - 0.5 .. a + 0.5 the ray travels (box, clip range, depth_in) as offsets from the
-        # plane along the ray.
-        span = img["span"][win]
-        ta = img["tA"][win] + a * img["iA"][win]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s0 = np.clip((img["t0"][win] - ta) / span, -0.5, 0.5)
-            s1 = np.clip((img["t1"][win] - ta) / span, -0.5, 0.5)
-        s0[~live] = 0  # finished (or never reached) pixels take nothing
-        s1[~live] = 0
         # Orthographic: the crossing point relative to a voxel is J⁻¹ (pixel centre - the
-        # voxel's projection), per voxel plus per offset, and the drift is constant; the
-        # table holds only [s0, s1]. Perspective: per pixel crossing point and drift too.
-        pixel = np.empty((bh * bw + 1, 2 if camera.is_ortho else 6), np.float32)
-        grid = pixel[:-1].reshape(bh, bw, -1)
-        grid[..., 0] = s0
-        grid[..., 1] = s1
+        # voxel's projection), per voxel plus per offset, and the drift is constant.
+        # Perspective: the kernel reads the crossing point and drift per pixel.
+        centre = per_offset = _NONE2
         if camera.is_ortho:
-            pixel[-1] = 0  # where pairs outside the window go (their sums are dropped)
             ortho = projection.ortho
             kinv = np.linalg.inv(np.column_stack([ortho[1 + b_ax, :2], ortho[1 + c_ax, :2]]))
-            centre = np.column_stack([col + 0.5 - uv[:, 0], row + 0.5 - uv[:, 1]])
-            affine = (centre @ kinv.T, offsets @ kinv.T, drift)
-        else:
-            grid[..., 2] = img["B0"][win] + a * img["B1"][win]
-            grid[..., 3] = img["C0"][win] + a * img["C1"][win]
-            grid[..., 4] = img["dB"][win]
-            grid[..., 5] = img["dC"][win]
-            pixel[-1] = (0, 0, _FAR, _FAR, 0, 0)  # where pairs outside the window go
-            affine = None
-        grads = None if view.lighting is None else _sheet_gradients(get, a, cells)
+            centre = np.column_stack([col + 0.5 - uv[:, 0], row + 0.5 - uv[:, 1]]) @ kinv.T
+            per_offset = offsets @ kinv.T
+        footprint = Footprint(ftab, fscale, offsets, per_offset, drift)
+        grads = _NONE3 if view.lighting is None else np.ascontiguousarray(
+            _sheet_gradients(get, a, cells))
+        fb = cells[:, 0].astype(np.float32)
+        fc = cells[:, 1].astype(np.float32)
+        ub = u[:, b_ax].astype(np.float32)
+        uc = u[:, c_ax].astype(np.float32)
         bounds = np.linspace(-0.5, 0.5, substeps + 1)
+        bands = [(top, min(top + _BAND_ROWS, bh)) for top in range(0, bh, _BAND_ROWS)]
         # Every ray crossing the sheet runs along +A (or every one along -A): the sheet lies on
         # one side of the camera.
         ahead = u[0, axis] > 0
@@ -726,23 +721,27 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
                 # the sub-slab's side, |at| slices away.
                 side = nb[1] if (at > 0) == ahead else nb[0]
                 sub = dens + np.float32(abs(at)) * (side - dens)
-            grid[..., 0] = np.clip(s0, bounds[k], bounds[k + 1])
-            grid[..., 1] = np.clip(s1, bounds[k], bounds[k + 1])
-            # Over and X-ray keep the first hit's depth: only pixels without one need S.
-            need = None if mode in ("under", "mip") else np.append(
-                depth[win] == BACKGROUND_DEPTH, False)
-            W, WD, L, S, G = _scatter(cells, sub, grads, u[:, b_ax], u[:, c_ax], col - c0,
-                                      row - r0, offsets, bw, bh, pixel, ftab, fscale, need,
-                                      affine, at)
+            voxels = Voxels(col - c0, row - r0, fb, fc, np.asarray(sub, dtype=np.float32), grads,
+                            ub, uc, centre)
+            # Over and X-ray keep the first hit's depth: only pixels without one need its start.
+            slab = Slab(float(a), float(bounds[k]), float(bounds[k + 1]), np.float32(at), r0, c0,
+                        live, depth, mode not in ("under", "mip"))
+            buffer = Buffer(np.zeros(bh * bw), np.zeros(bh * bw), np.zeros(bh * bw),
+                            np.full(bh * bw, np.inf),
+                            np.zeros((0 if view.lighting is None else bh * bw, 3)))
+            parallel_map(splat_rows, [(top, bottom, voxels, footprint, slab, crossings, buffer)
+                                      for top, bottom in bands])
+            W, WD, L, S, G = buffer
             sees = np.flatnonzero((L > 0) & (W > 0))
             if len(sees) == 0:
                 continue
             q = (sees // bw + r0) * w + sees % bw + c0  # flat image indices
             value = (WD[sees] / W[sees]).astype(np.float32)
             length = (L[sees] * mm_f[q]).astype(np.float32)
-            first_depth = a0_f[q] + kz_f[q] * (ta.ravel()[sees] + S[sees] * span.ravel()[sees])
+            ta = img["tA"].ravel()[q] + a * img["iA"].ravel()[q]
+            first_depth = a0_f[q] + kz_f[q] * (ta + S[sees] * img["span"].ravel()[q])
             grad = None
-            if G is not None:
+            if view.lighting is not None:
                 grad = np.empty((len(q), 3))
                 grad[:, [axis, b_ax, c_ax]] = G[sees] / W[sees][:, None]
             _composite_samples(out, q, value, length, first_depth, grad, compositing, colouring)
@@ -886,89 +885,6 @@ def _composite_samples(out, q, value, length, first_depth, grad, compositing, co
         depth_f[q[hit]] = first_depth[hit]
 
 
-def _scatter(cells, dens, grads, ub, uc, col, row, offsets, bw, bh, rows, ftab, fscale,
-             need=None, affine=None, at=0.0):
-    """Splat one sheet into its ``bh × bw`` window.
-
-    Each voxel goes to the pixels ``(col, row) + offsets`` (window coordinates). ``rows``
-    holds per window pixel (and one last row for pairs outside the window) the range
-    ``[s0, s1]`` of A-offsets from the plane its ray travels in the (sub-)slab, then (perspective,
-    ``affine`` None) the crossing point (B, C) of the ray with the sheet's plane and its drift
-    (dB/dA, dC/dA). Orthographic (``affine = (per voxel (m, 2), per offset (k, 2), drift
-    (2,))``): the crossing point relative to the voxel is the sum of a per-voxel and a
-    per-offset term and the drift is constant. Footprints are evaluated where the ray is
-    ``at`` (an A-offset) from the plane. Returns per pixel ``Σ w``, ``Σ w·density``,
-    the length (in units of A) of the ray's path in the slab that lies in the sheet's cells,
-    the A-offset where that path starts (only where ``need``, bool per pixel and the last
-    row, is True, if given; elsewhere inf), and (``grads`` (m, 3) or None) ``Σ w·gradient``.
-    """
-    npix = bw * bh
-    W = np.zeros(npix + 1)
-    WD = np.zeros(npix + 1)
-    L = np.zeros(npix + 1)
-    S = np.full(npix + 1, np.inf)
-    G = None if grads is None else np.zeros((npix + 1, 3))
-    ou, ov = offsets[:, 0], offsets[:, 1]
-    fb = cells[:, 0].astype(np.float32)
-    fc = cells[:, 1].astype(np.float32)
-    ub = ub.astype(np.float32)
-    uc = uc.astype(np.float32)
-    dens = np.asarray(dens, dtype=np.float32)
-    per = max(1, _PAIRS // len(ou))
-    for s in range(0, len(cells), per):
-        sl = slice(s, s + per)
-        cc = col[sl][None, :] + ou[:, None]
-        rr = row[sl][None, :] + ov[:, None]
-        valid = (cc >= 0) & (cc < bw) & (rr >= 0) & (rr < bh)
-        flat = np.where(valid, rr * bw + cc, npix).ravel()
-        if affine is None:
-            px = rows[flat]
-            db = px[:, 2] - np.broadcast_to(fb[sl], cc.shape).ravel()
-            dc = px[:, 3] - np.broadcast_to(fc[sl], cc.shape).ravel()
-            drift_b, drift_c = px[:, 4], px[:, 5]
-        else:
-            per_vox, per_off, (drift_b, drift_c) = affine
-            db = (per_off[:, 0, None] + per_vox[None, sl, 0]).astype(np.float32).ravel()
-            dc = (per_off[:, 1, None] + per_vox[None, sl, 1]).astype(np.float32).ravel()
-        pub = np.broadcast_to(ub[sl], cc.shape).ravel()
-        puc = np.broadcast_to(uc[sl], cc.shape).ravel()
-        # Footprint: the kernel integrated along the ray, where the ray is ``at`` from the plane.
-        qb, qc = db + np.float32(at) * drift_b, dc + np.float32(at) * drift_c
-        proj = qb * pub + qc * puc
-        r2 = np.maximum(qb * qb + qc * qc - proj * proj, 0)
-        wt = ftab[np.minimum((r2 * np.float32(fscale)).astype(np.int64), len(ftab) - 1)]
-        W += np.bincount(flat, wt, minlength=npix + 1)
-        WD += np.bincount(flat, wt * np.broadcast_to(dens[sl], cc.shape).ravel(),
-                          minlength=npix + 1)
-        # The ray's path in the slab, (db, dc) + s (dB/dA, dC/dA) for s in [s0, s1] within
-        # [-0.5, 0.5], clipped to the voxel's cell |.| <= 0.5 in both in-plane axes; only the
-        # pairs whose cell the path can reach, its boundary included (rays along a face).
-        near = np.flatnonzero((np.abs(db) - 0.5 * np.abs(drift_b) <= 0.5)
-                              & (np.abs(dc) - 0.5 * np.abs(drift_c) <= 0.5))
-        fn = flat[near]
-        lo, hi = rows[fn, 0], rows[fn, 1]
-        if affine is None:
-            drift_b, drift_c = drift_b[near], drift_c[near]
-        for delta, drift in ((db[near], drift_b), (dc[near], drift_c)):
-            drift = np.where(np.abs(drift) < _TINY, _TINY, drift)
-            e0 = (-0.5 - delta) / drift
-            e1 = (0.5 - delta) / drift
-            lo = np.maximum(lo, np.minimum(e0, e1))
-            hi = np.minimum(hi, np.maximum(e0, e1))
-        length = np.maximum(hi - lo, 0)
-        L += np.bincount(fn, length, minlength=npix + 1)
-        hit = length > 0
-        if need is not None:
-            hit &= need[fn]
-        np.minimum.at(S, fn[hit], lo[hit])
-        if G is not None:
-            for j in range(3):
-                G[:, j] += np.bincount(flat, wt * np.broadcast_to(
-                    grads[sl, j], cc.shape).ravel(), minlength=npix + 1)
-    return W[:npix], WD[:npix], L[:npix], S[:npix], None if G is None else G[:npix]
-
-
-_FAR = 1e6
 
 
 def _window_offsets(uv, uvb, uvc, ub, uc, hu, hv, radius, perspective):
@@ -998,4 +914,3 @@ def _window_offsets(uv, uvb, uvc, ub, uc, hu, hv, radius, perspective):
     slack = perp(corners @ inv.T).max() * (3.0 if perspective else 1.0)
     keep = perp(cand @ inv.T) <= radius + slack
     return cand[keep].astype(np.int64)
-_TINY = 1e-12
