@@ -20,8 +20,11 @@ an ellipse stretched along the projected ray otherwise, scaled by the projection
 (perspective: per voxel). Weights come from a precomputed footprint table indexed by
 ``|q_⊥|²``. Each voxel is scattered to the pixels its projected footprint can reach (a window
 of offsets around its projected centre, found per sheet from the kernel's ellipse, the
-sub-slabs' drift and the local projection; half-width at most ``max_footprint_px``),
-all voxels of a sheet at once with ``np.bincount``. Orthographic cameras project affinely, so
+sub-slabs' drift and the local projection; half-width at most ``max_footprint_px``) by a
+compiled loop (:mod:`._splat_kernels`), which splats bands of the window's rows on all threads
+(:func:`.._jit.parallel_map`): a band writes only its rows and adds a pixel's contributions in
+voxel order, so the image does not depend on the bands nor on the number of threads.
+Orthographic cameras project affinely, so
 every voxel has the same footprint: its window is found once, and a pixel's offset ``q`` from
 a voxel is a per-voxel term (its sub-pixel position) plus a per-offset term, with no per-pixel
 lookup (a sheet is the 2-D convolution of the slice with the footprint, on the image grid).
@@ -105,14 +108,14 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import parallel_map
 from ..model._densities import TABLE_ORDERS
-from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, positive_integer
 from ._gradients import region_gradients
 from ._modes import finish_mode
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
-from ._splat_kernels import Buffer, Crossings, Footprint, Slab, Voxels, splat_rows
+from ._splat_kernels import (MODE_CODES, Crossings, Footprint, Image, Optics, Slab, Voxels,
+                             splat_rows)
 
 __all__ = ["render_splat"]
 
@@ -470,30 +473,6 @@ class _SplatView:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class _Image:
-    """What a sheet family composites into, flat per pixel: premultiplied RGBA ``acc``
-    (H·W, 4), the axial ``depth``, ``done`` (pixels that take no more contributions), MIP's
-    maxima ``vmax`` (empty for the other modes)."""
-
-    acc: np.ndarray
-    depth: np.ndarray
-    done: np.ndarray
-    vmax: np.ndarray
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _Colouring:
-    """Over and under: the classification table ``lut`` (straight RGBA, ``lo``, rows per data
-    unit), the transfer function's ``unit_length_mm``, the ``lighting`` (None: unshaded) and
-    the world ray direction of every pixel, ``dirs``."""
-
-    lut: tuple
-    unit_length_mm: float
-    lighting: Lighting
-    dirs: np.ndarray
-
-
-@dataclass(frozen=True, slots=True, eq=False)
 class _Sheet:
     """The voxels of a sheet to splat, one row each: ``cells`` (B, C), densities ``dens``,
     the densities at the same cells in the neighbouring slices ``nb`` ((2, m); None without
@@ -602,34 +581,27 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
     mode, termination = compositing.mode, compositing.termination
     substeps = kernel.substeps
     h, w = camera.shape
-    npix = h * w
     b_ax, c_ax = ["xyz".index(ch) for ch in TABLE_ORDERS[axis][1:]]
     img, entered = _crossings(view.rays, axis, b_ax, c_ax, vevm.spacing)
     img = {k: v.reshape(h, w) for k, v in img.items()}
     crossings = Crossings(*(np.ascontiguousarray(img[key], dtype=np.float64) for key in (
-        "tA", "iA", "span", "t0", "t1", "B0", "B1", "C0", "C1", "dB", "dC")))
+        "tA", "iA", "span", "t0", "t1", "B0", "B1", "C0", "C1", "dB", "dC", "mm", "a0", "kz")),
+        np.ascontiguousarray(view.rays.dirs, dtype=np.float64).reshape(h, w, 3))
     get = (_slices_evm if skip_empty else _slices_dense)(vevm, axis)
     sheets = _sheets(get, _sheet_order(vevm.shape[axis], axis, view, mode))
 
     ftab, fscale = _footprint_table(kernel.sigma, kernel.radius)
     fscale = np.float32(fscale)
-    colouring = None
-    if mode != "xray":
-        lo, hi = tf.value_range
-        hi = hi if hi > lo else lo + 1.0
-        lut = (np.asarray(tf.straight_table(lo=lo, hi=hi, n=4096), dtype=np.float32), lo,
-               4095.0 / (hi - lo))
-        colouring = _Colouring(lut, tf.unit_length_mm, view.lighting, view.rays.dirs)
+    optics, lut_scale = _optics(compositing, tf, view.lighting, (axis, b_ax, c_ax))
     acc = np.zeros((h, w, 4), np.float32)
     depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)
     done = ~entered.reshape(h, w)  # pixels that take no more contributions
-    # Flat views of the images for scattered updates.
-    out = _Image(acc.reshape(-1, 4), depth.reshape(-1), done.reshape(-1),
-                 np.full(npix if mode == "mip" else 0, -np.inf, np.float32))
-    mm_f, a0_f, kz_f = img["mm"].ravel(), img["a0"].ravel(), img["kz"].ravel()
+    # Flat views of the images for the kernel.
+    out = Image(acc.reshape(-1, 4), depth.reshape(-1), done.reshape(-1),
+                np.full(h * w if mode == "mip" else 0, -np.inf, np.float32))
     cull = None
     if _CULL_INVISIBLE and mode != "mip":
-        rule, visible = _cull_rule(kernel, compositing, tf, colouring)
+        rule, visible = _cull_rule(kernel, compositing, tf, lut_scale)
         cull = _culler(get, _kept_voxels(vevm, axis, rule) if skip_empty else {}, visible,
                        substeps)
     projection = _Projection.of_view(view, (axis, b_ax, c_ax))
@@ -723,28 +695,10 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
                 sub = dens + np.float32(abs(at)) * (side - dens)
             voxels = Voxels(col - c0, row - r0, fb, fc, np.asarray(sub, dtype=np.float32), grads,
                             ub, uc, centre)
-            # Over and X-ray keep the first hit's depth: only pixels without one need its start.
             slab = Slab(float(a), float(bounds[k]), float(bounds[k + 1]), np.float32(at), r0, c0,
-                        live, depth, mode not in ("under", "mip"))
-            buffer = Buffer(np.zeros(bh * bw), np.zeros(bh * bw), np.zeros(bh * bw),
-                            np.full(bh * bw, np.inf),
-                            np.zeros((0 if view.lighting is None else bh * bw, 3)))
-            parallel_map(splat_rows, [(top, bottom, voxels, footprint, slab, crossings, buffer)
-                                      for top, bottom in bands])
-            W, WD, L, S, G = buffer
-            sees = np.flatnonzero((L > 0) & (W > 0))
-            if len(sees) == 0:
-                continue
-            q = (sees // bw + r0) * w + sees % bw + c0  # flat image indices
-            value = (WD[sees] / W[sees]).astype(np.float32)
-            length = (L[sees] * mm_f[q]).astype(np.float32)
-            ta = img["tA"].ravel()[q] + a * img["iA"].ravel()[q]
-            first_depth = a0_f[q] + kz_f[q] * (ta + S[sees] * img["span"].ravel()[q])
-            grad = None
-            if view.lighting is not None:
-                grad = np.empty((len(q), 3))
-                grad[:, [axis, b_ax, c_ax]] = G[sees] / W[sees][:, None]
-            _composite_samples(out, q, value, length, first_depth, grad, compositing, colouring)
+                        live)
+            parallel_map(splat_rows, [(top, bottom, voxels, footprint, slab, crossings, optics,
+                                       out) for top, bottom in bands])
     visible = finish_mode(out.acc, out.vmax, mode, tf)
     if visible is not None:
         out.depth[~visible] = BACKGROUND_DEPTH
@@ -795,10 +749,35 @@ def _sheet_order(n_a, axis, view, mode):
     return order[::-1] if mode == "under" else order
 
 
-def _cull_rule(kernel, compositing, tf, colouring):
+def _optics(compositing, tf, lighting, axes):
+    """The kernel's :data:`._splat_kernels.Optics` for the sheets along ``axes[0]`` (``axes``:
+    A, B, C as grid axes), and the classification table's rows per data unit (None for X-ray)."""
+    mode = compositing.mode
+    termination = np.float32(compositing.termination if compositing.termination < 1 else np.inf)
+    lut, lo, scale, unit_length = np.zeros((0, 4), np.float32), 0.0, None, 1.0
+    if mode != "xray":
+        lo, hi = tf.value_range
+        hi = hi if hi > lo else lo + 1.0
+        lut = np.asarray(tf.straight_table(lo=lo, hi=hi, n=4096), dtype=np.float32)
+        scale, unit_length = 4095.0 / (hi - lo), tf.unit_length_mm
+    normal, weights = np.zeros(0), (0.0, 0.0, 0.0, 0.0)
+    if lighting is not None:
+        normal = np.ascontiguousarray(lighting.inv_t[:, list(axes)], dtype=np.float64).ravel()
+        shading = lighting.shading
+        weights = tuple(float(x) for x in (shading.ambient, shading.diffuse, shading.specular,
+                                           shading.shininess))
+    optics = Optics(MODE_CODES[mode], termination, lut, np.float32(lo),
+                    np.float32(0.0 if scale is None else scale), np.float32(unit_length),
+                    np.float32(compositing.xray_scale), np.float32(compositing.xray_offset),
+                    normal, *weights)
+    return optics, scale
+
+
+def _cull_rule(kernel, compositing, tf, lut_scale):
     """Which voxels cannot change the image: ``(rule, visible)``, the rule's key (what the
     kept voxels depend on) and ``visible(cells, lo, hi)``, whether the voxels of a sheet whose
-    samples lie between densities ``lo`` and ``hi`` may be seen."""
+    samples lie between densities ``lo`` and ``hi`` may be seen; ``lut_scale``: the
+    classification table's rows per data unit."""
     # Every pixel a voxel reaches takes its density from voxels at most 2·radius·√3
     # in-plane voxels from it (the footprint's ellipse for the most oblique view).
     reach_vox = int(np.ceil(2 * kernel.radius * np.sqrt(3.0)))
@@ -810,7 +789,7 @@ def _cull_rule(kernel, compositing, tf, colouring):
             hi = _neighbourhood(cells, hi_, reach_vox, np.maximum, -np.inf)
             return (hi > xray_offset) & (xray_scale > 0)
     else:
-        margin = 1.0 / colouring.lut[2]  # one lookup-table step: the table is interpolated
+        margin = 1.0 / lut_scale  # one lookup-table step: the table is interpolated
         rule = ("tf", reach_vox, kernel.substeps > 1, margin, tf.points[:, [0, 4]].tobytes())
 
         def visible(cells, lo_, hi_):
@@ -837,54 +816,6 @@ def _culler(get, kept, visible, substeps):
         return kept[a]
 
     return cull
-
-
-def _composite_samples(out, q, value, length, first_depth, grad, compositing, colouring):
-    """Composite one sub-slab's samples into the pixels ``q`` (flat) of ``out``: densities
-    ``value`` over ``length`` mm of the ray in the sheet's cells, starting at axial depth
-    ``first_depth``; ``grad`` the gradients (index space) with shading, else None."""
-    mode = compositing.mode
-    acc_f, depth_f = out.acc, out.depth
-    if mode == "xray":
-        mu = np.float32(compositing.xray_scale) * np.maximum(
-            value - np.float32(compositing.xray_offset), 0)
-        tau = mu * length
-        acc_f[q, 0] += tau
-        hit = _depth.attenuates(tau, length) & (depth_f[q] == BACKGROUND_DEPTH)
-        depth_f[q[hit]] = first_depth[hit]
-        return
-    if mode == "mip":
-        better = value > out.vmax[q]
-        out.vmax[q[better]] = value[better]
-        depth_f[q[better]] = first_depth[better]
-        return
-    tab, lo, scale = colouring.lut
-    x = np.clip((value - np.float32(lo)) * np.float32(scale), 0, len(tab) - 1)
-    i = np.minimum(x.astype(np.int64), len(tab) - 2)
-    f = (x - i)[:, None]
-    st = tab[i] + f * (tab[i + 1] - tab[i])
-    units = length / np.float32(colouring.unit_length_mm)
-    alpha = 1 - np.power(1 - st[:, 3], units)
-    rgb = st[:, :3]
-    if grad is not None:
-        rgb = colouring.lighting.shade(rgb, grad, colouring.dirs[q]).astype(np.float32)
-    c = rgb * alpha[:, None]
-    hit = _depth.visible(alpha, units)
-    if mode == "over":
-        trans = 1 - acc_f[q, 3]
-        acc_f[q, :3] += trans[:, None] * c
-        acc_f[q, 3] += trans * alpha
-        first = hit & (depth_f[q] == BACKGROUND_DEPTH)
-        depth_f[q[first]] = first_depth[first]
-        if compositing.termination < 1:
-            out.done[q] |= acc_f[q, 3] >= compositing.termination
-    else:  # under: back to front
-        keep = 1 - alpha
-        acc_f[q, :3] = c + keep[:, None] * acc_f[q, :3]
-        acc_f[q, 3] = alpha + keep * acc_f[q, 3]
-        depth_f[q[hit]] = first_depth[hit]
-
-
 
 
 def _window_offsets(uv, uvb, uvc, ub, uc, hu, hv, radius, perspective):

@@ -1,37 +1,49 @@
-"""Splatting's footprint loop, compiled (:mod:`.._jit`): one sub-slab of a sheet scattered into
-the sheet buffer.
+"""Splatting's loops, compiled (:mod:`.._jit`): one sub-slab of a sheet scattered into the
+sheet buffer and composited into the image.
 
-:mod:`._splat` orders the sheets, culls and places their voxels, finds the footprint's window of
-pixel offsets and composites the buffer; :func:`splat_rows` fills the buffer for a band of the
-sheet's window rows. First, per pixel of the band, the part of the sub-slab its ray travels (box,
+:mod:`._splat` orders the sheets, culls and places their voxels and finds the footprint's window
+of pixel offsets; :func:`splat_rows` splats and composites a band of the sheet's window rows.
+First, per pixel of the band, the part of the sub-slab its ray travels (box,
 clip range, ``depth_in``: ``[s0, s1]`` as A-offsets from the sheet's plane, empty for pixels
 that take no more contributions) and, perspective, where the ray crosses the plane and its drift.
 Then per voxel, per offset of its window, per pixel the offset lands on in the band: the
 footprint weight from the footprint table (indexed by ``|q_⊥|²`` where the ray is ``at`` from
 the plane), added to ``Σ w``, ``Σ w·density`` (and ``Σ w·gradient``), and the length of the
 ray's path in the voxel's cell, added to the pixel's path length (the earliest A-offset where
-it enters one kept where the depth is still wanted).
+it enters one kept where the depth is still wanted). Last, per pixel of the band whose ray
+runs through the sheet's cells and meets a footprint: the sample (density ``Σ w·d / Σ w`` over
+that length) classified, shaded and composited into the image (:func:`_composite`).
 
-The arithmetic is that of the vectorized NumPy scatter it replaced, in the same precision
-(float32 footprint and path arithmetic, float64 sums); only the order in which a pixel's sums
-are added changed (voxel by voxel instead of offset by offset), which moves them by float64
-rounding. A band writes only its own rows of the buffer, and adds a pixel's contributions in
-voxel order whatever the bands, so the buffer does not depend on how the window is cut into
-bands nor on the number of threads.
+The arithmetic is that of the vectorized NumPy splatting it replaced, in the same precision
+(float32 footprint and path arithmetic, float64 sums, classification and shading as NumPy's
+type promotion made them); only the order in which a pixel's sums are added changed (voxel by
+voxel instead of offset by offset), which moves them by float64 rounding: the images compared
+(CT head and brainsmall, all modes, shading, sub-slabs, both cameras) were identical, bit for
+bit. A band writes only its own rows of the image, and adds a pixel's contributions in voxel
+order whatever the bands, so the image does not depend on how the window is cut into bands
+nor on the number of threads.
 
 The kernel takes its inputs as records of arrays and numbers with fixed types, so that one
 compiled kernel serves every render (what a render does not use is an empty array):
-:data:`Crossings`, :data:`Voxels`, :data:`Footprint`, :data:`Slab` and :data:`Buffer`.
+:data:`Crossings`, :data:`Voxels`, :data:`Footprint`, :data:`Slab`, :data:`Optics` and
+:data:`Image`.
 """
 
+import math
 from collections import namedtuple
 
 import numpy as np
 
 from .._jit import kernel
 from ._camera import BACKGROUND_DEPTH
+from ._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH
 
-__all__ = ["Crossings", "Voxels", "Footprint", "Slab", "Buffer", "splat_rows"]
+__all__ = ["Crossings", "Voxels", "Footprint", "Slab", "Optics", "Image", "MODE_CODES",
+           "splat_rows"]
+
+MODE_CODES = {"over": 0, "under": 1, "xray": 2, "mip": 3}
+"""The compositing modes as the kernel knows them."""
+_OVER, _UNDER, _XRAY, _MIP = 0, 1, 2, 3
 
 _HALF = np.float32(0.5)
 _ZERO = np.float32(0.0)
@@ -39,12 +51,13 @@ _TINY = np.float32(1e-12)
 """Smallest drift a path is divided by (a ray along the cell's face)."""
 _BACKGROUND = np.float32(BACKGROUND_DEPTH)
 
-Crossings = namedtuple("Crossings", "ta ia span t0 t1 b0 b1 c0 c1 db dc")
+Crossings = namedtuple("Crossings", "ta ia span t0 t1 b0 b1 c0 c1 db dc mm a0 kz dirs")
 Crossings.__doc__ = """Per image pixel ((H, W) float64 each), where its ray meets the sheets of
 one principal axis A: the ray parameter at the plane ``A = a`` is ``ta + a·ia``, ``span`` the
 parameter per unit of A, ``[t0, t1]`` the clipped ray range (box, clip range, ``depth_in``);
 perspective, the crossing point ``(b0 + a·b1, c0 + a·c1)`` in the plane and the drift ``(db,
-dc)`` per unit of A along the ray (orthographic: unused)."""
+dc)`` per unit of A along the ray (orthographic: unused); ``mm`` per unit of A, the axial depth
+``a0 + kz·t`` at parameter ``t``, and ``dirs`` ((H, W, 3)) the world ray direction."""
 
 Voxels = namedtuple("Voxels", "col row b c dens grads ub uc centre")
 Voxels.__doc__ = """The voxels of a sheet to splat, one entry each: ``col``, ``row`` (int64) the
@@ -61,26 +74,61 @@ Footprint.__doc__ = """Footprints: ``table`` (float32) the weights by ``floor(|q
 term of the in-plane offset and ``drift`` ((2,) float32) the rays' drift per unit of A
 (perspective: ``per_offset`` empty, the drift per pixel from :data:`Crossings`)."""
 
-Slab = namedtuple("Slab", "a lo hi at r0 c0 live depth first_only")
+Slab = namedtuple("Slab", "a lo hi at r0 c0 live")
 Slab.__doc__ = """The sub-slab: sheet ``a`` (float), the sub-slab ``[lo, hi]`` as A-offsets from
 its plane and ``at`` (float32) the offset of its centre plane, where footprints are evaluated;
 the window's top left image pixel ``(r0, c0)`` and its pixels that take contributions, ``live``
-((rows, cols) bool); the image's ``depth`` ((H, W) float32): with ``first_only`` the path's start
-is kept only where it is still the background."""
+((rows, cols) bool)."""
 
-Buffer = namedtuple("Buffer", "w wd length start grad")
-Buffer.__doc__ = """The sheet buffer, flat over the window's pixels (float64): ``Σ w``,
-``Σ w·density``, the path ``length`` (units of A) in the sheet's cells, its ``start`` (inf: none
-or not wanted) and ``Σ w·gradient`` ((n, 3); empty unshaded). Zeros (``start``: inf) on entry."""
+Optics = namedtuple("Optics", "mode termination lut lut_lo lut_scale unit_length xray_scale "
+                              "xray_offset normal ambient diffuse specular shininess")
+Optics.__doc__ = """How samples become colour: ``mode`` (:data:`MODE_CODES`); ``termination``
+(float32): "over" finishes a pixel at this opacity; post-classification through ``lut``
+((n, 4) float32 straight RGBA, interpolated at ``(d - lut_lo)·lut_scale``; empty for X-ray),
+opacity per ``unit_length`` mm (float32); X-ray's ``μ = xray_scale·max(d - xray_offset, 0)``
+(float32); shading (``normal`` (9,) float64, empty unshaded: the matrix taking the sheet's
+(A, B, C) gradient to a world normal, row by row) with the Blinn–Phong weights (float64) of
+:class:`._shading.Shading`."""
+
+Image = namedtuple("Image", "acc depth done vmax")
+Image.__doc__ = """What a sheet family composites into, flat per pixel: premultiplied RGBA
+``acc`` ((H·W, 4) float32; X-ray: optical depth in channel 0), the axial ``depth`` (float32),
+``done`` (bool: pixels that take no more contributions) and MIP's maxima ``vmax`` (float32;
+empty for the other modes)."""
 
 
 @kernel
-def splat_rows(top, bottom, voxels, footprint, slab, crossings, buffer):
-    """Splat the voxels into the window rows ``top .. bottom - 1`` of ``buffer`` (module
-    docstring)."""
+def _headlight(rgb, gradient, normal, ray, weights):
+    """Straight colour ``rgb`` (float64) lit by the headlight (:meth:`._shading.Lighting.shade`,
+    in float64 as it is): ``gradient`` (A, B, C), ``normal`` the 3x3 matrix taking it to a world
+    normal (row by row), ``ray`` the world ray direction, ``weights`` (ambient, diffuse,
+    specular, shininess); each channel rounded to float32, as that returns it."""
+    ga, gb, gc = gradient
+    nx = ga * normal[0] + gb * normal[1] + gc * normal[2]
+    ny = ga * normal[3] + gb * normal[4] + gc * normal[5]
+    nz = ga * normal[6] + gb * normal[7] + gc * normal[8]
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    cos = 1.0
+    glint = 0.0
+    if norm > 0:
+        cos = abs(nx * ray[0] + ny * ray[1] + nz * ray[2]) / norm
+        glint = weights[2] * cos ** weights[3]
+    lit = weights[0] + weights[1] * cos
+    red, green, blue = rgb
+    return (np.float64(np.float32(min(red * lit + glint, 1.0))),
+            np.float64(np.float32(min(green * lit + glint, 1.0))),
+            np.float64(np.float32(min(blue * lit + glint, 1.0))))
+
+
+@kernel
+def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
+    """Splat the voxels into the window rows ``top .. bottom - 1`` and composite them into
+    ``image`` (module docstring)."""
     rows, cols = slab.live.shape
+    width = crossings.ta.shape[1]
     ortho = footprint.per_offset.shape[0] > 0
-    shaded = buffer.grad.shape[0] > 0
+    shaded = voxels.grads.shape[0] > 0
+    first_only = optics.mode == _OVER or optics.mode == _XRAY
     offsets = footprint.offsets
     k = offsets.shape[0]
     last = footprint.table.shape[0] - 1
@@ -110,6 +158,13 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, buffer):
                 pc[i] = np.float32(crossings.c0[y, x] + a * crossings.c1[y, x])
                 drb[i] = np.float32(crossings.db[y, x])
                 drc[i] = np.float32(crossings.dc[y, x])
+    # The band's sheet buffer: Σ w, Σ w·density, the path's length (units of A) in the sheet's
+    # cells, its start (inf: none or not wanted), Σ w·gradient.
+    w_sum = np.zeros(n)
+    wd_sum = np.zeros(n)
+    path = np.zeros(n)
+    start = np.full(n, np.inf)
+    grad = np.zeros((n if shaded else 0, 3))
     low = 0
     high = 0
     for o in range(k):
@@ -147,12 +202,11 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, buffer):
             proj = qb * ub + qc * uc
             r2 = max(qb * qb + qc * qc - proj * proj, _ZERO)
             wt = footprint.table[min(np.int64(r2 * scale), last)]
-            p = r * cols + col
-            buffer.w[p] += wt
-            buffer.wd[p] += wt * dens
+            w_sum[i] += wt
+            wd_sum[i] += wt * dens
             if shaded:
                 for j in range(3):
-                    buffer.grad[p, j] += wt * voxels.grads[v, j]
+                    grad[i, j] += wt * voxels.grads[v, j]
             # The ray's path in the slab, (db, dc) + s (drift_b, drift_c) for s in [s0, s1],
             # clipped to the voxel's cell |.| <= 0.5 in both in-plane axes; only where the
             # path can reach the cell, its boundary included (rays along a face).
@@ -169,8 +223,77 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, buffer):
                 lo = max(lo, min(e0, e1))
                 hi = min(hi, max(e0, e1))
             length = max(hi - lo, _ZERO)
-            buffer.length[p] += length
-            if length > 0 and lo < buffer.start[p] and not (
-                    slab.first_only
-                    and slab.depth[slab.r0 + r, slab.c0 + col] != _BACKGROUND):
-                buffer.start[p] = lo
+            path[i] += length
+            if length > 0 and lo < start[i] and not (
+                    first_only and image.depth[(slab.r0 + r) * width + slab.c0 + col]
+                    != _BACKGROUND):
+                start[i] = lo
+    # Composite the band's samples (the NumPy compositing's arithmetic, types and all).
+    mode = optics.mode
+    lut = optics.lut
+    rows_lut = lut.shape[0]
+    normal = (0.0,) * 9
+    if optics.normal.shape[0] > 0:
+        m = optics.normal
+        normal = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
+    weights = (optics.ambient, optics.diffuse, optics.specular, optics.shininess)
+    for r in range(top, bottom):
+        y = slab.r0 + r
+        for col in range(cols):
+            i = (r - top) * cols + col
+            if not (path[i] > 0 and w_sum[i] > 0):
+                continue
+            x = slab.c0 + col
+            p = y * width + x
+            value = np.float32(wd_sum[i] / w_sum[i])
+            length = np.float32(path[i] * crossings.mm[y, x])
+            ta = crossings.ta[y, x] + a * crossings.ia[y, x]
+            first_depth = np.float32(crossings.a0[y, x] + crossings.kz[y, x] * (
+                ta + start[i] * crossings.span[y, x]))
+            if mode == _XRAY:
+                tau = optics.xray_scale * max(value - optics.xray_offset, _ZERO) * length
+                image.acc[p, 0] += tau
+                if (tau > 0 and tau >= np.float32(np.float64(length) * VISIBLE_OPTICAL_DEPTH)
+                        and image.depth[p] == _BACKGROUND):
+                    image.depth[p] = first_depth
+                continue
+            if mode == _MIP:
+                if value > image.vmax[p]:
+                    image.vmax[p] = value
+                    image.depth[p] = first_depth
+                continue
+            z = min(max((value - optics.lut_lo) * optics.lut_scale, _ZERO),
+                    np.float32(rows_lut - 1))
+            j = min(np.int64(z), rows_lut - 2)
+            f = np.float64(z) - np.float64(j)
+            red = lut[j, 0] + f * (lut[j + 1, 0] - lut[j, 0])
+            green = lut[j, 1] + f * (lut[j + 1, 1] - lut[j, 1])
+            blue = lut[j, 2] + f * (lut[j + 1, 2] - lut[j, 2])
+            opacity = lut[j, 3] + f * (lut[j + 1, 3] - lut[j, 3])
+            units = np.float64(length / optics.unit_length)
+            alpha = 1.0 - (1.0 - opacity) ** units
+            if shaded:
+                red, green, blue = _headlight(
+                    (red, green, blue), (grad[i, 0] / w_sum[i], grad[i, 1] / w_sum[i],
+                                         grad[i, 2] / w_sum[i]), normal,
+                    (crossings.dirs[y, x, 0], crossings.dirs[y, x, 1], crossings.dirs[y, x, 2]),
+                    weights)
+            hit = alpha > 0 and alpha >= 1.0 - (1.0 - VISIBLE_ALPHA) ** units
+            if mode == _OVER:
+                trans = np.float32(1.0) - image.acc[p, 3]
+                image.acc[p, 0] = np.float32(image.acc[p, 0] + trans * (red * alpha))
+                image.acc[p, 1] = np.float32(image.acc[p, 1] + trans * (green * alpha))
+                image.acc[p, 2] = np.float32(image.acc[p, 2] + trans * (blue * alpha))
+                image.acc[p, 3] = np.float32(image.acc[p, 3] + trans * alpha)
+                if hit and image.depth[p] == _BACKGROUND:
+                    image.depth[p] = first_depth
+                if image.acc[p, 3] >= optics.termination:
+                    image.done[p] = True
+            else:  # under: back to front
+                keep = 1.0 - alpha
+                image.acc[p, 0] = np.float32(red * alpha + keep * image.acc[p, 0])
+                image.acc[p, 1] = np.float32(green * alpha + keep * image.acc[p, 1])
+                image.acc[p, 2] = np.float32(blue * alpha + keep * image.acc[p, 2])
+                image.acc[p, 3] = np.float32(alpha + keep * image.acc[p, 3])
+                if hit:
+                    image.depth[p] = first_depth
