@@ -3,16 +3,18 @@ sheet buffer and composited into the image.
 
 :mod:`._splat` orders the sheets, culls and places their voxels and finds the footprint's window
 of pixel offsets; :func:`splat_rows` splats and composites a band of the sheet's window rows.
-First, per pixel of the band, the part of the sub-slab its ray travels (box,
-clip range, ``depth_in``: ``[s0, s1]`` as A-offsets from the sheet's plane, empty for pixels
-that take no more contributions) and, perspective, where the ray crosses the plane and its drift.
+First, per pixel of the band, the part of the sub-slab its ray travels (box, clip range,
+``depth_in``: ``[s0, s1]`` as A-offsets from the sheet's plane, empty for pixels that take no
+more contributions) and, perspective, where the ray crosses the plane and its drift.
 Then per voxel, per offset of its window, per pixel the offset lands on in the band: the
 footprint weight from the footprint table (indexed by ``|q_⊥|²`` where the ray is ``at`` from
 the plane), added to ``Σ w``, ``Σ w·density`` (and ``Σ w·gradient``), and the length of the
 ray's path in the voxel's cell, added to the pixel's path length (the earliest A-offset where
 it enters one kept where the depth is still wanted). Last, per pixel of the band whose ray
 runs through the sheet's cells and meets a footprint: the sample (density ``Σ w·d / Σ w`` over
-that length) classified, shaded and composited into the image (:func:`_composite`).
+that length) classified, shaded (:func:`_headlight`) and composited into the image; the
+helper takes numbers, not arrays: a compiled call passing arrays costs their reference
+counting, more than the work of a pixel.
 
 The arithmetic is that of the vectorized NumPy splatting it replaced, in the same precision
 (float32 footprint and path arithmetic, float64 sums, classification and shading as NumPy's
