@@ -22,6 +22,7 @@ from ._errors import VolumeEVMError
 from ._jit import kernel
 from ._memory import check_memory
 from .model import _sweep
+from .model._volume import transform
 
 __all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "tool_to_grid", "voxelize_memory",
            "voxelize_mesh", "voxelize_mesh_evm"]
@@ -223,7 +224,7 @@ def _winding_runs(vertices, faces, shape, to_grid, *, dense):
     check_closed_mesh(verts, tris)
 
     linear = matrix[:3, :3]
-    pts = verts @ linear.T + matrix[:3, 3]
+    pts = transform(verts, linear.T, matrix[:3, 3])
     reach = float(np.abs(pts).max())
     if not reach <= _MAX_INDEX:
         raise VolumeEVMError(
@@ -778,7 +779,7 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     shape = _as_shape(shape)
     check_lattice_range((0, 0, 0), shape, f"shape {shape}")
     matrix = _as_affine(to_grid)
-    pts = verts @ matrix[:3, :3].T + matrix[:3, 3]  # as voxelize_mesh computes them
+    pts = transform(verts, matrix[:3, :3].T, matrix[:3, 3])  # as voxelize_mesh computes them
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     extent = np.asarray(shape, np.float64) - 0.5
     # Past 1e15 (< 2**53) a float64 may be coarser than 1 and the shift would round: whole grid.

@@ -11,6 +11,9 @@ Conventions (one place for all of them):
   the patient frame LPS (+x left, +y posterior, +z superior). LPS maps straight onto Blender's
   axes: Z up is superior and the front view (looking along +Y) faces the patient's anterior side.
 - ``units`` are the data's own units ("HU" for CT); densities are never rescaled by the core.
+
+Points go through affine maps with :func:`transform` (scaled sums, not a BLAS product: the same
+bits on every CPU).
 """
 
 from dataclasses import KW_ONLY, dataclass, field
@@ -144,6 +147,23 @@ def grid_to_world(spacing, origin, orientation=None, matrix_world=None):
 #: orthonormal. Headers store directions in float32 or as decimal strings of six digits or so
 #: (DICOM), which leaves errors near 1e-6; a sheared or scaled frame is off by far more.
 ORTHONORMAL_TOLERANCE = 1e-5
+
+
+def transform(points, matrix, offset=None):
+    """``points @ matrix (+ offset)`` for ``(..., k)`` points and a ``(k, m)`` matrix, as ``k``
+    scaled sums in a fixed order.
+
+    Not a BLAS matrix product: its kernels round differently from one CPU to another, and on
+    tall, thin products like these (a point per pixel or voxel) its threads spin for tens of
+    milliseconds on a loaded machine. float32 points stay float32.
+    """
+    m = np.asarray(matrix, dtype=points.dtype)
+    out = points[..., 0:1] * m[0]
+    for i in range(1, m.shape[0]):
+        out += points[..., i:i + 1] * m[i]
+    if offset is not None:
+        out += offset
+    return out
 
 
 def checked_geometry(spacing, origin, orientation, *, source=""):

@@ -31,6 +31,7 @@ from dataclasses import KW_ONLY, dataclass
 import numpy as np
 
 from .._errors import VolumeEVMError
+from ..model._volume import transform
 from ._checks import finite_number, positive_integer, positive_number
 
 __all__ = ["Camera", "BACKGROUND_DEPTH"]
@@ -447,7 +448,7 @@ class Camera:
             raise VolumeEVMError(f"points: expected shape (..., 3), got {pts.shape}")
         m = self.matrix_world
         # The inverse of the (normalised) camera matrix, as Blender's view matrix is.
-        return (pts - m[:3, 3]) @ np.linalg.inv(m[:3, :3]).T
+        return transform(pts - m[:3, 3], np.linalg.inv(m[:3, :3]).T)
 
     def project(self, points):
         """Pixel coordinates and axial depth of world points.

@@ -12,6 +12,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from ..model._volume import transform
+
 __all__ = ["Rays", "camera_rays", "box_entry_exit"]
 
 
@@ -78,8 +80,8 @@ def camera_rays(camera, grid_to_world, shape, depth_in):
     t_near = (camera.clip_start - a0) / kz
     t_far = (far - a0) / kz
     inv = np.linalg.inv(grid_to_world)
-    o = origins @ inv[:3, :3].T + inv[:3, 3]
-    d = directions @ inv[:3, :3].T
+    o = transform(origins, inv[:3, :3].T, inv[:3, 3])
+    d = transform(directions, inv[:3, :3].T)
     tmin, tmax = box_entry_exit(o, d, -0.5, np.asarray(shape, dtype=np.float64) - 0.5)
     return Rays(o, d, directions, np.maximum(tmin, t_near), np.minimum(tmax, t_far), a0, kz)
 

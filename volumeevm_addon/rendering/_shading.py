@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import VolumeEVMError
+from ..model._volume import transform
 
 __all__ = ["Shading", "Lighting", "checked_shading", "blinn_phong"]
 
@@ -120,7 +121,7 @@ class Lighting:
     def shade(self, rgb, grad, view_dirs):
         """Straight colours ``rgb`` (m, 3) lit: gradients ``grad`` (m, 3, index space), unit
         world ray directions ``view_dirs`` (m, 3); the result is clipped to 1."""
-        n_world = grad @ self.inv_t.T
+        n_world = transform(grad, self.inv_t.T)
         norm = np.linalg.norm(n_world, axis=1)
         has = norm > 0
         cos = np.abs(np.einsum("mi,mi->m", n_world, view_dirs)) / np.where(has, norm, 1.0)

@@ -124,6 +124,7 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import parallel_map
 from ..model._densities import TABLE_ORDERS
+from ..model._volume import transform
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view
@@ -248,18 +249,6 @@ def _dense_layout(vevm, axis):
     runs = Runs(dense.shape[1], dense.shape[2], *mask_runs(mask))
     values = np.concatenate([np.zeros(1, dense.dtype), dense.ravel()])
     return _Layout(axis, axes, dense.shape, runs, values, False)
-
-
-def _transform(points, matrix, offset=None):
-    """``points @ matrix (+ offset)`` for ``(..., 3)`` points and a 3x3 matrix, as three scaled
-    sums: BLAS would treat these tall, thin products as matrix products and, on a loaded
-    machine, its threads spin for tens of milliseconds."""
-    m = np.asarray(matrix, dtype=points.dtype)  # float32 points stay float32
-    out = points[..., 0:1] * m[0] + points[..., 1:2] * m[1]
-    out += points[..., 2:3] * m[2]
-    if offset is not None:
-        out += offset
-    return out
 
 
 def _gradients(layout, vevm):
@@ -578,7 +567,7 @@ class _View:
         pts[..., a] = p[:, None]
         pts[..., b] = q[None, :]
         pts[..., c] = self.c_ref
-        uv, _ = camera.project(_transform(pts, g[:3, :3].T, g[:3, 3]))
+        uv, _ = camera.project(transform(pts, g[:3, :3].T, g[:3, 3]))
         with np.errstate(invalid="ignore"):
             col = np.floor(uv[..., 0])
             row = np.floor(uv[..., 1])
@@ -760,9 +749,9 @@ def _passes(vevm, camera, g):
         return [(axis, 1 if eye[axis] < lo[axis] else -1, None)]
     _, dirs = camera.rays()
     dirs = dirs.reshape(-1, 3)
-    cos = np.abs(_transform(dirs, cols)) / np.linalg.norm(cols, axis=0)
+    cos = np.abs(transform(dirs, cols)) / np.linalg.norm(cols, axis=0)
     dominant = np.argmax(cos, axis=1)
-    index_dirs = _transform(dirs, np.linalg.inv(cols).T)
+    index_dirs = transform(dirs, np.linalg.inv(cols).T)
     ahead = index_dirs[np.arange(len(dirs)), dominant] > 0
     key = 2 * dominant + ahead
     return [(int(k // 2), 1 if k % 2 else -1, key == k) for k in np.unique(key)]

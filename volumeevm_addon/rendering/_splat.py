@@ -108,6 +108,7 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import parallel_map
 from ..model._densities import TABLE_ORDERS
+from ..model._volume import transform
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, positive_integer
 from ._gradients import region_gradients
@@ -531,12 +532,12 @@ class _Projection:
         vox[:, b_ax] = cells[:, 0]
         vox[:, c_ax] = cells[:, 1]
         if self.ortho is not None:
-            uvd = vox @ self.ortho[1:] + self.ortho[0]
+            uvd = transform(vox, self.ortho[1:], self.ortho[0])
             uv, vdepth = uvd[:, :2], uvd[:, 2]
             jb, jc = self.ortho[1 + b_ax, None, :2], self.ortho[1 + c_ax, None, :2]
             return uv, vdepth, uv + jb, uv + jc, jb, jc, self.fwd_i[None, :]
         g, camera = self.view.g, self.view.camera
-        world = vox @ g[:3, :3].T + g[:3, 3]
+        world = transform(vox, g[:3, :3].T, g[:3, 3])
         uv, vdepth = camera.project(world)
         uvb, _ = camera.project(world + g[:3, b_ax])
         uvc, _ = camera.project(world + g[:3, c_ax])
@@ -671,7 +672,8 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
         if camera.is_ortho:
             ortho = projection.ortho
             kinv = np.linalg.inv(np.column_stack([ortho[1 + b_ax, :2], ortho[1 + c_ax, :2]]))
-            centre = np.column_stack([col + 0.5 - uv[:, 0], row + 0.5 - uv[:, 1]]) @ kinv.T
+            centre = transform(np.column_stack([col + 0.5 - uv[:, 0], row + 0.5 - uv[:, 1]]),
+                               kinv.T)
             per_offset = offsets @ kinv.T
         footprint = Footprint(ftab, fscale, offsets, per_offset, drift)
         grads = _NONE3 if view.lighting is None else np.ascontiguousarray(
