@@ -79,7 +79,7 @@ class DVRResult:
     exr_path: str = ""
     png_path: str = ""
     visible: bool = True  # False: nothing of the volume was seen (transparent DVR)
-    note: str = ""  # what the user should know: the GPU method fell back to the CPU
+    note: str = ""  # what the user should know: the GPU fell back to the CPU or drew a level
 
 
 def volume_for_render(vol_obj):
@@ -161,8 +161,11 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     drawn, note = None, ""
     if method == gpu_dvr.METHOD:  # drawn here: GPU work belongs to the main thread
         try:
-            drawn = gpu_dvr.render_gpu(vevm, camera, tf, mode=mode, depth_in=scene_pass.depth,
-                                       matrix_world=matrix_world, **options)
+            *drawn, level = gpu_dvr.render_gpu(vevm, camera, tf, mode=mode,
+                                               depth_in=scene_pass.depth,
+                                               matrix_world=matrix_world, **options)
+            if level > 1:  # say which level the GPU drew
+                note = f"rendered from {gpu_dvr.level_text(level)}"
         except gpu_dvr.GPUUnavailable as error:
             method, note = "raycast", f"{error}: rendered with ray casting on the CPU instead"
 
@@ -281,7 +284,7 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     -------
     DVRResult
         Arrays, images and paths; ``visible`` is False if nothing of the volume was seen;
-        ``note`` says when the GPU method fell back to the CPU.
+        ``note`` says when the GPU method fell back to the CPU, or drew a coarser level.
 
     Raises
     ------

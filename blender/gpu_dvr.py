@@ -25,7 +25,9 @@ Textures are made lazily on the first draw and kept per VolumeEVM (the region, a
 empty-space blocks of its last few transfer functions and modes) and per transfer-function
 version (its table, the last few);
 the shader once per process. They are freed with the VolumeEVM, by :func:`free`, and on file
-load. Drawing saves and restores the GPU state it changes.
+load. Drawing saves and restores the GPU state it changes. A VolumeEVM's region texture is
+uploaded whole: Blender's Python ``GPUTexture`` (4.5 and 5.x) cannot write into part of an
+existing texture, so a new tool-stack result is a new upload, not a re-upload of its changed box.
 
 A GPU context is needed on the calling (main) thread: Blender with a window has one; in
 background mode Blender 5.x makes one with ``gpu.init()``, Blender 4.5 after one small
@@ -548,8 +550,8 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
                xray_scale=1.0, xray_offset=0.0):
     """Render ``vevm`` seen by ``camera`` on the GPU: the core's ``render`` for the GPU.
 
-    Same arguments and outputs as the core's ``render(..., method="raycast")`` with the
-    options the GPU method has (``step_mm``, ``termination``, ``skip_empty``, X-ray's); the
+    Same arguments and outputs as the core's ``render(..., method="raycast")`` (and the level
+    drawn) with the options the GPU method has (``step_mm``, ``termination``, ``skip_empty``, X-ray's); the
     ray marcher samples as the reference does (module docstring).
 
     Returns
@@ -558,6 +560,9 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
         Premultiplied, row 0 at the top.
     depth : (H, W) ndarray of np.float32
         Axial depth of the first visible part, 1e10 where none.
+    level : int
+        The resolution level's factor drawn (1: full; ``level="auto"`` picks it per view,
+        :func:`level_text` says it).
 
     Raises
     ------
@@ -574,7 +579,7 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
     rgba = np.zeros((h, w, 4), np.float32)
     depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)
     if frame.vevm.evm.is_empty():
-        return rgba, depth
+        return rgba, depth, frame.level
     ensure_context()
     color_target = _texture((w, h), "RGBA32F", "camera")
     depth_target = _texture((w, h), "R32F", "camera")
@@ -587,7 +592,13 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
     if (depth == _SENTINEL).any():
         raise VolumeEVMError("the GPU dropped the volume's draw (its driver drew nothing); "
                              "render with a CPU method")
-    return np.flipud(rgba).copy(), np.flipud(depth).copy()
+    return np.flipud(rgba).copy(), np.flipud(depth).copy(), frame.level
+
+
+def level_text(level):
+    """Which resolution level a draw showed, for the sidebar and the render's note: "" for
+    the full level, else e.g. "level 2 (2× coarser voxels)"."""
+    return "" if level == 1 else f"level {level} ({level}\u00d7 coarser voxels)"
 
 
 def options():

@@ -45,6 +45,9 @@ def ramp_tf():
                              (900, 1.0, 1.0, 1.0, 0.9)])
 
 
+HEAD_STEP_MM = 0.48
+"""The CT head's step at the Render settings' quality 1 (half its smallest voxel, rounded)."""
+
 SKULL_TF = ((2.0, 0.9, 0.8, 0.7, 0.0), (3.0, 0.95, 0.85, 0.7, 0.15), (5.5, 1.0, 1.0, 1.0, 0.6))
 """The sample skull's bone (its densities run 0 .. 5.4): a transfer function's points."""
 

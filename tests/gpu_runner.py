@@ -7,9 +7,10 @@ Run by ``test_gpu_render.py`` with the interpreter of the bpy line under test::
 It makes a GPU context (:func:`blender.gpu_dvr.ensure_context`), renders every case of
 :data:`gpu_cases.CASES` with the GPU method and saves ``<case>_rgba`` and ``<case>_depth``, plus
 ``meta`` (JSON): whether a context was made (and why not), the GPU, each case's error and time,
-and whether drawing put the GPU state back. Then the extension is registered and Render
-VolumeEVM's job renders a scene with the GPU method, the CPU ray caster and the GPU's fallback
-(``scene_*`` arrays, the fallback's note in ``meta``), and the viewport's drawing goes over
+and whether drawing put the GPU state back; the CT head with a viewport's resting and moving
+options (``moving_rgba``, ``resting_rgba``, their steps and levels in ``meta``). Then the extension is registered and Render
+VolumeEVM's job renders a scene with the GPU method, the CPU ray caster, the GPU's fallback
+and the GPU at level 2 (``scene_*`` arrays, the notes in ``meta``), and the viewport's drawing goes over
 Blender's Solid drawing of that scene (``viewport_*`` arrays, the VolumeEVM in ``OUT.vevm``). A crash or a missing context here fails or skips
 the GPU tests, never the rest of the suite.
 """
@@ -49,6 +50,22 @@ def state_restored(gpu_dvr, data_dir):
     gpu.state.depth_test_set("NONE")
     gpu.state.depth_mask_set(False)
     return before == after and before[0] == "ADDITIVE"
+
+
+def moving(gpu_dvr, arrays, data_dir):
+    """The CT head drawn with a viewport's options at rest and while the view moves
+    (``gpu_viewport.draw_options``), and at level 2: saves ``moving_rgba`` and
+    ``resting_rgba``; returns both steps and the levels drawn."""
+    from volumeevm.blender import gpu_viewport
+
+    vevm, cam, tf, options = gpu_cases.case("head_persp", data_dir)
+    resting = {**options, "step_mm": gpu_cases.HEAD_STEP_MM}
+    fast = gpu_viewport.draw_options(resting, True)
+    arrays["resting_rgba"], _, rest_level = gpu_dvr.render_gpu(vevm, cam, tf, **resting)
+    arrays["moving_rgba"], _, moving_level = gpu_dvr.render_gpu(vevm, cam, tf, **fast)
+    *_, coarse_level = gpu_dvr.render_gpu(vevm, cam, tf, **resting, level=2)
+    return {"resting_step": resting["step_mm"], "moving_step": fast["step_mm"],
+            "levels": [rest_level, moving_level, coarse_level]}
 
 
 def scene_renders(ext, arrays, out):
@@ -95,12 +112,14 @@ def scene_renders(ext, arrays, out):
         results["fallback"] = dvr.render_dvr(vol, tf, method="gpu", options=options)
     finally:
         gpu_dvr.ensure_context = ensure
+    results["level"] = dvr.render_dvr(vol, tf, method="gpu", options={**options, "level": 2})
     for name, result in results.items():
         for what in ("rgba", "depth", "dvr_rgba", "dvr_depth"):
             arrays[f"scene_{what}_{name}"] = getattr(result, what)
     arrays["scene_depth_in"] = results["gpu"].scene.depth
     arrays["scene_colour_in"] = results["gpu"].scene.rgba
     viewport(vol, tf, options, arrays, out)
+    viewport_handler(vol, arrays)
     return {name: result.note for name, result in results.items()}
 
 
@@ -154,6 +173,62 @@ def viewport(vol, tf, options, arrays, out):
     api.get_vevm(vol).save(Path(out).with_suffix(".vevm"))
 
 
+def viewport_handler(vol, arrays):
+    """The draw handler's drawing (``gpu_viewport.draw_view``; headless Blender never calls
+    the handler) with the Render settings, the scene camera's view over an empty offscreen:
+    first seen, the view turned, unchanged after a rest, then far away. Saves
+    ``handler_alpha`` (each draw's alpha), ``handler_trace`` (each draw's step, whether a rest
+    timer is set after it and the level shown) and ``handler_level_text`` (the sidebar's)."""
+    from mathutils import Euler, Matrix
+
+    from volumeevm.blender import gpu_viewport
+    from volumeevm.blender.camera import camera_from_blender
+    from volumeevm.blender.transfer import ensure_ramp
+
+    scene = bpy.context.scene
+    settings = scene.volumeevm_render
+    ensure_ramp(settings)
+    settings.value_lo, settings.value_hi = 2.0, 5.5  # the skull's bone
+    settings.viewport = True
+    camera = camera_from_blender(scene)
+    h, w = camera.shape
+    projection = Matrix(camera.matrix_projection().tolist())
+    view = scene.camera.matrix_world.inverted()
+    steps = []
+    draw_volume = gpu_viewport.draw_volume
+
+    def traced(*args, **options):
+        steps.append(options["step_mm"])
+        return draw_volume(*args, **options)
+
+    gpu_viewport.draw_volume = traced
+    offscreen = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
+    alphas, trace = [], []
+    try:
+        with offscreen.bind():
+            framebuffer = gpu.state.active_framebuffer_get()
+            turned = Euler((0.0, 0.02, 0.0)).to_matrix().to_4x4() @ view
+            far = Matrix.Translation((0.0, 0.0, -3.0)) @ turned  # level Auto: a coarser one
+            for view, rest in ((view, 0.0), (turned, 0.0), (turned, gpu_viewport.REST_SECONDS),
+                               (far, 0.0)):
+                time.sleep(rest)
+                framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
+                gpu_viewport.draw_view(scene, [vol], "test", (w, h), projection, view)
+                rgba = np.empty((h, w, 4), np.float32)
+                framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
+                                       data=gpu.types.Buffer("FLOAT", rgba.size, rgba))
+                alphas.append(rgba[..., 3])
+                trace.append((steps[-1] if steps else 0.0,
+                              bpy.app.timers.is_registered(gpu_viewport._redraw_rested),
+                              gpu_viewport._levels.get(vol.name, 0)))
+        arrays["handler_level_text"] = np.array(gpu_viewport.shown_level(vol))
+    finally:
+        gpu_viewport.draw_volume = draw_volume
+        offscreen.free()
+        settings.viewport = False
+    arrays["handler_alpha"], arrays["handler_trace"] = np.array(alphas), np.array(trace)
+
+
 def main(out, data_dir):
     ext = load_extension()
     from volumeevm.blender import gpu_dvr
@@ -171,11 +246,12 @@ def main(out, data_dir):
             try:
                 vevm, cam, tf, options = gpu_cases.case(name, data_dir)
                 start = time.perf_counter()
-                rgba, depth = gpu_dvr.render_gpu(vevm, cam, tf, **options)
+                rgba, depth, _ = gpu_dvr.render_gpu(vevm, cam, tf, **options)
                 meta["times"][name] = time.perf_counter() - start
                 arrays[f"{name}_rgba"], arrays[f"{name}_depth"] = rgba, depth
             except Exception:  # noqa: BLE001 (reported to the test of this case)
                 meta["errors"][name] = traceback.format_exc()
+        meta["moving"] = moving(gpu_dvr, arrays, data_dir)
         meta["state_restored"] = state_restored(gpu_dvr, data_dir)
         try:  # larger than llvmpipe's 3D textures (2048)
             gpu_dvr._texture_3d(np.zeros((1, 1, 16385, 2), np.float32), "RG32F")

@@ -349,11 +349,12 @@ def test_frame_level_and_default_step():
     g = grid_to_world(v.spacing, v.origin)
     cam = camera("ORTHO", g, v, (0.0, -1.0, 0.0), 0.08, res=(16, 16))
     frame = gpu_frame(v, cam, const_tf(0.3), level="auto")
-    assert frame.vevm.shape == (16, 16, 16)
+    assert frame.vevm.shape == (16, 16, 16) and frame.level == 4
     assert field(frame.uniforms, "spacing")[3] == 2.0  # half of a 4 mm voxel
     assert field(gpu_frame(v, cam, const_tf(0.3), level=2, step_mm=0.25).uniforms,
                  "spacing")[3] == 0.5
     assert gpu_frame(v, cam, const_tf(0.3)).vevm is v
+    assert gpu_frame(v, cam, const_tf(0.3)).level == 1
 
 
 def test_frame_checks_its_settings():

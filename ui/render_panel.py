@@ -35,9 +35,14 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         if settings.volume is None and vol is not None:
             layout.label(text=f"Rendering {vol.name}", icon="INFO")
         layout.prop(settings, "viewport")
-        problem = gpu_viewport.problem(vol) if settings.viewport and vol is not None else ""
-        if problem:
-            layout.label(text=problem, icon="ERROR")
+        if settings.viewport:
+            layout.prop(settings, "viewport_fast")
+            if vol is not None:
+                problem, level = gpu_viewport.problem(vol), gpu_viewport.shown_level(vol)
+                if problem:
+                    layout.label(text=problem, icon="ERROR")
+                elif level:
+                    layout.label(text=level, icon="INFO")
         col = layout.column(align=True)
         for name in ("method", "mode", "quality", "resolution", "termination"):
             col.prop(settings, name)

@@ -61,7 +61,7 @@ def _main(job, out):
         frames = []
         for _ in range(job["frames"]):
             t0 = time.perf_counter()
-            rgba, _ = gpu_dvr.render_gpu(vevm, cam, tf, **options)
+            rgba, _, _ = gpu_dvr.render_gpu(vevm, cam, tf, **options)
             frames.append(time.perf_counter() - t0)
         arrays[f"rgba_{i}"] = rgba
         times.append(frames)

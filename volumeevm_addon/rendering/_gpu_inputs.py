@@ -463,6 +463,9 @@ class GPUFrame:
         Axial depth where rays stop, bottom row first (an OpenGL texture), or None.
     mode : str
         The compositing mode asked for.
+    level : int
+        The resolution level's factor: 1 for the full level, ``k`` for voxels ``k`` times
+        coarser (level "auto" picks it per view).
     """
 
     vevm: object
@@ -472,6 +475,7 @@ class GPUFrame:
     uniforms: np.ndarray
     depth_in: object
     mode: str
+    level: int
 
 
 def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None, level="full",
@@ -568,7 +572,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
     if depth_in is not None:
         depth_in = np.ascontiguousarray(np.flipud(np.minimum(depth_in, BACKGROUND_DEPTH)),
                                         dtype=np.float32)
-    return GPUFrame(vevm, g, rays, axial_origin, uniforms, depth_in, mode)
+    return GPUFrame(vevm, g, rays, axial_origin, uniforms, depth_in, mode, factor)
 
 
 def _pixel_rays(camera, grid_to_world, shape):
