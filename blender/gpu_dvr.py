@@ -289,8 +289,18 @@ void main()
 }
 """
 
+_STRETCH = """
+void main()
+{
+  out_color = texelFetch(image, ivec2((ndc * 0.5 + 0.5) * vec2(textureSize(image, 0))), 0);
+}
+"""
+"""The fragment shader that stretches a coarser frame's colour over the bound framebuffer: each
+pixel shows the ray of the coarse pixel it lies in (no filtering: the frame as drawn)."""
+
 _shader = None
 _batch = None
+_stretch = None
 _volumes = weakref.WeakKeyDictionary()  # VolumeEVM -> _VolumeTextures
 _tables = {}  # transfer-function version -> 1-D texture
 _KEPT = 8
@@ -442,6 +452,23 @@ def _shader_and_batch():
     return _shader, _batch
 
 
+def _stretch_shader():
+    """The shader that draws a texture over the whole bound framebuffer, made once."""
+    global _stretch
+    if _stretch is None:
+        info = gpu.types.GPUShaderCreateInfo()
+        info.sampler(0, "FLOAT_2D", "image")
+        interface = gpu.types.GPUStageInterfaceInfo("volumeevm_stretch")
+        interface.smooth("VEC2", "ndc")
+        info.vertex_in(0, "VEC2", "pos")
+        info.vertex_out(interface)
+        info.fragment_out(0, "VEC4", "out_color")
+        info.vertex_source(_VERTEX)
+        info.fragment_source(_STRETCH)
+        _stretch = gpu.shader.create_from_info(info)
+    return _stretch
+
+
 def _tf_key(tf):
     """A transfer function's version: its control points and unit length (None for X-ray)."""
     return None if tf is None else (tf.points.tobytes(), tf.unit_length_mm)
@@ -483,11 +510,11 @@ def _textures(frame, tf, xray):
 
 
 def free():
-    """Drop every texture and the shader (add-on unregistered, file loaded)."""
-    global _shader, _batch
+    """Drop every texture and the shaders (add-on unregistered, file loaded)."""
+    global _shader, _batch, _stretch
     _volumes.clear()
     _tables.clear()
-    _shader = _batch = None
+    _shader = _batch = _stretch = None
 
 
 # ---------------------------------------------------------------------------- drawing
@@ -542,6 +569,30 @@ def draw(frame, tf, *, depth_texture=None, xray=(1.0, 0.0), blend="NONE"):
         shader.uniform_sampler("occupancy", occupancy)
         shader.uniform_sampler("tf_table", _table_texture(tf))
         shader.uniform_sampler("depth_in", depth_texture)
+        batch.draw(shader)
+
+
+def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0)):
+    """Draw ``frame`` at its own, coarser image ``size`` (width, height) into textures of that
+    size, then stretch its colour over the whole bound framebuffer, premultiplied over what is
+    there: the viewport's coarser frame while the view moves (a ray per block of pixels)."""
+    width, height = size
+    color = _texture((width, height), "RGBA16F", "viewport")
+    depth = _texture((width, height), "R32F", "viewport")
+    framebuffer = gpu.types.GPUFrameBuffer(color_slots=(color, depth))
+    viewport = gpu.state.viewport_get()  # binding keeps the bound framebuffer's viewport
+    with framebuffer.bind():
+        gpu.state.viewport_set(0, 0, width, height)
+        try:
+            framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0))
+            draw(frame, tf, xray=xray)
+        finally:
+            gpu.state.viewport_set(*viewport)
+    shader = _stretch_shader()
+    _, batch = _shader_and_batch()
+    with restored_state("ALPHA_PREMULT"):
+        shader.bind()
+        shader.uniform_sampler("image", color)
         batch.draw(shader)
 
 

@@ -21,7 +21,8 @@ does not, so the viewport is brighter and more saturated in the highlights.
 
 While a view moves (its matrices, a drawn volume's placement, or the tool stack's live result
 change from one draw of the region to the next) and the Render setting "Fast While Moving" is
-on, the draw samples :data:`MOVING_STEP` times more coarsely; once the view has rested for
+on, the draw casts a ray per block of :data:`MOVING_PIXEL`² pixels with a step
+:data:`MOVING_STEP` times longer; once the view has rested for
 :data:`REST_SECONDS` a timer redraws the viewports at full quality (:class:`ViewMotion` decides,
 fed with times and signatures, so it is tested without a viewport). The sidebar says which
 resolution level a draw showed when it is not the full one (:func:`shown_level`).
@@ -45,9 +46,11 @@ from .dvr import settings_options
 from .objects import get_vevm, volume_object
 from .transfer import transfer_function
 
-#: While a view moves the rays' step is this many times the Render settings' (half the
-#: samples): on llvmpipe the CT head's 512² frame took 0.15–0.21 s instead of 0.31 s, RMSE 0.004
-#: to the resting frame (a coarser resolution level was slower and further off: 0.20 s, 0.05).
+#: While a view moves the viewport casts one ray per ``MOVING_PIXEL²`` pixels, each with a step
+#: ``MOVING_STEP`` times the Render settings': on llvmpipe the CT head's frame took 81 ms instead
+#: of 335 at 512², 0.34 s instead of 1.7 at 1280×720 (RMSE 0.02 / 0.01 to the resting frame,
+#: mostly its blurred edges). The step alone gave 1.5×, a coarser resolution level less.
+MOVING_PIXEL = 2
 MOVING_STEP = 2.0
 #: Seconds a view must rest before it is drawn at full quality again.
 REST_SECONDS = 0.25
@@ -90,15 +93,16 @@ _motion = ViewMotion()
 
 
 def draw_options(options, moving):
-    """The GPU options of a viewport draw: the Render settings' ``options`` at rest; while the
-    view moves, a step :data:`MOVING_STEP` times longer."""
+    """The options of a viewport draw (:func:`draw_volume`): the Render settings' ``options``
+    at rest; while the view moves, a ray per :data:`MOVING_PIXEL`² pixels and a step
+    :data:`MOVING_STEP` times longer."""
     if not moving:
         return options
-    return {**options, "step_mm": options["step_mm"] * MOVING_STEP}
+    return {**options, "step_mm": options["step_mm"] * MOVING_STEP, "pixel": MOVING_PIXEL}
 
 
 def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, mode="over",
-                **options):
+                pixel=1, **options):
     """Draw ``vevm``'s DVR over the bound framebuffer, stopped by its depth buffer.
 
     The viewport's drawing, and the tests' (over ``GPUOffScreen.draw_view3d``).
@@ -116,6 +120,9 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
         The volume object's placement.
     mode : str
         As for the core's ``render``.
+    pixel : int
+        One ray per ``pixel × pixel`` block of the framebuffer's pixels, the coarser frame
+        stretched over it (each block's rays stop at its nearest geometry); 1: a ray a pixel.
     **options
         The GPU method's options (:func:`.gpu_dvr.options`), ``level`` and ``srgb`` (as for the
         core's ``gpu_frame``).
@@ -131,17 +138,25 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
         For bad settings, or a volume larger than the GPU's textures.
     """
     width, height = size
-    camera = camera_from_viewport(np.asarray(projection, np.float64),
-                                  np.asarray(view_matrix, np.float64), width, height)
     window = np.empty(width * height, np.float32)
     gpu.state.active_framebuffer_get().read_depth(0, 0, width, height,
                                                   data=gpu_dvr.float_buffer(window))
-    depth_in = np.flipud(axial_from_window(window.reshape(height, width), camera))
+    window = window.reshape(height, width)
+    coarse = (-(-width // pixel), -(-height // pixel))
+    if pixel > 1:  # the nearest depth of each block
+        for axis, n in ((0, coarse[1]), (1, coarse[0])):
+            window = np.minimum.reduceat(window, np.arange(n) * window.shape[axis] // n, axis)
+    camera = camera_from_viewport(np.asarray(projection, np.float64),
+                                  np.asarray(view_matrix, np.float64), *coarse)
+    depth_in = np.flipud(axial_from_window(window, camera))
     frame = gpu_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
                       matrix_world=matrix_world, **options)
     if not frame.vevm.evm.is_empty():
         xray = (options.get("xray_scale", 1.0), options.get("xray_offset", 0.0))
-        gpu_dvr.draw(frame, tf, xray=xray, blend="ALPHA_PREMULT")
+        if pixel > 1:
+            gpu_dvr.draw_stretched(frame, tf, coarse, xray=xray)
+        else:
+            gpu_dvr.draw(frame, tf, xray=xray, blend="ALPHA_PREMULT")
     return frame.level
 
 

@@ -53,19 +53,34 @@ def state_restored(gpu_dvr, data_dir):
 
 
 def moving(gpu_dvr, arrays, data_dir):
-    """The CT head drawn with a viewport's options at rest and while the view moves
-    (``gpu_viewport.draw_options``), and at level 2: saves ``moving_rgba`` and
-    ``resting_rgba``; returns both steps and the levels drawn."""
+    """The CT head drawn by the viewport's drawing (``gpu_viewport.draw_volume``, over an empty
+    offscreen) with its options at rest and while the view moves (``draw_options``), and
+    rendered at level 2: saves ``resting_rgba`` and ``moving_rgba``; returns both options
+    and the levels drawn."""
     from volumeevm.blender import gpu_viewport
 
     vevm, cam, tf, options = gpu_cases.case("head_persp", data_dir)
     resting = {**options, "step_mm": gpu_cases.HEAD_STEP_MM}
     fast = gpu_viewport.draw_options(resting, True)
-    arrays["resting_rgba"], _, rest_level = gpu_dvr.render_gpu(vevm, cam, tf, **resting)
-    arrays["moving_rgba"], _, moving_level = gpu_dvr.render_gpu(vevm, cam, tf, **fast)
-    *_, coarse_level = gpu_dvr.render_gpu(vevm, cam, tf, **resting, level=2)
-    return {"resting_step": resting["step_mm"], "moving_step": fast["step_mm"],
-            "levels": [rest_level, moving_level, coarse_level]}
+    h, w = cam.shape
+    projection, view = cam.matrix_projection(), np.linalg.inv(cam.matrix_world)
+    offscreen = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
+    levels = []
+    try:
+        with offscreen.bind():
+            framebuffer = gpu.state.active_framebuffer_get()
+            for name, drawn in (("resting", resting), ("moving", fast)):
+                framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
+                levels.append(gpu_viewport.draw_volume(vevm, tf, projection, view, (w, h),
+                                                       **drawn))
+                rgba = np.empty((h, w, 4), np.float32)
+                framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
+                                       data=gpu.types.Buffer("FLOAT", rgba.size, rgba))
+                arrays[f"{name}_rgba"] = np.flipud(rgba)
+    finally:
+        offscreen.free()
+    *_, coarse = gpu_dvr.render_gpu(vevm, cam, tf, **resting, level=2)
+    return {"resting": resting, "moving": fast, "levels": [*levels, coarse]}
 
 
 def scene_renders(ext, arrays, out):
@@ -177,8 +192,8 @@ def viewport_handler(vol, arrays):
     """The draw handler's drawing (``gpu_viewport.draw_view``; headless Blender never calls
     the handler) with the Render settings, the scene camera's view over an empty offscreen:
     first seen, the view turned, unchanged after a rest, then far away. Saves
-    ``handler_alpha`` (each draw's alpha), ``handler_trace`` (each draw's step, whether a rest
-    timer is set after it and the level shown) and ``handler_level_text`` (the sidebar's)."""
+    ``handler_alpha`` (each draw's alpha), ``handler_trace`` (each draw's step and pixel,
+    whether a rest timer is set after it and the level shown) and ``handler_level_text`` (the sidebar's)."""
     from mathutils import Euler, Matrix
 
     from volumeevm.blender import gpu_viewport
@@ -198,7 +213,7 @@ def viewport_handler(vol, arrays):
     draw_volume = gpu_viewport.draw_volume
 
     def traced(*args, **options):
-        steps.append(options["step_mm"])
+        steps.append((options["step_mm"], options.get("pixel", 1)))
         return draw_volume(*args, **options)
 
     gpu_viewport.draw_volume = traced
@@ -218,7 +233,7 @@ def viewport_handler(vol, arrays):
                 framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
                                        data=gpu.types.Buffer("FLOAT", rgba.size, rgba))
                 alphas.append(rgba[..., 3])
-                trace.append((steps[-1] if steps else 0.0,
+                trace.append((*steps[-1],
                               bpy.app.timers.is_registered(gpu_viewport._redraw_rested),
                               gpu_viewport._levels.get(vol.name, 0)))
         arrays["handler_level_text"] = np.array(gpu_viewport.shown_level(vol))
