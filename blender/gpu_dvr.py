@@ -427,6 +427,21 @@ def _texture_3d(array, texture_format):
     return _texture(array.shape[2::-1], texture_format, "vevm", array)
 
 
+def _full_screen_shader(info, name, fragment, outputs):
+    """Finish ``info`` (its samplers and uniforms declared) as a shader on the full-screen quad:
+    the fragment stage ``fragment`` sees ``ndc`` in [-1, 1]² and writes ``outputs`` (``(type,
+    name)`` pairs in slot order)."""
+    interface = gpu.types.GPUStageInterfaceInfo(name)
+    interface.smooth("VEC2", "ndc")
+    info.vertex_in(0, "VEC2", "pos")
+    info.vertex_out(interface)
+    for slot, (kind, output) in enumerate(outputs):
+        info.fragment_out(slot, kind, output)
+    info.vertex_source(_VERTEX)
+    info.fragment_source(fragment)
+    return gpu.shader.create_from_info(info)
+
+
 def _shader_and_batch():
     """The ray-marching shader and its full-screen quad, made once."""
     global _shader, _batch
@@ -438,15 +453,8 @@ def _shader_and_batch():
         info.sampler(1, "FLOAT_3D", "occupancy")
         info.sampler(2, "FLOAT_1D", "tf_table")
         info.sampler(3, "FLOAT_2D", "depth_in")
-        interface = gpu.types.GPUStageInterfaceInfo("volumeevm_dvr")
-        interface.smooth("VEC2", "ndc")
-        info.vertex_in(0, "VEC2", "pos")
-        info.vertex_out(interface)
-        info.fragment_out(0, "VEC4", "out_color")
-        info.fragment_out(1, "FLOAT", "out_depth")
-        info.vertex_source(_VERTEX)
-        info.fragment_source(_FRAGMENT)
-        _shader = gpu.shader.create_from_info(info)
+        _shader = _full_screen_shader(info, "volumeevm_dvr", _FRAGMENT,
+                                      (("VEC4", "out_color"), ("FLOAT", "out_depth")))
         _batch = batch_for_shader(_shader, "TRI_STRIP",
                                   {"pos": ((-1, -1), (1, -1), (-1, 1), (1, 1))})
     return _shader, _batch
@@ -458,14 +466,8 @@ def _stretch_shader():
     if _stretch is None:
         info = gpu.types.GPUShaderCreateInfo()
         info.sampler(0, "FLOAT_2D", "image")
-        interface = gpu.types.GPUStageInterfaceInfo("volumeevm_stretch")
-        interface.smooth("VEC2", "ndc")
-        info.vertex_in(0, "VEC2", "pos")
-        info.vertex_out(interface)
-        info.fragment_out(0, "VEC4", "out_color")
-        info.vertex_source(_VERTEX)
-        info.fragment_source(_STRETCH)
-        _stretch = gpu.shader.create_from_info(info)
+        _stretch = _full_screen_shader(info, "volumeevm_stretch", _STRETCH,
+                                       (("VEC4", "out_color"),))
     return _stretch
 
 
