@@ -188,6 +188,21 @@ def test_panels_draw_every_state(ext, data_dir, tmp_path):
     passed = {args[1]: args[2] for name, args, _ in calls if name == "operator_property"}
     assert passed == {"use_settings": False, "threshold": 3.0, "use_upper": False,
                       "upper": obj.volumeevm.upper}
+    # The Viewport DVR: its Fast While Moving toggle, and the level its last draw showed (set
+    # here: draw handlers never run without a window).
+    settings = context.scene.volumeevm_render
+    settings.viewport = True
+    viewport = ext.blender.gpu_viewport
+    viewport._levels[obj.name] = 2
+    panel = _PanelSelf()
+    ext.ui.render_panel.VOLUMEEVM_PT_render.draw(panel, context)
+    assert any(name == "prop" and args[1] == "viewport_fast" for name, args, _ in panel.calls)
+    assert "Showing level 2 (2\u00d7 coarser voxels)" in texts(panel.calls)
+    viewport._levels[obj.name] = 1
+    panel = _PanelSelf()
+    ext.ui.render_panel.VOLUMEEVM_PT_render.draw(panel, context)
+    assert not [t for t in texts(panel.calls) if t.startswith("Showing level")]
+    settings.viewport = False
 
     surface = api.make_mesh(obj)  # the surface is active now: panels show its volume
     shown = texts(draw_all(ext, context))
