@@ -604,8 +604,8 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
     """Render ``vevm`` seen by ``camera`` on the GPU: the core's ``render`` for the GPU.
 
     Same arguments and outputs as the core's ``render(..., method="raycast")`` (and the level
-    drawn) with the options the GPU method has (``step_mm``, ``termination``, ``skip_empty``, X-ray's); the
-    ray marcher samples as the reference does (module docstring).
+    drawn) with the options the GPU method has (``step_mm``, ``termination``, ``skip_empty``,
+    X-ray's); the ray marcher samples as the reference does (module docstring).
 
     Returns
     -------

@@ -22,10 +22,10 @@ does not, so the viewport is brighter and more saturated in the highlights.
 While a view moves (its matrices, a drawn volume's placement, or the tool stack's live result
 change from one draw of the region to the next) and the Render setting "Fast While Moving" is
 on, the draw casts a ray per block of :data:`MOVING_PIXEL`² pixels with a step
-:data:`MOVING_STEP` times longer; once the view has rested for
-:data:`REST_SECONDS` a timer redraws the viewports at full quality (:class:`ViewMotion` decides,
-fed with times and signatures, so it is tested without a viewport). The sidebar says which
-resolution level a draw showed when it is not the full one (:func:`shown_level`).
+:data:`MOVING_STEP` times longer; once the view has rested for :data:`REST_SECONDS` a timer
+redraws the viewports at full quality (:class:`ViewMotion` decides, fed with times and
+signatures, so it is tested without a viewport). The sidebar says which resolution level a
+draw showed when it is not the full one (:func:`shown_level`).
 
 The handler is added on register and removed on unregister; on file load the GPU textures of
 the old file's volumes are freed (:data:`HANDLERS`). A problem (no VolumeEVM, no transfer
@@ -47,9 +47,9 @@ from .objects import get_vevm, volume_object
 from .transfer import transfer_function
 
 #: While a view moves the viewport casts one ray per ``MOVING_PIXEL²`` pixels, each with a step
-#: ``MOVING_STEP`` times the Render settings': on llvmpipe the CT head's frame took 81 ms instead
-#: of 335 at 512², 0.34 s instead of 1.7 at 1280×720 (RMSE 0.02 / 0.01 to the resting frame,
-#: mostly its blurred edges). The step alone gave 1.5×, a coarser resolution level less.
+#: ``MOVING_STEP`` times the Render settings': on llvmpipe the CT head's frame took 84 ms instead
+#: of 335 at 512², 0.33 s instead of 1.7 at 1280×720 (RMSE 0.03 / 0.02 to the resting frame,
+#: mostly its blocky edges). The step alone gave 1.5×, a coarser resolution level less.
 MOVING_PIXEL = 2
 MOVING_STEP = 2.0
 #: Seconds a view must rest before it is drawn at full quality again.

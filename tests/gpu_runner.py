@@ -7,12 +7,14 @@ Run by ``test_gpu_render.py`` with the interpreter of the bpy line under test::
 It makes a GPU context (:func:`blender.gpu_dvr.ensure_context`), renders every case of
 :data:`gpu_cases.CASES` with the GPU method and saves ``<case>_rgba`` and ``<case>_depth``, plus
 ``meta`` (JSON): whether a context was made (and why not), the GPU, each case's error and time,
-and whether drawing put the GPU state back; the CT head with a viewport's resting and moving
-options (``moving_rgba``, ``resting_rgba``, their steps and levels in ``meta``). Then the extension is registered and Render
-VolumeEVM's job renders a scene with the GPU method, the CPU ray caster, the GPU's fallback
-and the GPU at level 2 (``scene_*`` arrays, the notes in ``meta``), and the viewport's drawing goes over
-Blender's Solid drawing of that scene (``viewport_*`` arrays, the VolumeEVM in ``OUT.vevm``). A crash or a missing context here fails or skips
-the GPU tests, never the rest of the suite.
+and whether drawing put the GPU state back; the CT head drawn as a viewport draws it at rest
+and moving (``resting_rgba``, ``moving_rgba``, their options and levels in ``meta``). Then the
+extension is registered and Render VolumeEVM's job renders a scene with the GPU method, the CPU
+ray caster, the GPU's fallback and the GPU at level 2 (``scene_*`` arrays, the notes in
+``meta``); the viewport's drawing goes over Blender's Solid drawing of that scene
+(``viewport_*`` arrays, the VolumeEVM in ``OUT.vevm``), and the draw handler's drawing draws it
+while the view moves and rests (``handler_*`` arrays). A crash or a missing context here fails
+or skips the GPU tests, never the rest of the suite.
 """
 
 import importlib
@@ -193,7 +195,8 @@ def viewport_handler(vol, arrays):
     the handler) with the Render settings, the scene camera's view over an empty offscreen:
     first seen, the view turned, unchanged after a rest, then far away. Saves
     ``handler_alpha`` (each draw's alpha), ``handler_trace`` (each draw's step and pixel,
-    whether a rest timer is set after it and the level shown) and ``handler_level_text`` (the sidebar's)."""
+    whether a rest timer is set after it and the level shown) and ``handler_level_text``
+    (the sidebar's)."""
     from mathutils import Euler, Matrix
 
     from volumeevm.blender import gpu_viewport

@@ -346,9 +346,9 @@ def test_the_gpu_render_says_which_level_it_drew(job, rendered):
 
 def test_viewport_handler_draws_coarser_while_the_view_moves(rendered):
     """The handler's drawing with the Render settings: full quality when first seen; the view
-    turned: a ray per 2×2 pixels, twice the step and a timer set to redraw once it rests; unchanged after a rest:
-    full quality again; far away: level Auto draws a coarser level and the sidebar says so.
-    Every draw shows the skull."""
+    turned: a ray per 2×2 pixels, twice the step and a timer set to redraw once it rests;
+    unchanged after a rest: full quality again; far away: level Auto draws a coarser level and
+    the sidebar says so. Every draw shows the skull."""
     arrays, meta = rendered
     if "scene" in meta["errors"]:
         pytest.fail(f"the viewport in the runner:\n{meta['errors']['scene']}")
