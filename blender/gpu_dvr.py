@@ -28,6 +28,8 @@ the shader once per process. They are freed with the VolumeEVM, by :func:`free`,
 load. Drawing saves and restores the GPU state it changes. A VolumeEVM's region texture is
 uploaded whole: Blender's Python ``GPUTexture`` (4.5 and 5.x) cannot write into part of an
 existing texture, so a new tool-stack result is a new upload, not a re-upload of its changed box.
+A volume larger than the GPU's 3D textures is drawn from the first coarser level that fits
+(:func:`fitted_frame`).
 
 A GPU context is needed on the calling (main) thread: Blender with a window has one; in
 background mode Blender 5.x makes one with ``gpu.init()``, Blender 4.5 after one small
@@ -52,6 +54,10 @@ from ..volumeevm_addon import (BACKGROUND_DEPTH, GPU_UNIFORMS_GLSL, VolumeEVMErr
 
 #: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).
 METHOD = "gpu"
+
+
+class _Refused(VolumeEVMError):
+    """The GPU refused a texture: its size or memory."""
 
 
 class GPUUnavailable(VolumeEVMError):
@@ -302,6 +308,7 @@ _shader = None
 _batch = None
 _stretch = None
 _volumes = weakref.WeakKeyDictionary()  # VolumeEVM -> _VolumeTextures
+_refused = weakref.WeakKeyDictionary()  # VolumeEVM -> why the GPU refused its region texture
 _tables = {}  # transfer-function version -> 1-D texture
 _KEPT = 8
 """Transfer-function tables kept, and empty-space textures per VolumeEVM (the latest used)."""
@@ -416,7 +423,7 @@ def _texture(size, texture_format, what, array=None):
     try:
         return gpu.types.GPUTexture(size, format=texture_format, **data)
     except RuntimeError as error:
-        raise VolumeEVMError(f"{what}: the GPU cannot hold a "
+        raise _Refused(f"{what}: the GPU cannot hold a "
                              f"{'x'.join(str(n) for n in np.ravel(size))} "
                              f"{texture_format} texture ({error}); render a coarser level "
                              f"or a smaller image") from error
@@ -496,11 +503,47 @@ def _keep(textures, key, texture):
         textures.pop(next(iter(textures)))
 
 
+def _volume_textures(vevm):
+    """The textures of ``vevm``, made on first use; a VolumeEVM the GPU refused once is refused
+    again at once (a viewport does not rebuild its region array at each draw)."""
+    volume = _volumes.get(vevm)
+    if volume is None:
+        if vevm in _refused:
+            raise _Refused(_refused[vevm])
+        try:
+            volume = _volumes[vevm] = _VolumeTextures(vevm)
+        except _Refused as error:
+            _refused[vevm] = str(error)
+            raise
+    return volume
+
+
+def fitted_frame(vevm, camera, tf, **options):
+    """The core's ``gpu_frame(vevm, camera, tf, **options)``, at the next coarser levels (each
+    twice as coarse) while the GPU cannot hold the level's region texture (uploaded here, kept
+    for :func:`draw`): a volume larger than the GPU's textures is drawn from a level that fits
+    (``GPUFrame.level`` says which).
+
+    Raises
+    ------
+    VolumeEVMError
+        As ``gpu_frame``; when not even the coarsest level fits, the GPU's refusal.
+    """
+    frame = gpu_frame(vevm, camera, tf, **options)
+    while not frame.vevm.evm.is_empty():
+        try:
+            _volume_textures(frame.vevm)
+            break
+        except _Refused:
+            if 2 * frame.level > max(vevm.shape):
+                raise
+            frame = gpu_frame(vevm, camera, tf, **{**options, "level": 2 * frame.level})
+    return frame
+
+
 def _textures(frame, tf, xray):
     """The region and occupancy textures of the frame's VolumeEVM, made on first use."""
-    volume = _volumes.get(frame.vevm)
-    if volume is None:
-        volume = _volumes[frame.vevm] = _VolumeTextures(frame.vevm)
+    volume = _volume_textures(frame.vevm)
     key = (_tf_key(tf), frame.mode, xray)
     occupancy = volume.occupancy.get(key)
     if occupancy is None:
@@ -515,6 +558,7 @@ def free():
     """Drop every texture and the shaders (add-on unregistered, file loaded)."""
     global _shader, _batch, _stretch
     _volumes.clear()
+    _refused.clear()
     _tables.clear()
     _shader = _batch = _stretch = None
 
@@ -620,20 +664,22 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
     Raises
     ------
     VolumeEVMError
-        For bad input (the core's ``gpu_frame``), a volume or image larger than the GPU's
-        textures, or a draw the driver dropped.
+        For bad input (the core's ``gpu_frame``), a volume larger than the GPU's textures at
+        every level (a level that fits is drawn otherwise: :func:`fitted_frame`), an image
+        larger than them, or a draw the driver dropped.
     GPUUnavailable
         When no GPU context can be made (the caller falls back to the CPU).
     """
-    frame = gpu_frame(vevm, camera, tf, mode=mode, depth_in=depth_in, matrix_world=matrix_world,
-                      level=level, step_mm=step_mm, termination=termination,
-                      skip_empty=skip_empty, xray_scale=xray_scale, xray_offset=xray_offset)
+    ensure_context()
+    frame = fitted_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
+                         matrix_world=matrix_world, level=level, step_mm=step_mm,
+                         termination=termination, skip_empty=skip_empty, xray_scale=xray_scale,
+                         xray_offset=xray_offset)
     h, w = camera.shape
     rgba = np.zeros((h, w, 4), np.float32)
     depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)
     if frame.vevm.evm.is_empty():
         return rgba, depth, frame.level
-    ensure_context()
     color_target = _texture((w, h), "RGBA32F", "camera")
     depth_target = _texture((w, h), "R32F", "camera")
     framebuffer = gpu.types.GPUFrameBuffer(color_slots=(color_target, depth_target))

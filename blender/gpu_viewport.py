@@ -29,8 +29,8 @@ draw showed when it is not the full one (:func:`shown_level`).
 
 The handler is added on register and removed on unregister; on file load the GPU textures of
 the old file's volumes are freed (:data:`HANDLERS`). A problem (no VolumeEVM, no transfer
-function, a volume too large for the GPU) is shown in the sidebar (:func:`problem`), not
-raised from the draw.
+function, a volume too large for the GPU at every level) is shown in the sidebar
+(:func:`problem`), not raised from the draw.
 """
 
 import time
@@ -40,7 +40,7 @@ import gpu
 import numpy as np
 from bpy.app.handlers import persistent
 
-from ..volumeevm_addon import VolumeEVMError, axial_from_window, camera_from_viewport, gpu_frame
+from ..volumeevm_addon import VolumeEVMError, axial_from_window, camera_from_viewport
 from . import gpu_dvr, runtime
 from .dvr import settings_options
 from .objects import get_vevm, volume_object
@@ -135,7 +135,8 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
     Raises
     ------
     VolumeEVMError
-        For bad settings, or a volume larger than the GPU's textures.
+        For bad settings, or a volume larger than the GPU's textures at every level (a level
+        that fits is drawn otherwise, :func:`.gpu_dvr.fitted_frame`).
     """
     width, height = size
     window = np.empty(width * height, np.float32)
@@ -149,8 +150,8 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
     camera = camera_from_viewport(np.asarray(projection, np.float64),
                                   np.asarray(view_matrix, np.float64), *coarse)
     depth_in = np.flipud(axial_from_window(window, camera))
-    frame = gpu_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
-                      matrix_world=matrix_world, **options)
+    frame = gpu_dvr.fitted_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
+                                 matrix_world=matrix_world, **options)
     if not frame.vevm.evm.is_empty():
         xray = (options.get("xray_scale", 1.0), options.get("xray_offset", 0.0))
         if pixel > 1:

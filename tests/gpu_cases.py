@@ -30,6 +30,17 @@ def head(data_dir):
     return VolumeEVM.from_array(array, 300, spacing=meta["spacing_mm"])
 
 
+def long_box():
+    """``(vevm, camera, tf, options)``: a box 16,400 voxels long, longer than a GPU's 3D
+    textures (llvmpipe's 2048, most GPUs' 16,384), seen from the side at its full level."""
+    vol = phantoms.box((16400, 4, 4), density=1.0, spacing=(0.1, 10.0, 10.0), lo=(0, 1, 1),
+                       hi=(16400, 3, 3))
+    v = VolumeEVM.from_volume(vol, 0.5)
+    g = grid_to_world(v.spacing, v.origin)
+    cam = camera("ORTHO", g, v, (0.0, -0.5, 0.0), 0.2, res=(64, 32))
+    return v, cam, const_tf(0.3), {"level": "full", "step_mm": 0.05, "termination": 1.0}
+
+
 def irregular():
     """Random densities in a random region (half its voxels): the region's boundary policy
     everywhere."""

@@ -276,6 +276,12 @@ def main(out, data_dir):
             meta["too_large"] = ""
         except gpu_dvr.VolumeEVMError as error:
             meta["too_large"] = str(error)
+        try:
+            vevm, cam, tf, options = gpu_cases.long_box()
+            arrays["long_box_rgba"], _, meta["long_box_level"] = gpu_dvr.render_gpu(
+                vevm, cam, tf, **options)
+        except Exception:  # noqa: BLE001 (reported to its test)
+            meta["errors"]["long_box"] = traceback.format_exc()
         importlib.import_module(f"{ext.__name__}.blender.api")
         ext.register()
         from volumeevm.blender import gpu_viewport

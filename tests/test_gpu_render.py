@@ -208,6 +208,20 @@ def test_a_volume_too_large_for_the_gpu_is_refused(rendered):
     assert rendered[1]["too_large"].startswith("vevm: the GPU cannot hold a 16385x1x1 RG32F")
 
 
+def test_a_volume_too_large_for_the_gpu_is_drawn_from_a_level_that_fits(rendered):
+    """A box longer than the GPU's 3D textures, asked for at its full level: drawn from a
+    coarser level, as the CPU ray caster renders that level."""
+    arrays, meta = rendered
+    if "long_box" in meta["errors"]:
+        pytest.fail(f"the long box on the GPU:\n{meta['errors']['long_box']}")
+    level = meta["long_box_level"]
+    assert level > 1
+    vevm, cam, tf, options = gpu_cases.long_box()
+    drawn(arrays["long_box_rgba"])
+    cpu, _ = render(vevm, cam, tf, method="raycast", **{**options, "level": level})
+    assert rmse(arrays["long_box_rgba"], cpu) < 1e-3
+
+
 # ---------------------------------------------------------------------------- render job
 @pytest.fixture
 def job(rendered):
