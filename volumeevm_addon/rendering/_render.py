@@ -385,7 +385,8 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
     if options.get("shading") not in (None, False):
         needed += grid * _SHADING_GRID_BYTES.get(method, 0)
     if method in ("raycast", "raycast_navigate") and options.get("skip_empty", True):
-        block = int(options.get("block", render_options(method)["block"]))
+        # (a block of 0 is the renderer's to refuse; counted as 1 here)
+        block = max(1, int(options.get("block", render_options(method)["block"])))
         needed += math.prod(-(-int(n) // block) + 2 for n in vevm.shape) * _BLOCK_VIEW_BYTES
     if method == "shear_warp":
         # One intermediate pixel per voxel (times the scale) along the two in-slice axes, the
