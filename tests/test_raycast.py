@@ -97,21 +97,26 @@ def test_skip_empty_equals_dense_brain_and_blocks(brain):
         np.testing.assert_allclose(d1, d0, rtol=1e-6)
 
 
-def test_blocks_cover_what_samples_can_read():
-    """Block occupancy and density range: the region voxels within one voxel of the block's
-    cells (brute force over a random region)."""
+@pytest.mark.parametrize("size, reach", [(4, 1), (3, 2), (5, 3)])
+def test_blocks_cover_what_samples_can_read(size, reach):
+    """Block occupancy (the region voxels within one voxel of the block's cells) and density
+    range (those within ``reach`` voxels), brute force over a random region."""
     rng = np.random.default_rng(11)
-    shape, size = (13, 11, 9), 4
+    shape = (13, 11, 9)
     mask = rng.uniform(size=shape) < 0.05
     dens = rng.uniform(-100, 100, shape)
     v = VolumeEVM(EVM.from_mask(mask), dens[mask], shape=shape)
-    blocks = _Blocks(v, size)
-    for b in np.ndindex(*blocks.nb):
-        lo = np.maximum(np.array(b) * size - 1, 0)
-        hi = np.minimum((np.array(b) + 1) * size + 1, shape)
+    blocks = _Blocks(v, size, reach)
+
+    def near(b, grow):  # the densities of region voxels within `grow` of block b's cells
+        lo = np.maximum(np.array(b) * size - grow, 0)
+        hi = np.minimum((np.array(b) + 1) * size + grow, shape)
         sub = tuple(slice(a, c) for a, c in zip(lo, hi))
-        inside = dens[sub][mask[sub]].astype(np.float32)  # the sampler's precision
-        assert blocks.occupied[b] == (len(inside) > 0)
+        return dens[sub][mask[sub]].astype(np.float32)  # the sampler's precision
+
+    for b in np.ndindex(*blocks.nb):
+        assert blocks.occupied[b] == (len(near(b, 1)) > 0)
+        inside = near(b, reach)
         if len(inside):
             assert blocks.range_lo[b] == inside.min() and blocks.range_hi[b] == inside.max()
         else:

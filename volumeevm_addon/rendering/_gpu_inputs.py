@@ -47,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import kernel
 from .._memory import check_memory
 from ..model._levels import level_factor
 from ..model._volume import grid_to_world
@@ -315,11 +316,24 @@ def gpu_region(vevm):
     check_memory(8 * nx * ny * nz + nx * ny * nz, f"the GPU texture of {nx}x{ny}x{nz} voxels",
                  source="vevm", advice="render a coarser level (level='auto' or an integer)")
     out = np.zeros((nz, ny, nx, 2), np.float32)
-    mask = vevm.evm.to_mask(vevm.shape)
-    xyz = out.transpose(2, 1, 0, 3)  # a view indexed [x, y, z]
-    xyz[..., 0][mask] = vevm.table(0)  # the table runs in [x, y, z] order, as the mask does
-    xyz[..., 1][mask] = 1.0
+    _fill_region(vevm.evm.to_mask(vevm.shape), np.asarray(vevm.table(0), dtype=np.float32), out)
     return out
+
+
+@kernel
+def _fill_region(mask, dens, out):
+    """Write ``(density, 1)`` of each region voxel into ``out`` (indexed ``[z, y, x]``): one
+    pass over the region ``mask`` in C order ``[x, y, z]``, the order of the densities ``dens``
+    of the table of order "xyz"."""
+    nx, ny, nz = mask.shape
+    k = 0
+    for x in range(nx):
+        for y in range(ny):
+            for z in range(nz):
+                if mask[x, y, z]:
+                    out[z, y, x, 0] = dens[k]
+                    out[z, y, x, 1] = 1.0
+                    k += 1
 
 
 def gpu_transfer_table(tf):

@@ -92,7 +92,7 @@ import math
 
 import numpy as np
 
-from .._jit import parallel_map
+from .._jit import kernel, parallel_map
 from ..model._densities import TABLE_ORDERS, TableIndex
 from ._camera import BACKGROUND_DEPTH
 from ._checks import (RAY_STEPS_PER_VOXEL, checked_step_mm, checked_view, flag,
@@ -186,22 +186,12 @@ class _Blocks:
         self.occupied = occ
         self.bbox = np.stack([lo.min(axis=0), hi.max(axis=0)]) if len(lo) else None
         # Density ranges per block: every region voxel within `reach` voxels of the block's
-        # cells, from a temporary grid of the table's densities grown by `reach` voxels (min
-        # and max filters), then reduced block by block.
-        mask = vevm.evm.to_mask(vevm.shape)
-        dens = np.asarray(vevm.table(0), dtype=np.float32)
-        self.range_lo = self._ranges(mask, dens, reach, np.minimum, np.inf)
-        self.range_hi = self._ranges(mask, dens, reach, np.maximum, -np.inf)
-
-    def _ranges(self, mask, dens, reach, op, fill):
-        """Per block, ``op`` (``np.minimum`` or ``np.maximum``) of the densities ``dens`` of the
-        region ``mask`` within ``reach`` voxels of the block's cells (``fill`` for none)."""
-        size = self.size
-        grid = np.full(tuple(int(b) * size for b in self.nb), fill, np.float32)
-        grid[tuple(slice(0, n) for n in mask.shape)][mask] = dens
-        _grow(grid, op, reach)
-        nx, ny, nz = (int(b) for b in self.nb)
-        return op.reduce(grid.reshape(nx, size, ny, size, nz, size), axis=(1, 3, 5))
+        # cells (:func:`_block_ranges`).
+        self.range_lo = np.full(tuple(int(b) for b in self.nb), np.inf, np.float32)
+        self.range_hi = np.full(tuple(int(b) for b in self.nb), -np.inf, np.float32)
+        _block_ranges(vevm.evm.to_mask(vevm.shape),
+                      np.asarray(vevm.table(0), dtype=np.float32), size, reach, self.range_lo,
+                      self.range_hi)
 
     def leaping(self, lattice, mode, tf, lut_step, compositing):
         """``lattice`` (:data:`._ray_march.Lattice`) with space leaping over these blocks for
@@ -264,25 +254,33 @@ def _all_pairs(flags):
     return padded.reshape(x, 2, y, 2, z, 2).all(axis=(1, 3, 5))
 
 
-def _grow(grid, op, reach):
-    """Replace, in place, every value of ``grid`` by ``op`` (``np.minimum`` or ``np.maximum``)
-    of the values within ``reach`` voxels along each axis (a min or max filter over a cube).
-
-    One axis at a time, one plane across another axis at a time: the copy each step needs is
-    a plane, not the grid (min and max are exact, so the order does not change the result).
-    """
-    for _ in range(reach):
-        for ax in range(3):
-            across = 1 if ax == 0 else 0
-            k = ax - (ax > across)  # `ax` among the plane's two axes
-            lo, hi = [slice(None)] * 2, [slice(None)] * 2
-            lo[k], hi[k] = slice(0, -1), slice(1, None)
-            lo, hi = tuple(lo), tuple(hi)
-            for i in range(grid.shape[across]):
-                plane = grid[(slice(None),) * across + (i,)]
-                src = plane.copy()
-                op(plane[lo], src[hi], out=plane[lo])
-                op(plane[hi], src[lo], out=plane[hi])
+@kernel
+def _block_ranges(mask, dens, size, reach, lo, hi):
+    """Per block of ``size``³ cells, the smallest and largest density (into ``lo`` and ``hi``,
+    which start at +inf and -inf) of the region voxels within ``reach`` voxels of its cells
+    along every axis: one pass over the region ``mask`` (C order, as the densities ``dens`` of
+    the table of order "xyz" run), each voxel reaching the blocks
+    ``(i - reach) // size .. (i + reach) // size`` along each axis."""
+    nx, ny, nz = mask.shape
+    bx, by, bz = lo.shape
+    k = 0
+    for x in range(nx):
+        x0, x1 = max(x - reach, 0) // size, min((x + reach) // size, bx - 1)
+        for y in range(ny):
+            y0, y1 = max(y - reach, 0) // size, min((y + reach) // size, by - 1)
+            for z in range(nz):
+                if not mask[x, y, z]:
+                    continue
+                d = dens[k]
+                k += 1
+                z0, z1 = max(z - reach, 0) // size, min((z + reach) // size, bz - 1)
+                for i in range(x0, x1 + 1):
+                    for j in range(y0, y1 + 1):
+                        for m in range(z0, z1 + 1):
+                            if d < lo[i, j, m]:
+                                lo[i, j, m] = d
+                            if d > hi[i, j, m]:
+                                hi[i, j, m] = d
 
 
 def _reach(spacing, step_mm, preintegrate):
