@@ -101,6 +101,15 @@ def draw_options(options, moving):
     return {**options, "step_mm": options["step_mm"] * MOVING_STEP, "pixel": MOVING_PIXEL}
 
 
+def block_starts(size, n):
+    """The first of the ``size`` pixels along an axis that show each of ``n`` coarse pixels
+    when the stretch shader (:func:`.gpu_dvr.draw_stretched`) draws them: pixel ``x`` shows
+    coarse pixel ``floor((x + 1/2) n / size)``, so coarse pixel ``i`` starts at
+    ``ceil(i size / n - 1/2)`` (integer arithmetic)."""
+    i = np.arange(n, dtype=np.int64)
+    return -((n - 2 * i * size) // (2 * n))
+
+
 def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, mode="over",
                 pixel=1, **options):
     """Draw ``vevm``'s DVR over the bound framebuffer, stopped by its depth buffer.
@@ -144,9 +153,9 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
                                                   data=gpu_dvr.float_buffer(window))
     window = window.reshape(height, width)
     coarse = (-(-width // pixel), -(-height // pixel))
-    if pixel > 1:  # the nearest depth of each block
+    if pixel > 1:  # the nearest depth of each block of the pixels the stretch shows it on
         for axis, n in ((0, coarse[1]), (1, coarse[0])):
-            window = np.minimum.reduceat(window, np.arange(n) * window.shape[axis] // n, axis)
+            window = np.minimum.reduceat(window, block_starts(window.shape[axis], n), axis)
     camera = camera_from_viewport(np.asarray(projection, np.float64),
                                   np.asarray(view_matrix, np.float64), *coarse)
     depth_in = np.flipud(axial_from_window(window, camera))

@@ -330,6 +330,16 @@ def test_moving_options_and_level_texts():
     assert level_text(1) == "" and level_text(2) == "level 2 (2\u00d7 coarser voxels)"
 
 
+@pytest.mark.parametrize("size", [1, 2, 3, 5, 8, 1280, 1281])
+def test_depth_blocks_are_the_pixels_the_stretch_shows(size):
+    """While moving, each coarse ray stops at the nearest depth of exactly the pixels the stretch
+    shader shows it on (pixel ``x`` shows ``floor((x + 1/2) n / size)``), odd sizes too."""
+    n = -(-size // 2)
+    starts = _viewport().block_starts(size, n)
+    shown = np.floor((np.arange(size) + 0.5) * n / size).astype(np.int64)
+    np.testing.assert_array_equal(starts, [np.flatnonzero(shown == i)[0] for i in range(n)])
+
+
 def test_the_moving_frame_is_cheaper_and_close(gpu, rendered, data_dir):
     """The viewport's drawing while the view moves: a ray per 2×2 pixels (each block shows its
     ray) with twice the step, close to the reference at that coarser image (measured RMSE

@@ -427,3 +427,15 @@ def test_a_render_needs_little_beyond_its_tables_and_image(ct):
     assert rgba[..., 3].max() > 0.5
     image = 200 * 160 * (16 + 4)  # RGBA and depth, float32
     assert peak < image + (1 << 20)  # measured: the image and 0.2 MiB (lookup tables)
+
+
+def test_shaded_and_unshaded_renders_share_the_dense_table(ct):
+    """Shading adds its gradients to the cache beside the one dense table; a render without
+    shading afterwards builds nothing more (no second copy of the table)."""
+    v, g, tf = bone(ct)
+    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(24, 20))
+    render_raycast(v, cam, tf, g, shading=True)
+    keys, held = sorted(v.cache.keys()), v.size_report()["cache_bytes"]
+    assert ("raycast", "table") in keys and ("raycast", "gradients") in keys
+    render_raycast(v, cam, tf, g)
+    assert sorted(v.cache.keys()) == keys and v.size_report()["cache_bytes"] == held

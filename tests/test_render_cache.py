@@ -4,6 +4,8 @@ same cache the memory estimate looks in. Dropping entries never changes an image
 
 import gc
 import json
+import threading
+import time
 import weakref
 
 import numpy as np
@@ -259,3 +261,29 @@ def test_bad_budgets_raise(bad):
     with pytest.raises(VolumeEVMError, match="budget"):
         cache.budget = bad
     assert cache.budget == 10
+
+
+def test_threads_asking_for_one_missing_entry_make_it_once():
+    """A render job's thread and the viewport's may ask for the same table at once: one makes
+    it, the other waits for it and gets the same entry; another key is made meanwhile."""
+    import threading
+    import time
+
+    cache = DerivedCache(budget=1 << 20)
+    calls, started = [], threading.Event()
+
+    def slow():
+        calls.append("table")
+        started.set()
+        time.sleep(0.2)
+        return np.ones(10)
+
+    got = {}
+    first = threading.Thread(target=lambda: got.setdefault("a", cache.get("table", slow)))
+    first.start()
+    started.wait()
+    other = cache.get("other", lambda: np.zeros(3))  # not held up by the slow table
+    assert "table" not in cache and other.shape == (3,)
+    got["b"] = cache.get("table", slow)  # waits for the first thread's table
+    first.join()
+    assert calls == ["table"] and got["a"] is got["b"]

@@ -10,7 +10,7 @@ import pytest
 from volumeevm_addon import (Camera, EVM, METHODS, TransferFunction, VolumeEVM, VolumeEVMError,
                              grid_to_world, openexr_module, render, write_exr, write_png)
 from volumeevm_addon._memory import format_bytes
-from volumeevm_addon.rendering._raycast import _Blocks, _DenseTables
+from volumeevm_addon.rendering._raycast import _Blocks, _dense_table
 from volumeevm_addon.rendering._render import check_samples, render_memory
 from render_helpers import camera, const_tf
 
@@ -257,8 +257,8 @@ def test_ray_casting_tables_are_built_without_grid_sized_temporaries():
     bytes per voxel that whole-grid temporaries took."""
     vevm = VolumeEVM.from_array(_blob(64), 0.0)
     voxels = 66 ** 3  # the padded grid
-    sampler, peak = _traced_peak(lambda: _DenseTables(vevm, False))
-    assert sampler.table.nbytes == 8 * voxels
+    table, peak = _traced_peak(lambda: _dense_table(vevm))
+    assert table.nbytes == 8 * voxels
     assert peak <= 12 * voxels + (256 << 10)
     _, peak = _traced_peak(lambda: _Blocks(vevm, 8))
     assert peak <= 8 * voxels + (256 << 10)

@@ -266,8 +266,9 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
                     "transfer function, mode, quality, resolution and early termination")
     viewport_fast: BoolProperty(
         name="Fast While Moving", default=True, update=gpu_viewport.redraw,
-        description="While a view, a volume or its tools move, draw the Viewport DVR with half "
-                    "the samples; at full quality once it rests for a quarter of a second")
+        description="While a view, a volume or its tools move, draw the Viewport DVR with one "
+                    "ray per 2x2 pixels and twice the step; at full quality once it rests for "
+                    "a quarter of a second")
     method: EnumProperty(name="Method", items=METHOD_ITEMS, default="raycast")
     mode: EnumProperty(name="Mode", items=MODE_ITEMS, default="over")
     quality: FloatProperty(

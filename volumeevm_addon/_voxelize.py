@@ -449,10 +449,13 @@ def _sure_crossings(tri_pts, lo, width, ny, nz):
                     total = w_a + w_b + w_c
                     height = (w_a * az + w_b * bz + w_c * cz) / total if total != 0.0 else az
                     first = min(max(np.ceil(min(max(height, z_lo), z_hi)), 0.0), float(nz))
-                    if first == nz:
-                        continue  # at or above the top centre: no centre's winding changes
-                    sure = _below_sure(tri, px, py, first, sign) == 1 and (
-                        first == 0.0 or _below_sure(tri, px, py, first - 1.0, sign) == -1)
+                    if first == nz:  # above the top centre, if orient3d is sure of it
+                        if _below_sure(tri, px, py, nz - 1.0, sign) == -1:
+                            continue  # no centre's winding changes
+                        sure = False
+                    else:
+                        sure = _below_sure(tri, px, py, first, sign) == 1 and (
+                            first == 0.0 or _below_sure(tri, px, py, first - 1.0, sign) == -1)
                     if sure:
                         if n == len(column):
                             column = _grown(column, n)

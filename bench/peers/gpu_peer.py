@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
+TIMEOUT_S = 1800
+"""Longest a dataset's GPU renders may take (all settings, on software OpenGL)."""
 
 
 def render(dataset, view, settings, frames):
@@ -25,14 +27,18 @@ def render(dataset, view, settings, frames):
 
     Returns ``(renderer, results)``: the GPU's renderer string and, per setting, a dict with
     ``rgba`` (H, W, 4) premultiplied float32, row 0 at the top, and ``frames_s``. Raises
-    RuntimeError when the process fails (no GPU context, no ``bpy``).
+    RuntimeError when the process fails (no GPU context, no ``bpy``) or takes longer than
+    :data:`TIMEOUT_S` (a Blender process that hangs must not hang the bench).
     """
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out.npz"
         job = json.dumps({"dataset": dataset, "view": view, "settings": settings,
                           "frames": int(frames)})
-        proc = subprocess.run([sys.executable, __file__, job, str(out)], capture_output=True,
-                              text=True)
+        try:
+            proc = subprocess.run([sys.executable, __file__, job, str(out)],
+                                  capture_output=True, text=True, timeout=TIMEOUT_S)
+        except subprocess.TimeoutExpired as error:
+            raise RuntimeError(f"GPU method: no answer in {TIMEOUT_S} s") from error
         if proc.returncode != 0 or not out.exists():
             raise RuntimeError(f"GPU method failed ({proc.returncode}): {proc.stderr[-2000:]}")
         with np.load(out) as data:

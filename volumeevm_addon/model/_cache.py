@@ -12,6 +12,7 @@ is made again, identically, when next needed: the cache trades memory for speed,
 """
 
 import math
+import threading
 import types
 from collections import OrderedDict
 
@@ -78,6 +79,8 @@ class DerivedCache:
 
     def __init__(self, *, budget):
         self._entries = OrderedDict()  # least recently used first
+        self._lock = threading.RLock()  # guards the entries: a render job and the viewport
+        self._making = {}  # key -> the lock of the one thread making that entry
         self.budget = budget
 
     @property
@@ -92,8 +95,9 @@ class DerivedCache:
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
                 or value < 0:
             raise VolumeEVMError(f"budget: an integer number of bytes >= 0, got {value!r}")
-        self._budget = int(value)
-        self._evict()
+        with self._lock:
+            self._budget = int(value)
+            self._evict()
 
     def get(self, key, make):
         """The entry under ``key``, made by ``make()`` when it is not kept.
@@ -112,12 +116,35 @@ class DerivedCache:
         -------
         object
             The entry, kept or just made.
+
+        Notes
+        -----
+        Thread-safe: threads asking for the same missing key wait for the one that makes it
+        (a table is never made twice at once, which would double its memory); other keys are
+        made meanwhile.
         """
-        if key in self._entries:
-            self._entries.move_to_end(key)
-            value = self._entries[key]
-        else:
-            value = self._entries[key] = make()
+        with self._lock:
+            if key in self._entries:
+                return self._use(key)
+            making = self._making.setdefault(key, threading.RLock())
+        with making:
+            with self._lock:
+                if key in self._entries:  # made by another thread while this one waited
+                    return self._use(key)
+            try:
+                value = make()
+            finally:
+                with self._lock:
+                    self._making.pop(key, None)
+            with self._lock:
+                self._entries[key] = value
+                self._evict()
+            return value
+
+    def _use(self, key):
+        """The entry under ``key``, now the most recently used (the lock held)."""
+        self._entries.move_to_end(key)
+        value = self._entries[key]
         self._evict()
         return value
 
@@ -129,11 +156,13 @@ class DerivedCache:
         key : hashable
             As given to :meth:`get`.
         """
-        self._entries.pop(key, None)
+        with self._lock:
+            self._entries.pop(key, None)
 
     def clear(self):
         """Drop every entry (they are made again when next needed)."""
-        self._entries.clear()
+        with self._lock:
+            self._entries.clear()
 
     def keys(self):
         """The keys of the entries kept.
@@ -143,7 +172,8 @@ class DerivedCache:
         list
             The keys, least recently used first (a new list).
         """
-        return list(self._entries)
+        with self._lock:
+            return list(self._entries)
 
     def __contains__(self, key):
         """Whether an entry is kept under ``key`` (not a use: the order of use stays)."""
@@ -157,9 +187,13 @@ class DerivedCache:
         """Bytes of the arrays the entries hold now (:func:`held_bytes`; an array two entries
         share counts once)."""
         seen = set()
-        return sum(held_bytes(value, seen) for value in list(self._entries.values()))
+        with self._lock:
+            values = list(self._entries.values())
+        return sum(held_bytes(value, seen) for value in values)
 
     def _evict(self):
+        """Drop the least recently used entries until the rest fit the budget (the lock
+        held)."""
         while self._entries and self.nbytes > self._budget:
             self._entries.popitem(last=False)
 

@@ -65,10 +65,11 @@ def positive_integer(name, value):
 
 
 def flag(name, value):
-    """``value`` if it is True or False."""
-    if value is not True and value is not False:
+    """``value`` as a bool if it is True or False (NumPy's ``np.True_`` and ``np.False_`` too,
+    as :func:`volumeevm_addon.render` accepts them)."""
+    if not isinstance(value, (bool, np.bool_)):
         raise VolumeEVMError(f"{name}: True or False, got {value!r}")
-    return value
+    return bool(value)
 
 
 def checked_step_mm(step_mm, spacing, per_voxel):

@@ -115,26 +115,27 @@ _PREINT_SIZE = 256
 
 
 # ---------------------------------------------------------------------------- tables
-class _DenseTables:
-    """The padded dense tables ray casting samples, made from the VolumeEVM: ``table``, the
-    complex64 ``density·r + i·r`` of the grid padded by one voxel each side (``r`` = in the
-    region; flat), and ``grad``, the per-voxel gradients (:func:`.region_gradients`), three
-    float32 per padded voxel side by side (flat; None without shading)."""
+def _dense_table(vevm):
+    """The padded dense table ray casting samples: the complex64 ``density·r + i·r`` of the
+    grid padded by one voxel each side (``r`` = in the region), flat; written in place into
+    its real and imaginary parts (no grid-sized temporaries beside the mask)."""
+    mask = vevm.evm.to_mask(vevm.shape)
+    tab = np.zeros(tuple(int(n) + 2 for n in vevm.shape), np.complex64)
+    inner = tab[1:-1, 1:-1, 1:-1]
+    inner.real[mask] = vevm.table(0)
+    inner.imag[...] = mask
+    return tab.ravel()
 
-    def __init__(self, vevm, with_gradient):
-        mask = vevm.evm.to_mask(vevm.shape)
-        pad = tuple(int(s) + 2 for s in vevm.shape)
-        # Written in place into the real and imaginary parts: no grid-sized temporaries.
-        tab = np.zeros(pad, np.complex64)
-        inner = tab[1:-1, 1:-1, 1:-1]
-        inner.real[mask] = vevm.table(0)
-        inner.imag[...] = mask
-        self.table = tab.ravel()
-        self.grad = None
-        if with_gradient:
-            grad = np.zeros(pad + (3,), np.float32)
-            region_gradients(tab.real, tab.imag, np.moveaxis(grad, -1, 0)[:, 1:-1, 1:-1, 1:-1])
-            self.grad = grad.ravel()
+
+def _dense_gradients(vevm, table):
+    """The per-voxel gradients shading reads (:func:`.region_gradients`) from the padded dense
+    ``table`` (:func:`_dense_table`): three float32 per padded voxel side by side, flat. Kept
+    apart from the table, so that renders with and without shading share the table."""
+    pad = tuple(int(n) + 2 for n in vevm.shape)
+    tab = table.reshape(pad)
+    grad = np.zeros(pad + (3,), np.float32)
+    region_gradients(tab.real, tab.imag, np.moveaxis(grad, -1, 0)[:, 1:-1, 1:-1, 1:-1])
+    return grad.ravel()
 
 
 # ---------------------------------------------------------------------------- blocks
@@ -305,17 +306,22 @@ def tables_to_build(vevm, options, *, navigate):
     spacing = np.asarray(vevm.spacing, dtype=np.float64)
     step_mm = checked_step_mm(options.get("step_mm"), spacing, RAY_STEPS_PER_VOXEL)
     preintegrate = bool(options.get("preintegrate", False)) and mode in ("over", "under")
-    keys = _cache_keys(spacing, navigate, shaded, options.get("skip_empty", True),
-                       options.get("block", BLOCK), step_mm, preintegrate)
-    return int(not all(key in vevm.cache for key in keys if key is not None))
+    tables, blocks = _cache_keys(spacing, navigate, shaded, options.get("skip_empty", True),
+                                 options.get("block", BLOCK), step_mm, preintegrate)
+    keys = tables + (() if blocks is None else (blocks,))
+    return int(not all(key in vevm.cache for key in keys))
 
 
 def _cache_keys(spacing, navigate, shaded, skip_empty, block, step_mm, preintegrate):
-    """The ``vevm.cache`` keys of the tables a render reads, ``(tables, blocks)``: the dense
-    sampling tables (:class:`_DenseTables`; :class:`_NavigationTables` when ``navigate``) and
-    the space-leaping blocks (None without ``skip_empty``). One function for the render and
-    :func:`tables_to_build`, so that the memory check sees the same cache the render uses."""
-    tables = ("raycast", "navigation") if navigate else ("raycast", "tables", shaded)
+    """The ``vevm.cache`` keys of the tables a render reads, ``(tables, blocks)``: the keys of
+    the sampling tables (:func:`_dense_table`, and :func:`_dense_gradients` when ``shaded``;
+    :class:`_NavigationTables` when ``navigate``) and of the space-leaping blocks (None without
+    ``skip_empty``). One function for the render and :func:`tables_to_build`, so that the
+    memory check sees the same cache the render uses."""
+    if navigate:
+        tables = (("raycast", "navigation"),)
+    else:
+        tables = (("raycast", "table"),) + ((("raycast", "gradients"),) if shaded else ())
     blocks = (("raycast", "blocks", block, _reach(spacing, step_mm, preintegrate))
               if skip_empty else None)
     return tables, blocks
@@ -365,6 +371,7 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
                                             termination, xray_scale, xray_offset)
     shading = checked_shading(shading)
     jitter = flag("jitter", jitter)
+    skip_empty = flag("skip_empty", skip_empty)
     preintegrate = flag("preintegrate", preintegrate) and mode in ("over", "under")
     if mode not in ("over", "under"):
         shading = None
@@ -380,8 +387,8 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
 
     lut = None if mode == "xray" else _lut(tf, step_mm)
     pre = _preintegration(vevm, tf, step_mm) if preintegrate else None
-    tables_key, blocks_key = _cache_keys(spacing, navigate, shading is not None, skip_empty,
-                                         block, step_mm, pre is not None)
+    tables_keys, blocks_key = _cache_keys(spacing, navigate, shading is not None, skip_empty,
+                                          block, step_mm, pre is not None)
     lattice = Lattice(step_mm, jitter, False, np.zeros(0, np.int8), (0, 0, 0), block,
                       (0.0,) * 3, (0.0,) * 3)
     if skip_empty:
@@ -389,7 +396,7 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
         margin = 0.0 if lut is None else lut[3] if pre is None else max(lut[3], pre[3])
         lattice = blocks.leaping(lattice, mode, tf, margin, compositing)
     records = (_view(camera, g, vevm.shape, spacing, depth_in), lattice,
-               _volume(vevm, navigate, shading is not None, tables_key),
+               _volume(vevm, tables_keys),
                _optics(compositing, tf, step_mm, lut, pre, Lighting.of_view(shading, g)))
     vmax = np.full(h * w if mode == "mip" else 0, -np.inf, np.float32)
     side = max(1, math.isqrt(chunk_rays))  # square tiles of at most chunk_rays pixels
@@ -413,19 +420,21 @@ def _view(camera, grid_to_world, shape, spacing, depth_in):
                 _floats(shape), _floats(spacing))
 
 
-def _volume(vevm, navigate, shaded, tables_key):
-    """The :data:`._ray_march.Volume` record of a render: the dense tables (from the cache), or
-    for the navigation variant the densities table and the relation v."""
+def _volume(vevm, keys):
+    """The :data:`._ray_march.Volume` record of a render, from the tables of ``keys``
+    (:func:`_cache_keys`) in the cache: the dense table (and gradients), or for the navigation
+    variant the densities table and the relation v."""
     n = tuple(int(s) for s in vevm.shape)
     strides = ((n[1] + 2) * (n[2] + 2), n[2] + 2, 1)
     nothing = np.zeros(0, np.float32)
-    if navigate:
-        tables = vevm.cache.get(tables_key, lambda: _NavigationTables(vevm))
+    if keys[0] == ("raycast", "navigation"):
+        tables = vevm.cache.get(keys[0], lambda: _NavigationTables(vevm))
         return Volume(n, strides, nothing, nothing, True, tables.densities, tables.relation,
                       tables.relation_at)
-    tables = vevm.cache.get(tables_key, lambda: _DenseTables(vevm, shaded))
-    return Volume(n, strides, tables.table.view(np.float32),
-                  nothing if tables.grad is None else tables.grad, False, nothing,
+    table = vevm.cache.get(keys[0], lambda: _dense_table(vevm))
+    grad = vevm.cache.get(keys[1], lambda: _dense_gradients(vevm, table)) if len(keys) > 1 \
+        else nothing
+    return Volume(n, strides, table.view(np.float32), grad, False, nothing,
                   np.zeros(0, np.int64), (0,) * (len(RELATION_FIELDS) + 1))
 
 

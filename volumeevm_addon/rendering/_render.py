@@ -65,9 +65,10 @@ _GRID_BYTES = {
     "raycast": 10,
     # no dense table; the block grid is made through a temporary float32 grid and the mask
     "raycast_navigate": 7,
-    # the region's runs come from the EVM's boxes (no grid-sized temporaries) beside the
-    # axis's densities table (_TABLE_METHODS); with skip_empty=False the dense layout made for
-    # each render: the transposed dense grid, its mask and its codes
+    # the region's runs come from the EVM's boxes beside the axis's densities table
+    # (_TABLE_METHODS); post-classification's mixed codes take an int32 grid per axis; with
+    # skip_empty=False the dense layout made for each render: the transposed dense grid, its
+    # mask and its codes
     "shear_warp": 9,
     # per-axis sheets come from the region's voxels (_REGION_BYTES), beside the axis's
     # densities table (_TABLE_METHODS)

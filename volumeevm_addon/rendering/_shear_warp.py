@@ -127,7 +127,7 @@ from ..model._densities import TABLE_ORDERS
 from ..model._volume import transform
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._checks import checked_view
+from ._checks import checked_view, flag, positive_integer
 from ._gradients import region_gradients
 from ._modes import finish_mode
 from ._shading import Shading, checked_shading
@@ -667,7 +667,9 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     """
     g, depth_in, compositing = checked_view(vevm, camera, tf, grid_to_world, mode, depth_in,
                                             termination, xray_scale, xray_offset)
-    if int(lut_size) != lut_size or not 2 <= lut_size < 32767:
+    lut_size = positive_integer("lut_size", lut_size)
+    skip_empty = flag("skip_empty", skip_empty)
+    if not 2 <= lut_size < 32767:
         raise VolumeEVMError(f"lut_size: an integer in [2, 32767), got {lut_size!r}")
     try:
         intermediate_scale = float(intermediate_scale)

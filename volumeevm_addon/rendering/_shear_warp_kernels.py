@@ -365,14 +365,12 @@ def span(t0, t1, alpha, beta, origin, lo, hi):
 
 
 @kernel
-def bilinear(v00, v01, v10, v11, f, g, translated):
+def bilinear(v00, v01, v10, v11, f, g):
     """Bilinear interpolation of taps ``v00 v01`` (row ``i``, columns ``j`` and ``j + 1``) and
-    ``v10 v11`` (row ``i + 1``), rows weighted by ``f`` and columns by ``g`` (float32). A
-    ``translated`` slice has the same four weights at every pixel (VolPack), a scaled slice one
-    pair per row and one per column (separable, columns first)."""
-    if translated:
-        return (v00 * ((_ONE - f) * (_ONE - g)) + v01 * ((_ONE - f) * g)
-                + v10 * (f * (_ONE - g)) + v11 * (f * g))
+    ``v10 v11`` (row ``i + 1``), rows weighted by ``f`` and columns by ``g`` (float32), for a
+    scaled slice: one pair of weights per row and one per column (separable, columns first).
+    A translated slice has the same four weights at every pixel (VolPack), which
+    :func:`composite` applies to a whole stretch at once."""
     return (v00 * (_ONE - g) + v01 * g) * (_ONE - f) + (v10 * (_ONE - g) + v11 * g) * f
 
 
@@ -577,7 +575,7 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                                 for ch in range(np.uint64(8)):
                                     samples[out + ch] = bilinear(
                                         scan0[at + ch], scan0[at + _EIGHT + ch],
-                                        scan1[at + ch], scan1[at + _EIGHT + ch], f, g, False)
+                                        scan1[at + ch], scan1[at + _EIGHT + ch], f, g)
                                 samples[out + np.uint64(5)] = scan[
                                     nearest, at + np.uint64(13 if g >= _HALF else 5)]
                         for x in range(q, stop):
