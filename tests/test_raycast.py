@@ -338,9 +338,11 @@ def test_bad_input(ct):
         render_raycast(v, cam, "bone", g)
     with pytest.raises(VolumeEVMError, match="grid_to_world"):
         render_raycast(v, cam, tf, np.zeros((4, 4)))
-    for name in ("jitter", "preintegrate"):
+    for name in ("jitter", "preintegrate", "skip_empty"):
         with pytest.raises(VolumeEVMError, match=name):
             render_raycast_navigate(v, cam, tf, g, **{name: 1})
+        with pytest.raises(VolumeEVMError, match=name):
+            render_raycast(v, cam, tf, g, **{name: np.ones(2, bool)})
 
 
 # ---------------------------------------------------------------------------- kernels

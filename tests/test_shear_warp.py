@@ -785,8 +785,11 @@ def test_bad_input(brain_half):
         render_shear_warp(brain_half, cam, MRI, g, slices_per_voxel=5)
     with pytest.raises(VolumeEVMError, match="classification"):
         render_shear_warp(brain_half, cam, MRI, g, classification="both")
-    with pytest.raises(VolumeEVMError, match="lut_size"):
-        render_shear_warp(brain_half, cam, MRI, g, lut_size=1)
+    for lut_size in (1, "abc", None, 2.5):
+        with pytest.raises(VolumeEVMError, match="lut_size"):
+            render_shear_warp(brain_half, cam, MRI, g, lut_size=lut_size)
+    with pytest.raises(VolumeEVMError, match="skip_empty"):
+        render_shear_warp(brain_half, cam, MRI, g, skip_empty="yes")
     with pytest.raises(VolumeEVMError, match="xray_scale"):
         render_shear_warp(brain_half, cam, None, g, mode="xray", xray_scale=-1.0)
     with pytest.raises(VolumeEVMError, match="tf"):
