@@ -215,7 +215,12 @@ def draw_view(scene, volumes, key, size, projection, view_matrix):
     except VolumeEVMError as error:
         _problems.update((vol.name, str(error)) for vol in volumes)
         return
-    shown = [(vol, _live_vevm(vol)) for vol in volumes]
+    shown = []
+    for vol in volumes:
+        try:
+            shown.append((vol, _live_vevm(vol)))
+        except VolumeEVMError as error:  # e.g. imported, no VolumeEVM built yet
+            _problems[vol.name] = str(error)
     signature = (tuple(map(tuple, projection)), tuple(map(tuple, view_matrix)), tuple(size),
                  tuple((vol.name, tuple(map(tuple, vol.matrix_world)), id(vevm))
                        for vol, vevm in shown))

@@ -174,6 +174,15 @@ def test_panels_draw_every_state(ext, data_dir, tmp_path):
     bars = [kw for name, _, kw in draw_all(ext, context) if name == "progress"]
     assert len(bars) == ext.ui.panels.HISTOGRAM_ROWS
     assert max(b["factor"] for b in bars) == 1.0
+    # The Viewport DVR's drawing of a volume not built yet: its problem goes to the sidebar,
+    # nothing is raised from the draw (and nothing is drawn: no GPU is needed here).
+    settings = context.scene.volumeevm_render
+    settings.viewport, settings.mode = True, "xray"  # X-ray: no transfer function needed
+    viewport = ext.blender.gpu_viewport
+    viewport.draw_view(context.scene, [obj], "test", (8, 8), np.eye(4), np.eye(4))
+    assert "no VolumeEVM" in viewport.problem(obj)
+    settings.viewport, settings.mode = False, "over"
+    viewport.on_load_pre()  # forget the problem, as a file load does
 
     api.build(obj, 2.9)
     vevm = api.get_vevm(obj)
