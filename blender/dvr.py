@@ -219,7 +219,8 @@ def settings_options(settings, vol, method):
                              classification=settings.classification,
                              jitter=settings.jitter, preintegrate=settings.preintegrate)
     if gpu:
-        options = {k: v for k, v in options.items() if k in options_of(method) or k == "level"}
+        allowed = options_of(method)
+        options = {k: v for k, v in options.items() if k in allowed or k == "level"}
     if settings.mode == "xray":
         options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
     return options

@@ -580,7 +580,7 @@ def restored_state(blend="NONE"):
         gpu.state.depth_mask_set(saved[2])
 
 
-def draw(frame, tf, *, depth_texture=None, xray=(1.0, 0.0), blend="NONE"):
+def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
     """Draw the volume of ``frame`` (the core's ``gpu_frame``) into the bound framebuffer: one
     full-screen quad, RGBA (premultiplied) to colour slot 0 and axial depth to slot 1.
 
@@ -591,9 +591,6 @@ def draw(frame, tf, *, depth_texture=None, xray=(1.0, 0.0), blend="NONE"):
     frame : GPUFrame
     tf : TransferFunction or None
         The frame's transfer function (None for X-ray).
-    depth_texture : gpu.types.GPUTexture, optional
-        Axial depth where rays stop (R32F, the frame's image size, bottom row first); None:
-        the frame's own ``depth_in`` (or none).
     xray : (float, float)
         The frame's ``xray_scale`` and ``xray_offset`` (they select the occupancy blocks).
     blend : str
@@ -602,11 +599,10 @@ def draw(frame, tf, *, depth_texture=None, xray=(1.0, 0.0), blend="NONE"):
     """
     shader, batch = _shader_and_batch()
     region, occupancy = _textures(frame, tf, tuple(xray))
-    if depth_texture is None:
-        depth = frame.depth_in
-        if depth is None:
-            depth = np.full((1, 1), BACKGROUND_DEPTH, np.float32)
-        depth_texture = _texture(depth.shape[::-1], "R32F", "depth_in", depth)
+    depth = frame.depth_in  # where rays stop (axial), or none
+    if depth is None:
+        depth = np.full((1, 1), BACKGROUND_DEPTH, np.float32)
+    depth_texture = _texture(depth.shape[::-1], "R32F", "depth_in", depth)
     uniforms = gpu.types.GPUUniformBuf(float_buffer(frame.uniforms))
     with restored_state(blend):
         shader.bind()
@@ -703,6 +699,10 @@ def level_text(level):
 def options():
     """The options of :func:`render_gpu` with their defaults, as the core's ``render_options``
     gives a CPU method's (``mode``, ``depth_in``, ``matrix_world`` and ``level`` aside)."""
-    parameters = inspect.signature(render_gpu).parameters.values()
-    return {p.name: p.default for p in parameters if p.kind == p.KEYWORD_ONLY
-            and p.name not in ("mode", "depth_in", "matrix_world", "level")}
+    return dict(_OPTIONS)
+
+
+_OPTIONS = tuple((p.name, p.default) for p in inspect.signature(render_gpu).parameters.values()
+                 if p.kind == p.KEYWORD_ONLY
+                 and p.name not in ("mode", "depth_in", "matrix_world", "level"))
+""":func:`options` as pairs, read from the signature once (the viewport asks on every draw)."""

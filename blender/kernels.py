@@ -30,9 +30,6 @@ from ..volumeevm_addon import set_kernel_cache_dir, set_kernel_compile_hook, set
 #: The progress text while kernels are loaded or compiled for the first time in a session.
 FIRST_USE = "preparing renderer (first use only)"
 
-_hook = {"current": None}  # the compile hook installed now (the core does not return it)
-
-
 def register(package):
     """Keep compiled kernels in the user folder of the extension ``package`` (its
     ``__package__``); nothing changes when ``package`` is not an installed extension."""
@@ -72,11 +69,9 @@ def job_settings(show):
     ``show(FIRST_USE)`` once if a kernel is loaded or compiled for the first time meanwhile.
     Enter it on the main thread; the previous thread count and hook come back on exit."""
     threads = set_kernel_threads(render_threads(bpy.context.scene))
-    previous, _hook["current"] = _hook["current"], _first_use_notice(show)
-    set_kernel_compile_hook(_hook["current"])
+    hook = set_kernel_compile_hook(_first_use_notice(show))
     try:
         yield
     finally:
         set_kernel_threads(threads)
-        _hook["current"] = previous
-        set_kernel_compile_hook(previous)
+        set_kernel_compile_hook(hook)

@@ -83,12 +83,12 @@ def _twice_total(values):
 
 def test_compile_hook_runs_before_the_first_call_only():
     names = []
-    set_kernel_compile_hook(names.append)
+    before = set_kernel_compile_hook(names.append)
     try:
         assert _twice_total(np.arange(4.0)) == 12.0
         assert _twice_total(np.arange(5.0)) == 20.0
     finally:
-        set_kernel_compile_hook(None)
+        assert set_kernel_compile_hook(before) == names.append  # the hook set: given back
     assert names == ["_twice_total"] and _twice_total.compiled
 
 

@@ -127,6 +127,12 @@ def set_kernel_compile_hook(hook):
     hook : callable or None
         Called with the kernel's name; ``None`` removes the hook.
 
+    Returns
+    -------
+    callable or None
+        The hook set before (to put back afterwards, as :func:`set_kernel_threads` returns
+        the count before).
+
     Raises
     ------
     VolumeEVMError
@@ -134,7 +140,8 @@ def set_kernel_compile_hook(hook):
     """
     if hook is not None and not callable(hook):
         raise VolumeEVMError(f"kernel compile hook must be callable or None, got {hook!r}")
-    _settings["hook"] = hook
+    previous, _settings["hook"] = _settings["hook"], hook
+    return previous
 
 
 def kernel_threads():

@@ -28,7 +28,7 @@ from ._cache import DerivedCache, default_budget
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
-from ._volume import Volume, checked_densities, checked_geometry, index_to_physical
+from ._volume import Volume, checked_densities, checked_geometry, index_to_physical, transform
 
 
 class VolumeEVM:
@@ -565,14 +565,7 @@ class VolumeEVM:
         (n, 3) ndarray of np.float64
         """
         matrix = self.index_to_physical()
-        corner = np.asarray(vertices, np.float64) - 0.5
-        # Axis by axis rather than a matrix product: no BLAS (whose threads can take longer
-        # than the product on a busy machine), and the same numbers on every CPU.
-        out = np.empty_like(corner)
-        for axis in range(3):
-            out[:, axis] = (corner[:, 0] * matrix[axis, 0] + corner[:, 1] * matrix[axis, 1]
-                            + corner[:, 2] * matrix[axis, 2] + matrix[axis, 3])
-        return out
+        return transform(np.asarray(vertices, np.float64) - 0.5, matrix[:3, :3].T, matrix[:3, 3])
 
     def size_report(self):
         """Bytes of the model (vertices and the densities tables built so far) against the dense

@@ -165,7 +165,7 @@ class _Blocks:
 
     def __init__(self, vevm, size, reach=1):
         self.size = size
-        self.last = None  # (visibility, leap levels) of the last view (:meth:`leaping`)
+        self.last = None  # (what decides visibility, leap levels) of the last view (leaping)
         shape = np.array(vevm.shape, dtype=np.int64)
         self.nb = -(-shape // size)
         lo, hi = vevm.evm.boxes()
@@ -196,14 +196,18 @@ class _Blocks:
 
     def leaping(self, lattice, mode, tf, lut_step, compositing):
         """``lattice`` (:data:`._ray_march.Lattice`) with space leaping over these blocks for
-        a view's ``mode`` and ``tf`` (:meth:`visible`, :func:`leap_levels`; the levels of the
-        last visibility are kept: the views of one transfer function share them)."""
+        a view's ``mode`` and ``tf`` (:meth:`visible`, :func:`leap_levels`). The levels of the
+        last view are kept with what decides the visibility (the mode, the table step, X-ray's
+        parameters and the transfer function's control points): the views of one transfer
+        function share them without computing the visibility again."""
         nb = [int(b) for b in self.nb]
-        visible = self.visible(mode, tf, lut_step, compositing.xray_scale,
-                               compositing.xray_offset)
+        xray = (compositing.xray_scale, compositing.xray_offset)
+        key = (mode, float(lut_step), xray,
+               tf.points.tobytes() if mode in ("over", "under") else None)
         last = self.last  # read once: another thread may render with this VolumeEVM too
-        if last is None or not np.array_equal(last[0], visible):
-            last = self.last = (visible, leap_levels(visible).ravel())
+        if last is None or last[0] != key:
+            visible = self.visible(mode, tf, lut_step, *xray)
+            last = self.last = (key, leap_levels(visible).ravel())
         return lattice._replace(leap=True, levels=last[1],
                                 block_strides=((nb[1] + 2) * (nb[2] + 2), nb[2] + 2, 1),
                                 bbox_lo=_floats(self.bbox[0]), bbox_hi=_floats(self.bbox[1]))

@@ -88,9 +88,10 @@ _REGION_BYTES = {"splat": 56}
 _PIXEL_BYTES = {"raycast": 32, "raycast_navigate": 32, "shear_warp": 24, "splat": 340,
                 "reference": 360}
 _BLOCK_VIEW_BYTES = 48
-"""Ray casting with space leaping, per block of the (padded) block grid and per view: which
-blocks the transfer function leaves visible (the density ranges widened, compared and
-combined) and their leap levels. Measured: 80 MiB for the 2.2 million blocks of a 512³ grid."""
+"""Ray casting with space leaping, per block of the (padded) block grid: which blocks the
+transfer function leaves visible (the density ranges widened, compared and combined) and their
+leap levels, made when the transfer function or mode differs from the last view's (counted for
+every view). Measured: 80 MiB for the 2.2 million blocks of a 512³ grid."""
 _INTERMEDIATE_BYTES = 40
 """Shear-warp, per intermediate pixel: the RGBA image, its rank and depth maps, slice buffers."""
 _FIXED_BYTES = {"reference": 40 << 20, "shear_warp": 1 << 20, "splat": 1 << 20,
