@@ -150,7 +150,7 @@ _TASKS = 16
 """Tasks the bands are dealt to, in turn (task ``k`` takes bands ``k, k + 16, ...``): the
 image's middle, where the volume is, is shared out evenly whatever the number of threads."""
 _WARP_CHUNK = 1 << 14
-"""Final pixels per task of the warp."""
+"""Final pixels per task of the warp (and, in whole rows, of the perspective rays' points)."""
 _UNSEEN = -np.finfo(np.float32).max
 """MIP maximum before any sample (finite, so that the tie margin stays a number)."""
 _EMPTY = np.zeros((0, 0), np.float32)
@@ -497,8 +497,15 @@ class _View:
                          up @ back])
         eye = (m[:3, 3] @ rot + self.inv[:3, 3])[axes]
         pq, ok = np.empty((2, h * w)), np.empty(h * w, bool)
-        seen = ray_points(x, y, terms, gram, eye, self.c_ref, float(self.step), self.scale,
-                          np.zeros(0, bool) if rays is None else rays, pq, ok)
+        rows = max(1, _WARP_CHUNK // w)
+        parts = parallel_map(
+            lambda first: ray_points(first, min(first + rows, h), x, y, terms, gram, eye,
+                                     self.c_ref, float(self.step), self.scale,
+                                     np.zeros(0, bool) if rays is None else rays, pq, ok),
+            [(first,) for first in range(0, h, rows)])
+        parts = np.array(parts)
+        seen = np.array([parts[:, 0].min(), parts[:, 1].max(), parts[:, 2].min(),
+                         parts[:, 3].max()])
         return pq, ok, seen
 
     @staticmethod

@@ -17,7 +17,10 @@ slices) voxel scanlines its bilinear taps read:
 - the pixels left form stretches; the voxel columns a stretch reads are decoded from the
   region's runs (each voxel's channels and region weight, zeros outside the region: the
   boundary policy needs both) into a buffer of 8 lanes per column, so that the stretch's
-  bilinear samples are one loop the compiler vectorizes, and then composited pixel by pixel.
+  bilinear samples are one loop the compiler vectorizes (a translated slice: the same four
+  weights at every pixel, VolPack), or, on a scaled slice, one such loop blending the two
+  rows and then two taps per pixel along the row (the columns' taps are computed once per
+  slice); then the samples are composited pixel by pixel.
 
 The arithmetic is the vectorized compositing's it replaced, in float32 where that was (the
 largest difference in the images was of the order of 1e-7). A band writes only its own
@@ -40,7 +43,7 @@ from .._jit import kernel
 
 __all__ = ["Runs", "Plan", "Voxels", "Light", "Optics", "Frame", "MODE_CODES", "NEVER",
            "box_runs", "mask_runs", "flagged_runs", "mixed_codes", "lit_colours", "tap", "span",
-           "bilinear", "composite", "ray_points", "warp"]
+           "composite", "ray_points", "warp"]
 
 MODE_CODES = {"over": 0, "under": 1, "xray": 2, "mip": 3}
 """The compositing modes as the kernels know them."""
@@ -365,16 +368,6 @@ def span(t0, t1, alpha, beta, origin, lo, hi):
 
 
 @kernel
-def bilinear(v00, v01, v10, v11, f, g):
-    """Bilinear interpolation of taps ``v00 v01`` (row ``i``, columns ``j`` and ``j + 1``) and
-    ``v10 v11`` (row ``i + 1``), rows weighted by ``f`` and columns by ``g`` (float32), for a
-    scaled slice: one pair of weights per row and one per column (separable, columns first).
-    A translated slice has the same four weights at every pixel (VolPack), which
-    :func:`composite` applies to a whole stretch at once."""
-    return (v00 * (_ONE - g) + v01 * g) * (_ONE - f) + (v10 * (_ONE - g) + v11 * g) * f
-
-
-@kernel
 def _table_row(d, lo, scale, rows):
     """Row of the view's classification table (:meth:`TransferFunction.quantize` plus 1, row
     0 being transparent) of density ``d``."""
@@ -390,7 +383,7 @@ def _step_factor(a, ratio):
     if a <= 0:
         return _ONE
     left = max(_ONE - a, _ZERO)
-    return (_ONE - np.float32(math.exp(np.float32(math.log(left)) * ratio))) / a
+    return (_ONE - left ** ratio) / a
 
 
 @kernel
@@ -426,6 +419,9 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
     scan = np.zeros((4, 8 * (region.columns + 3)), np.float32)
     scan0, scan1 = scan[0], scan[1]
     samples = np.zeros(8 * wi, np.float32)
+    mixed = np.zeros(8 * (region.columns + 3), np.float32)
+    column_tap = np.empty(wi, np.int64)
+    column_fraction = np.empty(wi, np.float32)
     c = np.zeros(4, np.float32)
     run = np.empty(4, np.int64)  # per slot: the first region run that may hold the next tap
     run_end = np.empty(4, np.int64)
@@ -450,6 +446,8 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
             keep, blend, test, rank = keeps[n], blends[n], tests[n], sample_ranks[n]
             slots = 2 if s2 < 0 else 4
             g = tap(0, alpha, beta_b)[1]  # (a translated slice's fraction for every pixel)
+            for x in range(wi):  # the columns' taps, the same on every scanline
+                column_tap[x], column_fraction[x] = tap(x + origin_q, alpha, beta_b)
             p0, p1 = span(a0, a1, alpha, beta_a, origin_p, r0, r1)
             for p in range(p0, p1):
                 i, f = tap(p + origin_p, alpha, beta_a)
@@ -506,9 +504,8 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                         stop = q + 1
                         while stop < q_stop and (not skip or following[p, stop] == stop):
                             stop += 1
-                        first_col = max(tap(q + origin_q, alpha, beta_b)[0], -1)
-                        last_col = min(tap(stop - 1 + origin_q, alpha, beta_b)[0] + 1,
-                                       region.columns)
+                        first_col = max(column_tap[q], -1)
+                        last_col = min(column_tap[stop - 1] + 1, region.columns)
                         for k in range(slots):
                             # Decode the columns: the run pointer moves along the scanline
                             # with the pixels.
@@ -554,7 +551,7 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                         if translated:  # the same four weights at every pixel
                             w00, w01 = (_ONE - f) * (_ONE - g), (_ONE - f) * g
                             w10, w11 = f * (_ONE - g), f * g
-                            offset = 8 * (tap(q + origin_q, alpha, beta_b)[0] - first_col)
+                            offset = 8 * (column_tap[q] - first_col)
                             # (Unsigned indices: no negative-index wrap-around, so the loop
                             # is vectorized with contiguous loads.)
                             top, under = scan0[offset:], scan1[offset:]
@@ -565,17 +562,18 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                             near = offset + (8 if g >= _HALF else 0) + 5
                             for x in range(stop - q):
                                 samples[8 * x + 5] = scan[nearest, near + 8 * x]
-                        else:
+                        else:  # rows first (one pass over the columns), then columns
+                            for lane in range(np.uint64(width)):
+                                mixed[lane] = scan0[lane] * (_ONE - f) + scan1[lane] * f
                             for x in range(stop - q):
-                                j, g = tap(x + q + origin_q, alpha, beta_b)
+                                j, g = column_tap[x + q], column_fraction[x + q]
                                 if j < first_col or j >= last_col:  # no voxel: outside
                                     samples[8 * x + 5] = _ZERO
                                     continue
                                 at, out = np.uint64(8 * (j - first_col)), np.uint64(8 * x)
-                                for ch in range(np.uint64(8)):
-                                    samples[out + ch] = bilinear(
-                                        scan0[at + ch], scan0[at + _EIGHT + ch],
-                                        scan1[at + ch], scan1[at + _EIGHT + ch], f, g)
+                                for ch in range(np.uint64(5)):
+                                    samples[out + ch] = (mixed[at + ch] * (_ONE - g)
+                                                         + mixed[at + _EIGHT + ch] * g)
                                 samples[out + np.uint64(5)] = scan[
                                     nearest, at + np.uint64(13 if g >= _HALF else 5)]
                         for x in range(q, stop):
@@ -651,8 +649,9 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
 
 # ---------------------------------------------------------------------------- warp
 @kernel
-def ray_points(x, y, terms, gram, eye, c_ref, step, scale, rays, pq, ok):
-    """Perspective: where the ray of each pixel (row by row) meets the reference plane
+def ray_points(first_row, stop_row, x, y, terms, gram, eye, c_ref, step, scale, rays, pq, ok):
+    """Perspective: where the ray of each pixel of rows ``first_row .. stop_row - 1`` meets
+    the reference plane
     ``c = c_ref`` of index space, as intermediate coordinates ``pq[:, pixel]`` (times
     ``scale``), and whether it does, going the slices' way (``ok``; also only pixels of
     ``rays``, empty: all). Returns ``(p min, p max, q min, q max)`` over those rays.
@@ -665,7 +664,7 @@ def ray_points(x, y, terms, gram, eye, c_ref, step, scale, rays, pq, ok):
     """
     extent = np.array([np.inf, -np.inf, np.inf, -np.inf])
     width = x.size
-    for i in range(y.size):
+    for i in range(first_row, stop_row):
         for j in range(width):
             k = i * width + j
             xj, yi = x[j], y[i]
