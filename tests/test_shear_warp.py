@@ -12,6 +12,7 @@ from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, Tra
                              VolumeEVM, VolumeEVMError, grid_to_world, render, set_kernel_threads)
 from volumeevm_addon.rendering import _shear_warp
 from volumeevm_addon.rendering import _shear_warp_kernels as kernels
+from volumeevm_addon.rendering._modes import MODE_CODES
 from volumeevm_addon.rendering._shear_warp import _View, _region_layout, render_shear_warp
 from render_helpers import MODES, reference
 
@@ -471,7 +472,7 @@ def composited_slice(rows, lut, f, g):
                         np.zeros(1, np.float32), np.ones(1), np.array([beta_a]),
                         np.array([beta_b]), np.zeros(1), np.zeros(1), np.zeros(1),
                         np.zeros(1, np.int32), np.zeros(1, bool))
-    optics = kernels.Optics(kernels.MODE_CODES["over"], False, False, np.float32(1.0),
+    optics = kernels.Optics(MODE_CODES["over"], False, False, np.float32(1.0),
                             np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
                             0.0, 0.0, 64.0, _shear_warp._light(None, None), np.float32(0.0),
                             np.float32(0.0), np.float32(0.0))

@@ -18,10 +18,11 @@ Only kernels compiled after the call use the new folder, so it is called before 
 runs. The setting is this package's own: other Numba users in the process keep theirs. Inside
 that folder the kernels go in a subfolder named by the package's import name (plain Python
 imports ``volumeevm_addon``, Blender ``bl_ext.<repository>.volumeevm.volumeevm_addon``: a cached
-kernel refers to the kernels it calls by module name), and in it one named by a digest of the
-modules that define kernels (and of this one); the subfolders of other digests are removed.
-Numba checks a cached kernel against its own file only, not against the kernels it calls in
-other files, so an edit or an update of any kernel starts afresh.
+kernel refers to the kernels it calls by module name), and in it one named by a digest of all
+the package's modules; the subfolders of other digests are removed. Numba checks a cached
+kernel against its own file only, not against the kernels and constants it takes from other
+modules (a kernel's globals are frozen into its machine code), so any edit or update of the
+package starts afresh.
 
 All cores: :func:`parallel_map` runs independent kernel calls (chunks of planes, of polygons)
 on a pool of threads, which run at once because kernels release the GIL. Each call returns its
@@ -185,14 +186,12 @@ def parallel_map(function, tasks):
 
 @functools.cache
 def _cache_folder(parent):
-    """The subfolder of ``parent`` for this import of the kernels' sources (see the module
+    """The subfolder of ``parent`` for this import of the package's sources (see the module
     docstring); removes the subfolders of other sources."""
     package = Path(__file__).parent
     digest = hashlib.sha256()
     for path in sorted(package.rglob("*.py")):
-        source = path.read_bytes()
-        if b"@kernel" in source or path == Path(__file__):
-            digest.update(str(path.relative_to(package)).encode() + b"\0" + source)
+        digest.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes())
     name = digest.hexdigest()[:16]
     imported = parent / __name__.rpartition(".")[0]
     if imported.is_dir():

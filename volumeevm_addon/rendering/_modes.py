@@ -18,9 +18,11 @@ import numpy as np
 
 from . import _depth
 
-__all__ = ["MODES", "Compositing", "finish_mode"]
+__all__ = ["MODES", "MODE_CODES", "Compositing", "finish_mode"]
 
 MODES = ("over", "under", "xray", "mip")
+MODE_CODES = {mode: code for code, mode in enumerate(MODES)}
+"""The modes as the compiled kernels know them: over 0, under 1, xray 2, mip 3."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -40,12 +40,12 @@ import numpy as np
 from .._jit import kernel
 from ..model import _sweep
 from ._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH
+from ._modes import MODE_CODES, MODES
+from ._shading import headlight
 
-__all__ = ["View", "Lattice", "Volume", "Optics", "MODE_CODES", "RELATION_FIELDS", "march_rays"]
+__all__ = ["View", "Lattice", "Volume", "Optics", "RELATION_FIELDS", "march_rays"]
 
-MODE_CODES = {"over": 0, "under": 1, "xray": 2, "mip": 3}
-"""The compositing modes as the kernels know them."""
-_OVER, _UNDER, _XRAY, _MIP = 0, 1, 2, 3
+_OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
 
 View = namedtuple("View", "matrix to_camera to_index plane width height ortho clip depth_in box "
                           "spacing")
@@ -87,14 +87,14 @@ Optics = namedtuple("Optics", "mode termination xray_scale xray_offset lut lut_l
                               "diffuse specular shininess")
 Optics.__doc__ = """How samples become colour.
 
-``mode``: :data:`MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this opacity
+``mode``: :data:`._modes.MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this opacity
 (inf: never); ``xray_scale``, ``xray_offset`` (float32); ``lut`` (N, 4) float32 over
 ``lut_lo`` + i / ``lut_scale``: straight colour and step-corrected opacity; ``pre`` (n·n, 4)
 float32 with ``pre_lo``, ``pre_scale``, ``pre_n``: the pre-integrated table (empty: off);
 ``units`` (float32): the step in unit lengths of the transfer function, ``visible``: the
 opacity from which a whole step is visible (:func:`._depth.visible_threshold`); ``shaded``:
-gradient shading, ``normal`` (3x3): index-space gradient to world normal, and the Blinn–Phong
-weights."""
+gradient shading, ``normal`` (9,): the matrix taking an index-space gradient to a world normal,
+row by row, and the Blinn–Phong weights."""
 
 RELATION_FIELDS = ("slab_lo", "slab_hi", "slab_base", "slab_area", "sub_keys", "sub_slab",
                    "sub_lo", "sub_hi", "sub_base", "line_length", "run_keys", "run_sub",
@@ -587,25 +587,6 @@ def _classify_preintegrated(pre, lo, scale, n, front, back, ratio):
 
 
 @kernel
-def _shade(m, phong, rgb, grad, view_dir):
-    """Straight colour lit by the headlight (:meth:`._shading.Lighting.shade`; ``m``: index
-    gradient to world normal, ``phong``: ambient, diffuse, specular, shininess), float32."""
-    ambient, diffuse, specular, shininess = phong
-    nx = grad[0] * m[0][0] + grad[1] * m[0][1] + grad[2] * m[0][2]
-    ny = grad[0] * m[1][0] + grad[1] * m[1][1] + grad[2] * m[1][2]
-    nz = grad[0] * m[2][0] + grad[1] * m[2][1] + grad[2] * m[2][2]
-    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-    cos = 1.0
-    glint = 0.0
-    if norm > 0:
-        cos = abs(nx * view_dir[0] + ny * view_dir[1] + nz * view_dir[2]) / norm
-        glint = specular * cos ** shininess
-    lit = ambient + diffuse * cos
-    return (np.float32(min(rgb[0] * lit + glint, 1.0)), np.float32(min(rgb[1] * lit + glint, 1.0)),
-            np.float32(min(rgb[2] * lit + glint, 1.0)))
-
-
-@kernel
 def _visible(alpha, length, units, full):
     """:func:`._depth.visible` for one sample's opacity over ``length`` steps of ``units``
     unit lengths (``full``: the threshold of a whole step, the common case; a shorter step's
@@ -750,9 +731,8 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                     gradients = (_dense_gradients(grad, base, strides, 0),
                                  _dense_gradients(grad, base, strides, 1),
                                  _dense_gradients(grad, base, strides, 2))
-                r32, g32, b32 = _shade(optics.normal, phong, (r, g, b),
-                                       _gradient(gradients, f, weight), view_dir)
-                r, g, b = np.float64(r32), np.float64(g32), np.float64(b32)
+                r, g, b = headlight((r, g, b), _gradient(gradients, f, weight), optics.normal,
+                                    view_dir, phong)
             if backward:
                 keep = 1.0 - alpha
                 red = np.float32(np.float32(red * keep) + r * alpha)

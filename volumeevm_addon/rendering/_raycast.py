@@ -99,8 +99,8 @@ from ._checks import (RAY_STEPS_PER_VOXEL, checked_step_mm, checked_view, flag,
                       positive_integer)
 from ._depth import visible_threshold
 from ._gradients import region_gradients
-from ._modes import finish_mode
-from ._ray_march import MODE_CODES, RELATION_FIELDS, Lattice, Optics, View, Volume, march_rays
+from ._modes import MODE_CODES, finish_mode
+from ._ray_march import RELATION_FIELDS, Lattice, Optics, View, Volume, march_rays
 from ._shading import Lighting, checked_shading
 
 __all__ = ["render_raycast", "render_raycast_navigate"]
@@ -456,7 +456,7 @@ def _optics(compositing, tf, step_mm, lut, pre, lighting):
         0.0 if pre is None else float(pre[1]), 0.0 if pre is None else float(pre[2]),
         0 if pre is None else int(pre[4]), units, float(visible_threshold(units, np.float64)),
         lighting is not None,
-        _floats(np.zeros((3, 3)) if lighting is None else lighting.inv_t),
+        _floats((np.zeros((3, 3)) if lighting is None else lighting.inv_t).ravel()),
         *(0.0 if lighting is None else float(getattr(lighting.shading, name))
           for name in ("ambient", "diffuse", "specular", "shininess")))
 

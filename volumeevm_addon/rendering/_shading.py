@@ -4,18 +4,21 @@ The light sits at the camera: ``L = V = -ray direction``, so ``H = L``, and the 
 normalised gradient of the density (:mod:`._gradients`), two-sided (absolute values). The
 settings are a :class:`Shading` record; :class:`Lighting` joins them with the view's map from
 index-space gradients to world normals, and lights samples (:meth:`Lighting.shade`). The terms
-of the model are :func:`blinn_phong`'s; compiled kernels compute the same terms one sample (or,
-shear-warp with pre-classification, one voxel) at a time, in float32.
+of the model are :func:`blinn_phong`'s; ray casting and splatting light one sample at a time
+with :func:`headlight` (in float64, as :meth:`Lighting.shade`), shear-warp one sample (or, with
+pre-classification, one voxel) at a time in float32.
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import kernel
 from ..model._volume import transform
 
-__all__ = ["Shading", "Lighting", "checked_shading", "blinn_phong"]
+__all__ = ["Shading", "Lighting", "checked_shading", "blinn_phong", "headlight"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -129,3 +132,27 @@ class Lighting:
         lit, glint = blinn_phong(cos, has, self.shading)
         out = rgb * lit[:, None] + glint[:, None]
         return np.minimum(out, 1.0)
+
+
+@kernel
+def headlight(rgb, gradient, normal, towards, weights):
+    """:meth:`Lighting.shade` of one sample, compiled, in float64 as that computes: the
+    straight colour ``rgb`` lit for the index-space ``gradient``; ``normal``: the 9 entries of
+    :attr:`Lighting.inv_t` row by row; ``towards``: the unit world ray direction; ``weights``:
+    ambient, diffuse, specular, shininess. Each channel is rounded to float32, as
+    :meth:`Lighting.shade`'s callers store it, and returned as float64."""
+    ga, gb, gc = gradient
+    nx = ga * normal[0] + gb * normal[1] + gc * normal[2]
+    ny = ga * normal[3] + gb * normal[4] + gc * normal[5]
+    nz = ga * normal[6] + gb * normal[7] + gc * normal[8]
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    cos = 1.0
+    glint = 0.0
+    if norm > 0:
+        cos = abs(nx * towards[0] + ny * towards[1] + nz * towards[2]) / norm
+        glint = weights[2] * cos ** weights[3]
+    lit = weights[0] + weights[1] * cos
+    red, green, blue = rgb
+    return (np.float64(np.float32(min(red * lit + glint, 1.0))),
+            np.float64(np.float32(min(green * lit + glint, 1.0))),
+            np.float64(np.float32(min(blue * lit + glint, 1.0))))

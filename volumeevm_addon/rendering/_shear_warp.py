@@ -129,9 +129,9 @@ from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, flag, positive_integer
 from ._gradients import region_gradients
-from ._modes import finish_mode
+from ._modes import MODE_CODES, finish_mode
 from ._shading import Shading, checked_shading
-from ._shear_warp_kernels import (MODE_CODES, NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
+from ._shear_warp_kernels import (NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
                                   box_runs, composite, flagged_runs, lit_colours, mask_runs,
                                   mixed_codes, ray_points, warp)
 

@@ -40,14 +40,13 @@ from collections import namedtuple
 import numpy as np
 
 from .._jit import kernel
+from ._modes import MODE_CODES, MODES
 
-__all__ = ["Runs", "Plan", "Voxels", "Light", "Optics", "Frame", "MODE_CODES", "NEVER",
+__all__ = ["Runs", "Plan", "Voxels", "Light", "Optics", "Frame", "NEVER",
            "box_runs", "mask_runs", "flagged_runs", "mixed_codes", "lit_colours", "tap", "span",
            "composite", "ray_points", "warp"]
 
-MODE_CODES = {"over": 0, "under": 1, "xray": 2, "mip": 3}
-"""The compositing modes as the kernels know them."""
-_OVER, _UNDER, _XRAY, _MIP = 0, 1, 2, 3
+_OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
 NEVER = np.iinfo(np.int32).max
 """Rank of an intermediate pixel without a depth sample."""
 _TIE = np.float32(1e-6)
@@ -98,7 +97,7 @@ Optics = namedtuple("Optics", "mode post shaded termination visible lut straight
                               "lut_scale lut_rows light xray_offset xray_factor xray_visible")
 Optics.__doc__ = """How samples become colour.
 
-``mode``: :data:`MODE_CODES`; ``post``: classify interpolated densities through ``lut``
+``mode``: :data:`._modes.MODE_CODES`; ``post``: classify interpolated densities through ``lut``
 ((rows + 1, 4) float32, premultiplied for the view's step, row 0 transparent), the row
 ``clip(rint((d - lut_lo)·lut_scale), 0, lut_rows - 1) + 1``; ``shaded`` (post): light each
 sample with ``light`` (:data:`Light`) on the straight colours ``straight`` (rows + 1, 3);

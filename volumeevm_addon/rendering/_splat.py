@@ -112,10 +112,10 @@ from ..model._volume import transform
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, positive_integer
 from ._gradients import region_gradients
-from ._modes import finish_mode
+from ._modes import MODE_CODES, finish_mode
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
-from ._splat_kernels import (MODE_CODES, Crossings, Footprint, Image, Optics, Slab, Voxels,
+from ._splat_kernels import (Crossings, Footprint, Image, Optics, Slab, Voxels,
                              splat_rows)
 
 __all__ = ["render_splat"]

@@ -12,7 +12,7 @@ the plane), added to ``Σ w``, ``Σ w·density`` (and ``Σ w·gradient``), and t
 ray's path in the voxel's cell, added to the pixel's path length (the earliest A-offset where
 it enters one kept where the depth is still wanted). Last, per pixel of the band whose ray
 runs through the sheet's cells and meets a footprint: the sample (density ``Σ w·d / Σ w`` over
-that length) classified, shaded (:func:`_headlight`) and composited into the image; the
+that length) classified, shaded (:func:`._shading.headlight`) and composited into the image; the
 helper takes numbers, not arrays: a compiled call passing arrays costs their reference
 counting, more than the work of a pixel.
 
@@ -39,13 +39,13 @@ import numpy as np
 from .._jit import kernel
 from ._camera import BACKGROUND_DEPTH
 from ._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH
+from ._modes import MODE_CODES, MODES
+from ._shading import headlight
 
-__all__ = ["Crossings", "Voxels", "Footprint", "Slab", "Optics", "Image", "MODE_CODES",
+__all__ = ["Crossings", "Voxels", "Footprint", "Slab", "Optics", "Image",
            "splat_rows"]
 
-MODE_CODES = {"over": 0, "under": 1, "xray": 2, "mip": 3}
-"""The compositing modes as the kernel knows them."""
-_OVER, _UNDER, _XRAY, _MIP = 0, 1, 2, 3
+_OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
 
 _HALF = np.float32(0.5)
 _ZERO = np.float32(0.0)
@@ -84,7 +84,7 @@ the window's top left image pixel ``(r0, c0)`` and its pixels that take contribu
 
 Optics = namedtuple("Optics", "mode termination lut lut_lo lut_scale unit_length xray_scale "
                               "xray_offset normal ambient diffuse specular shininess")
-Optics.__doc__ = """How samples become colour: ``mode`` (:data:`MODE_CODES`); ``termination``
+Optics.__doc__ = """How samples become colour: ``mode`` (:data:`._modes.MODE_CODES`); ``termination``
 (float32): "over" finishes a pixel at this opacity; post-classification through ``lut``
 ((n, 4) float32 straight RGBA, interpolated at ``(d - lut_lo)·lut_scale``; empty for X-ray),
 opacity per ``unit_length`` mm (float32); X-ray's ``μ = xray_scale·max(d - xray_offset, 0)``
@@ -97,29 +97,6 @@ Image.__doc__ = """What a sheet family composites into, flat per pixel: premulti
 ``acc`` ((H·W, 4) float32; X-ray: optical depth in channel 0), the axial ``depth`` (float32),
 ``done`` (bool: pixels that take no more contributions) and MIP's maxima ``vmax`` (float32;
 empty for the other modes)."""
-
-
-@kernel
-def _headlight(rgb, gradient, normal, ray, weights):
-    """Straight colour ``rgb`` (float64) lit by the headlight (:meth:`._shading.Lighting.shade`,
-    in float64 as it is): ``gradient`` (A, B, C), ``normal`` the 3x3 matrix taking it to a world
-    normal (row by row), ``ray`` the world ray direction, ``weights`` (ambient, diffuse,
-    specular, shininess); each channel rounded to float32, as that returns it."""
-    ga, gb, gc = gradient
-    nx = ga * normal[0] + gb * normal[1] + gc * normal[2]
-    ny = ga * normal[3] + gb * normal[4] + gc * normal[5]
-    nz = ga * normal[6] + gb * normal[7] + gc * normal[8]
-    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-    cos = 1.0
-    glint = 0.0
-    if norm > 0:
-        cos = abs(nx * ray[0] + ny * ray[1] + nz * ray[2]) / norm
-        glint = weights[2] * cos ** weights[3]
-    lit = weights[0] + weights[1] * cos
-    red, green, blue = rgb
-    return (np.float64(np.float32(min(red * lit + glint, 1.0))),
-            np.float64(np.float32(min(green * lit + glint, 1.0))),
-            np.float64(np.float32(min(blue * lit + glint, 1.0))))
 
 
 @kernel
@@ -275,7 +252,7 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
             units = np.float64(length / optics.unit_length)
             alpha = 1.0 - (1.0 - opacity) ** units
             if shaded:
-                red, green, blue = _headlight(
+                red, green, blue = headlight(
                     (red, green, blue), (grad[i, 0] / w_sum[i], grad[i, 1] / w_sum[i],
                                          grad[i, 2] / w_sum[i]), normal,
                     (crossings.dirs[y, x, 0], crossings.dirs[y, x, 1], crossings.dirs[y, x, 2]),
