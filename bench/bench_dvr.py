@@ -176,7 +176,7 @@ SWEEPS = {
                 + _grid(step_mm=(2.0, 1.0, 0.5), preintegrate=(True,))
                 + _grid(step_mm=(1.0,), termination=(0.95, 1.0))),
     "raycast_navigate": _grid(step_mm=(1.0, 0.5)),
-    "shear_warp": _grid(intermediate_scale=(1.0, 2.0), slices_per_voxel=(1, 2, 4),
+    "shear_warp": _grid(intermediate_scale=(0.5, 1.0, 2.0), slices_per_voxel=(1, 2, 4),
                         classification=("pre", "post")),
     "splat": (_grid(kernel_radius=(1.0, 1.5, 2.0), kernel_sigma=(0.4, 0.6))
               + _grid(blend=(0.0,)) + _grid(substeps=(2, 3))),

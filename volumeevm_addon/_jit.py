@@ -162,26 +162,46 @@ def kernel_threads():
 def parallel_map(function, tasks):
     """``[function(*task) for task in tasks]``, the calls spread over :func:`kernel_threads`
     threads; results in task order. One task, one thread, or a call from inside a task (which
-    could otherwise wait for a pool it fills) runs on the calling thread."""
+    could otherwise wait for a pool it fills) runs on the calling thread.
+
+    The calling thread and ``threads - 1`` pool threads each take the next task not taken yet
+    until none is left: one hand-over per thread rather than per task."""
     tasks = list(tasks)
-    threads = kernel_threads()
-    if threads == 1 or len(tasks) <= 1 or getattr(_worker, "busy", False):
+    threads = min(kernel_threads(), len(tasks))
+    if threads <= 1 or getattr(_worker, "busy", False):
         return [function(*task) for task in tasks]
     from concurrent.futures import ThreadPoolExecutor  # here: it costs the package's import 10 ms
 
     with _lock:
-        if _pool["threads"] != threads:
+        if _pool["threads"] < threads - 1:
             if _pool["executor"] is not None:
                 _pool["executor"].shutdown(wait=False)
-            _pool["executor"] = ThreadPoolExecutor(threads, thread_name_prefix="volumeevm")
-            _pool["threads"] = threads
+            _pool["executor"] = ThreadPoolExecutor(threads - 1, thread_name_prefix="volumeevm")
+            _pool["threads"] = threads - 1
         executor = _pool["executor"]
+    results = [None] * len(tasks)
+    pending = iter(range(len(tasks)))
+    taking = threading.Lock()
 
-    def run(task):
+    def work():
         _worker.busy = True
-        return function(*task)
+        while True:
+            with taking:
+                index = next(pending, None)
+            if index is None:
+                return
+            results[index] = function(*tasks[index])
 
-    return list(executor.map(run, tasks))
+    helpers = [executor.submit(work) for _ in range(threads - 1)]
+    try:
+        work()
+    finally:
+        _worker.busy = False
+        for helper in helpers:
+            helper.exception()  # waits for it; its error, if any, is raised below
+    for helper in helpers:
+        helper.result()
+    return results
 
 
 @functools.cache

@@ -698,47 +698,43 @@ def warp(start, stop, width, rows, cols, reach, pq, rays, frame, k0, kp, kq, rgb
     """
     image, ranks, origin_p, origin_q = frame.image, frame.rank, frame.origin_p, frame.origin_q
     hi, wi = ranks.shape
-    k = start
-    while k < stop:
-        y, x = k // width, k % width
-        if not pq.size and x < reach[y, 0]:  # to the row's first pixel that may reach it
-            k = min(y * width + reach[y, 0], stop)
-            continue
-        if not pq.size and x >= reach[y, 1]:  # to the next row
-            k = min((y + 1) * width, stop)
-            continue
-        k += 1
-        if rays.size and not rays[k - 1]:
-            continue
-        if pq.size:
-            p, q = pq[0, k - 1], pq[1, k - 1]
-        else:
-            p, q = rows[y, 0] + cols[x, 0], rows[y, 1] + cols[x, 1]
-        fp, fq = math.floor(p), math.floor(q)
-        ia, ib = fp - origin_p, fq - origin_q
-        if ia < -1 or ia >= hi or ib < -1 or ib >= wi:
-            continue
-        fa, fb = p - fp, q - fq
-        f, g = np.float32(fa), np.float32(fb)
-        if 0 <= ia < hi - 1 and 0 <= ib < wi - 1:
-            for ch in range(4):
-                t00, t01 = image[ia, ib, ch], image[ia, ib + 1, ch]
-                t10, t11 = image[ia + 1, ib, ch], image[ia + 1, ib + 1, ch]
-                top = t00 + g * (t01 - t00)
-                bottom = t10 + g * (t11 - t10)
-                rgba[y, x, ch] = top + (bottom - top) * f
-        else:  # on the border: taps outside the image read zeros
-            for ch in range(4):
-                t00 = image[ia, ib, ch] if ia >= 0 and ib >= 0 else _ZERO
-                t01 = image[ia, ib + 1, ch] if ia >= 0 and ib + 1 < wi else _ZERO
-                t10 = image[ia + 1, ib, ch] if ia + 1 < hi and ib >= 0 else _ZERO
-                t11 = image[ia + 1, ib + 1, ch] if ia + 1 < hi and ib + 1 < wi else _ZERO
-                top = t00 + g * (t01 - t00)
-                bottom = t10 + g * (t11 - t10)
-                rgba[y, x, ch] = top + (bottom - top) * f
-        near_p = ia + (1 if fa >= 0.5 else 0)
-        near_q = ib + (1 if fb >= 0.5 else 0)
-        if 0 <= near_p < hi and 0 <= near_q < wi:
-            r = ranks[near_p, near_q]
-            if r != NEVER:
-                depth[y, x] = k0[r] + kp[r] * (near_p + origin_p) + kq[r] * (near_q + origin_q)
+    for y in range(start // width, (stop - 1) // width + 1):
+        x_lo, x_hi = max(start - y * width, 0), min(stop - y * width, width)
+        if not pq.size:  # only the columns that may reach the intermediate image
+            x_lo, x_hi = max(x_lo, reach[y, 0]), min(x_hi, reach[y, 1])
+        for x in range(x_lo, x_hi):
+            k = y * width + x
+            if rays.size and not rays[k]:
+                continue
+            if pq.size:
+                p, q = pq[0, k], pq[1, k]
+            else:
+                p, q = rows[y, 0] + cols[x, 0], rows[y, 1] + cols[x, 1]
+            fp, fq = math.floor(p), math.floor(q)
+            ia, ib = fp - origin_p, fq - origin_q
+            if ia < -1 or ia >= hi or ib < -1 or ib >= wi:
+                continue
+            fa, fb = p - fp, q - fq
+            f, g = np.float32(fa), np.float32(fb)
+            if 0 <= ia < hi - 1 and 0 <= ib < wi - 1:
+                for ch in range(4):
+                    t00, t01 = image[ia, ib, ch], image[ia, ib + 1, ch]
+                    t10, t11 = image[ia + 1, ib, ch], image[ia + 1, ib + 1, ch]
+                    top = t00 + g * (t01 - t00)
+                    bottom = t10 + g * (t11 - t10)
+                    rgba[y, x, ch] = top + (bottom - top) * f
+            else:  # on the border: taps outside the image read zeros
+                for ch in range(4):
+                    t00 = image[ia, ib, ch] if ia >= 0 and ib >= 0 else _ZERO
+                    t01 = image[ia, ib + 1, ch] if ia >= 0 and ib + 1 < wi else _ZERO
+                    t10 = image[ia + 1, ib, ch] if ia + 1 < hi and ib >= 0 else _ZERO
+                    t11 = image[ia + 1, ib + 1, ch] if ia + 1 < hi and ib + 1 < wi else _ZERO
+                    top = t00 + g * (t01 - t00)
+                    bottom = t10 + g * (t11 - t10)
+                    rgba[y, x, ch] = top + (bottom - top) * f
+            near_p = ia + (1 if fa >= 0.5 else 0)
+            near_q = ib + (1 if fb >= 0.5 else 0)
+            if 0 <= near_p < hi and 0 <= near_q < wi:
+                r = ranks[near_p, near_q]
+                if r != NEVER:
+                    depth[y, x] = k0[r] + kp[r] * (near_p + origin_p) + kq[r] * (near_q + origin_q)
