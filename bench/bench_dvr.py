@@ -33,8 +33,9 @@ render the whole dense volume and are compared with the reference of the whole v
 phantoms but ``noise_cut`` the region is the whole volume, so the two are the same). Peers'
 images are 8-bit.
 
-Timing: each setting is run once untimed (warm-up), then ``--repeat`` times; the median and the
-inter-quartile range are reported. Apart from frame time: building the VolumeEVM, and the
+Timing: each setting is run once untimed (warm-up), then ``--repeat`` times (7: frames of a
+few milliseconds vary by half from one call to the next on this shared machine, and a median of
+3 follows that); the median and the inter-quartile range are reported. Apart from frame time: building the VolumeEVM, and the
 method's first call on a fresh VolumeEVM and transfer function (classification tables,
 gradients, the densities tables of other traversal orders: the per-transfer-function and
 per-view preparation), the tables it built, and the peak of Python/NumPy allocations during
@@ -53,7 +54,7 @@ preparation and memory, the targets stated plainly), ``bench_dvr.json`` (the run
 the datasets, scenes and preparation, the targets; the runs themselves are in the CSV) and
 ``dvr_<dataset>_<view>.png`` (each method's default image beside the reference).
 
-Usage: ``python bench/bench_dvr.py [--out bench/results] [--repeat 3]
+Usage: ``python bench/bench_dvr.py [--out bench/results] [--repeat 7]
 [--datasets blobs,ml41,...] [--methods ...] [--peers volpack,vtk] [--no-gpu] [--quick]``
 """
 
@@ -764,7 +765,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results")
-    parser.add_argument("--repeat", type=int, default=3, help="timed runs per setting")
+    parser.add_argument("--repeat", type=int, default=7, help="timed runs per setting")
     parser.add_argument("--datasets", default=",".join(DATASETS))
     parser.add_argument("--methods", default=",".join(OURS))
     parser.add_argument("--peers", default="volpack,vtk", help="'' for none")
