@@ -291,16 +291,18 @@ def _write_surface(context, state, vol_obj, result, signature, timing, *, create
     """Put the result's mesh into the volume's surface (in place), or make the surface.
 
     The core's mesh of the last result written is updated where the regions differ
-    (:func:`.meshes.surface_geometry`). All or nothing: if writing fails, the surface keeps its
-    old mesh (or none is made): the arrays written last, while the surface still shows them
+    (:func:`.meshes.surface_geometry`); when they do not (a tool moved by less than changes a
+    voxel), the mesh is not written again. All or nothing: if writing fails, the surface keeps
+    its old mesh (or none is made): the arrays written last, while the surface still shows them
     (same signature and sizes), else its mesh read back.
     """
     surface = own_surface(vol_obj)
     if surface is None and not create:
         return None
     start = time.perf_counter()
-    shown, old_co, old_faces, boundary = state.shown or (None, None, None, None)
-    co, faces, boundary = surface_geometry(result, None if boundary is None else (old_co, boundary))
+    shown, old_co, old_faces, old_boundary = state.shown or (None, None, None, None)
+    co, faces, boundary = surface_geometry(
+        result, None if old_boundary is None else (old_co, old_boundary))
     middle = time.perf_counter()
     with jobs.transaction():
         if surface is None:
@@ -312,7 +314,8 @@ def _write_surface(context, state, vol_obj, result, signature, timing, *, create
             if (shown == surface.volumeevm.stack_signature
                     and (len(old_co), *old_faces.sizes()) == sizes(surface.data)):
                 old = old_co, old_faces
-            refill_mesh(surface.data, co, faces, old)
+            if old is None or boundary is not old_boundary:
+                refill_mesh(surface.data, co, faces, old)
         jobs.assign(surface.volumeevm, stack_signature=signature)
     state.shown = signature, co, faces, boundary
     end = time.perf_counter()

@@ -176,6 +176,35 @@ def test_tool_cut_equals_core_and_follows_moves(ext, api, core, data_dir, volume
     assert_surface_is(surface, base.cut(expected_tool(core, base, vol, nut)[0]))
 
 
+def test_a_move_that_changes_no_voxel_writes_no_mesh(ext, api, core, data_dir, volume,
+                                                     monkeypatch):
+    vol, base = volume
+    centre = bone_voxel_near(base, (10, 14, 25))
+    nut = tool_object(data_dir, "mesh_tool_nut", 30.0, at=world_of_voxel(core, base, centre, vol))
+    vol.volumeevm.tool_object = nut
+    assert bpy.ops.volumeevm.tool_cut() == {"FINISHED"}
+    surface = surface_of(vol)
+    expected = base.cut(expected_tool(core, base, vol, nut)[0])
+    writes = []
+    write = ext.blender.tool_stack.refill_mesh
+    monkeypatch.setattr(ext.blender.tool_stack, "refill_mesh",
+                        lambda *args: (writes.append(args[0]), write(*args)))
+
+    nut.location.x += 1e-6  # a micrometre (voxels are about a millimetre): the same voxels
+    bpy.context.view_layer.update()
+    assert base.cut(expected_tool(core, base, vol, nut)[0]).evm == expected.evm
+    state = api.stack_state(vol)
+    assert state.timing["voxelized"] == 1  # the moved tool was read and voxelized again
+    assert writes == []
+    assert surface.volumeevm.stack_signature == state.shown[0]  # it shows this stack
+    assert_surface_is(surface, expected)
+
+    nut.location.x += 0.006  # now voxels change, and the mesh is written
+    bpy.context.view_layer.update()
+    assert writes == [surface.data]
+    assert_surface_is(surface, base.cut(expected_tool(core, base, vol, nut)[0]))
+
+
 # ---------------------------------------------------------------------------- stack
 def test_stack_equals_one_by_one_disable_restores(api, core, data_dir, volume):
     vol, base = volume
