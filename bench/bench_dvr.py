@@ -33,18 +33,18 @@ render the whole dense volume and are compared with the reference of the whole v
 phantoms but ``noise_cut`` the region is the whole volume, so the two are the same). Peers'
 images are 8-bit.
 
-Timing: each setting is run once untimed (warm-up), then ``--repeat`` times (7: frames of a
-few milliseconds vary by half from one call to the next on this shared machine, and a median of
-3 follows that); the median and the inter-quartile range are reported. Apart from frame time: building the VolumeEVM, and the
-method's first call on a fresh VolumeEVM and transfer function (classification tables,
-gradients, the densities tables of other traversal orders: the per-transfer-function and
-per-view preparation), the tables it built, and the peak of Python/NumPy allocations during
-that call (``tracemalloc``) against the VolumeEVM's and the dense volume's bytes; and each
-method's first use of its compiled kernels (:func:`first_use`: a fresh process rendering the CT
-head with an empty kernel cache, which compiles, then one that loads them from the cache). Our
-kernels run on ``kernel_threads()`` threads (all cores), VTK on its default threads (all cores),
-VolPack on one. The machine has 2 cores shared with other work: compare ratios within one run,
-not absolute numbers.
+Timing: each setting is run once untimed (warm-up), then ``--repeat`` times (7: frames of a few
+milliseconds vary by half from one call to the next on this shared machine, and a median of 3
+follows that); the median and the inter-quartile range are reported. Apart from frame time:
+building the VolumeEVM, and the method's first call on a fresh VolumeEVM and transfer function
+(classification tables, gradients, the densities tables of other traversal orders: the
+per-transfer-function and per-view preparation), the tables it built, and the peak of
+Python/NumPy allocations during that call (``tracemalloc``) against the VolumeEVM's and the
+dense volume's bytes; and each method's first use of its compiled kernels (:func:`first_use`: a
+fresh process rendering the CT head with an empty kernel cache, which compiles, then one that
+loads them from the cache). Our kernels run on ``kernel_threads()`` threads (all cores), VTK on
+its default threads (all cores), VolPack on one. The machine has 2 cores shared with other work:
+compare ratios within one run, not absolute numbers.
 References are cached in ``bench/results/cache/`` keyed by the scene and
 ``volumeevm_addon/rendering/_reference.py``.
 

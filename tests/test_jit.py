@@ -39,6 +39,7 @@ def test_settings_are_checked_and_threads_restorable():
 
 
 def test_parallel_map_keeps_the_task_order_on_several_threads():
+    """The tasks run on the pool's threads and on the calling thread, which takes tasks too."""
     seen = set()
 
     def work(i, j):
@@ -50,7 +51,8 @@ def test_parallel_map_keeps_the_task_order_on_several_threads():
         assert _jit.parallel_map(work, [(i, 2) for i in range(50)]) == [2 * i for i in range(50)]
     finally:
         set_kernel_threads(previous)
-    assert all(name.startswith("volumeevm") for name in seen)
+    caller = threading.current_thread().name
+    assert all(name.startswith("volumeevm") or name == caller for name in seen)
 
 
 def test_a_map_inside_a_task_runs_on_its_thread():

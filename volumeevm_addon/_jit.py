@@ -24,14 +24,14 @@ kernel against its own file only, not against the kernels and constants it takes
 modules (a kernel's globals are frozen into its machine code), so any edit or update of the
 package starts afresh.
 
-All cores: :func:`parallel_map` runs independent kernel calls (chunks of planes, of polygons)
-on a pool of threads, which run at once because kernels release the GIL. Each call returns its
-own arrays and the caller joins them in task order, so results never depend on the number of
-threads; chunks are cut by the data's size, not by the thread count. :func:`set_kernel_threads`
-sets that number (all cores by default; Blender's side passes its render threads setting).
-Plain Python threads rather than Numba's ``parallel=True`` keep a chunk's output free in size,
-and leave Numba's own thread pool (whose fallback, ``workqueue``, may not be entered from two
-threads at once) out of the way.
+All cores: :func:`parallel_map` runs independent kernel calls (chunks of planes, of polygons) on
+the calling thread and a pool of threads, which run at once because kernels release the GIL.
+Each call returns its own arrays and the caller joins them in task order, so results never
+depend on the number of threads; chunks are cut by the data's size, not by the thread count.
+:func:`set_kernel_threads` sets that number (all cores by default; Blender's side passes its
+render threads setting). Plain Python threads rather than Numba's ``parallel=True`` keep a
+chunk's output free in size, and leave Numba's own thread pool (whose fallback, ``workqueue``,
+may not be entered from two threads at once) out of the way.
 
 The first call of a kernel in a session either loads it from the disk cache (milliseconds) or
 compiles it (seconds, once per machine and version). :func:`set_kernel_compile_hook` installs a

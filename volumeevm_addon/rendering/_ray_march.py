@@ -87,8 +87,8 @@ Optics = namedtuple("Optics", "mode termination xray_scale xray_offset lut lut_l
                               "diffuse specular shininess")
 Optics.__doc__ = """How samples become colour.
 
-``mode``: :data:`._modes.MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this opacity
-(inf: never); ``xray_scale``, ``xray_offset`` (float32); ``lut`` (N, 4) float32 over
+``mode``: :data:`._modes.MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this
+opacity (inf: never); ``xray_scale``, ``xray_offset`` (float32); ``lut`` (N, 4) float32 over
 ``lut_lo`` + i / ``lut_scale``: straight colour and step-corrected opacity; ``pre`` (n·n, 4)
 float32 with ``pre_lo``, ``pre_scale``, ``pre_n``: the pre-integrated table (empty: off);
 ``units`` (float32): the step in unit lengths of the transfer function, ``visible``: the

@@ -498,10 +498,10 @@ class _View:
         eye = (m[:3, 3] @ rot + self.inv[:3, 3])[axes]
         pq, ok = np.empty((2, h * w)), np.empty(h * w, bool)
         rows = max(1, _WARP_CHUNK // w)
+        only = np.zeros(0, bool) if rays is None else rays
         parts = parallel_map(
             lambda first: ray_points(first, min(first + rows, h), x, y, terms, gram, eye,
-                                     self.c_ref, float(self.step), self.scale,
-                                     np.zeros(0, bool) if rays is None else rays, pq, ok),
+                                     self.c_ref, float(self.step), self.scale, only, pq, ok),
             [(first,) for first in range(0, h, rows)])
         parts = np.array(parts)
         seen = np.array([parts[:, 0].min(), parts[:, 1].max(), parts[:, 2].min(),

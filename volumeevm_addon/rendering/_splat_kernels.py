@@ -84,11 +84,11 @@ the window's top left image pixel ``(r0, c0)`` and its pixels that take contribu
 
 Optics = namedtuple("Optics", "mode termination lut lut_lo lut_scale unit_length xray_scale "
                               "xray_offset normal ambient diffuse specular shininess")
-Optics.__doc__ = """How samples become colour: ``mode`` (:data:`._modes.MODE_CODES`); ``termination``
-(float32): "over" finishes a pixel at this opacity; post-classification through ``lut``
-((n, 4) float32 straight RGBA, interpolated at ``(d - lut_lo)·lut_scale``; empty for X-ray),
-opacity per ``unit_length`` mm (float32); X-ray's ``μ = xray_scale·max(d - xray_offset, 0)``
-(float32); shading (``normal`` (9,) float64, empty unshaded: the matrix taking the sheet's
+Optics.__doc__ = """How samples become colour: ``mode`` (:data:`._modes.MODE_CODES`);
+``termination`` (float32): "over" finishes a pixel at this opacity; post-classification through
+``lut`` ((n, 4) float32 straight RGBA, interpolated at ``(d - lut_lo)·lut_scale``; empty for
+X-ray), opacity per ``unit_length`` mm (float32); X-ray's ``μ = xray_scale·max(d - xray_offset,
+0)`` (float32); shading (``normal`` (9,) float64, empty unshaded: the matrix taking the sheet's
 (A, B, C) gradient to a world normal, row by row) with the Blinn–Phong weights (float64) of
 :class:`._shading.Shading`."""
 
