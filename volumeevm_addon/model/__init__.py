@@ -15,4 +15,6 @@ One module per concept (private; the public names are imported from ``volumeevm_
 - ``_stack.py``: the non-destructive stack of tool operations on a VolumeEVM.
 - ``_volume.py``: the volume record every reader returns, and where its grid sits.
 - ``_histogram.py``: a volume's densities histogram and Otsu's threshold.
+- ``_labels.py``: a label map's regions, every label in one sweep.
+- ``_measure.py``: exact measurements of regions and label sets (volume, area, shared faces).
 """

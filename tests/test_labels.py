@@ -1,0 +1,233 @@
+"""Label maps: one sweep builds every label exactly as its own band build, and the exact
+measurements of regions and label sets (volume, area, shared faces, box, centroid, parts)."""
+
+import csv
+import dataclasses
+import itertools
+import json
+import math
+
+import numpy as np
+import pytest
+
+from volumeevm_addon import (EVM, VolumeEVM, VolumeEVMError, measure_labels, phantoms,
+                             set_kernel_threads, write_measurements_csv)
+
+
+@pytest.fixture(scope="module")
+def liver(data_dir):
+    """The real liver label map (labels 84, 85, 127, 255) and its spacing."""
+    meta = json.loads((data_dir / "seg_liver_cgal.json").read_text())
+    return np.load(data_dir / "seg_liver_cgal.npy"), tuple(meta["spacing_mm"])
+
+
+def assert_same_as_band_builds(regions, array, **geometry):
+    """Each region equals ``from_array(array, L, upper=L)``: vertices, table, every field."""
+    present = sorted(int(v) for v in np.unique(array) if v != 0)
+    assert sorted(regions) == present
+    for label, region in regions.items():
+        band = VolumeEVM.from_array(array, label, upper=label, **geometry)
+        assert region.evm == band.evm, label
+        assert region.table(0).dtype == band.table(0).dtype
+        assert np.array_equal(region.table(0), band.table(0))
+        for field in ("shape", "spacing", "origin", "units", "threshold", "upper"):
+            assert getattr(region, field) == getattr(band, field), field
+        assert np.array_equal(region.orientation, band.orientation)
+
+
+def test_the_liver_map_builds_every_label_as_its_band_build(liver):
+    array, spacing = liver
+    regions = VolumeEVM.from_labels(array, spacing=spacing)
+    assert_same_as_band_builds(regions, array, spacing=spacing)
+    # The labels are a partition of the foreground: their EVMs XOR to the foreground's.
+    foreground = EVM()
+    for region in regions.values():
+        foreground = foreground ^ region.evm
+    assert foreground == EVM.from_mask(array > 0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("shape", [(1, 1, 1), (1, 5, 1), (6, 1, 7), (9, 8, 7), (40, 3, 5)])
+def test_random_maps_build_every_label_as_its_band_build(seed, shape):
+    rng = np.random.default_rng(seed)
+    labels = rng.integers(0, 2 + seed, shape)  # from 2 labels with background to 7
+    dtype = [np.uint8, np.int16, np.uint16, np.int32, np.int64, np.uint32][seed]
+    array = labels.astype(dtype)
+    assert_same_as_band_builds(VolumeEVM.from_labels(array), array)
+
+
+@pytest.mark.parametrize("scale", [1, 70_000, 10**9], ids=["narrow", "wide", "sparse"])
+def test_label_values_far_apart_are_built_all_the_same(scale):
+    """Values up to 65536 apart use a lookup table, wider ones only the values present, and
+    values over 2**24 apart are renumbered by sorting: the same regions in every case."""
+    array = np.random.default_rng(3).integers(0, 4, (7, 9, 8)).astype(np.int64) * scale
+    assert_same_as_band_builds(VolumeEVM.from_labels(array), array)
+
+
+def test_the_result_does_not_depend_on_the_thread_count(liver):
+    array, _ = liver
+    try:
+        set_kernel_threads(1)
+        one = VolumeEVM.from_labels(array)
+        set_kernel_threads(2)
+        two = VolumeEVM.from_labels(array)
+    finally:
+        set_kernel_threads(None)
+    assert list(one) == list(two)
+    assert all(one[label].evm == two[label].evm for label in one)
+
+
+def test_a_volume_brings_its_geometry_units_and_name():
+    box = phantoms.box((8, 9, 10), lo=(1, 2, 3), hi=(5, 6, 7), density=4, spacing=(0.5, 1.0, 2.0))
+    vol = dataclasses.replace(box, array=box.array.astype(np.uint8))
+    (label, region), = VolumeEVM.from_labels(vol).items()
+    assert label == 4 and region.voxel_count == 64
+    assert region.spacing == (0.5, 1.0, 2.0) and region.units == vol.units
+    with pytest.raises(VolumeEVMError, match="spacing: a Volume brings its own geometry"):
+        VolumeEVM.from_labels(vol, spacing=(1, 1, 1))
+
+
+def test_chosen_labels_and_an_empty_one_reported_not_fatal():
+    array = np.zeros((6, 6, 6), np.uint8)
+    array[:2], array[2:4], array[4:] = 1, 2, 3
+    regions = VolumeEVM.from_labels(array, labels=(label for label in (3, 1)))
+    assert list(regions) == [1, 3]
+    assert list(VolumeEVM.from_labels(array, labels=np.uint8(2))) == [2]
+    assert regions[3] .evm == VolumeEVM.from_array(array, 3, upper=3).evm
+    with pytest.warns(UserWarning, match=r"array: labels \[9\] have no voxels"):
+        regions = VolumeEVM.from_labels(array, labels=[2, 9])
+    assert list(regions) == [2]
+
+
+@pytest.mark.parametrize("array, message", [
+    (np.ones((3, 3, 3)), "must hold integers, got dtype float64 .*astype"),
+    (np.ones((3, 3, 3), bool), "boolean mask is one region: use EVM.from_mask"),
+    (np.full((3, 3, 3), -1, np.int16), "27 voxels are negative"),
+    (np.ones((3, 3), np.uint8), "non-empty 3-D array, got shape \\(3, 3\\)"),
+    (np.zeros((0, 3, 3), np.uint8), "non-empty 3-D array"),
+])
+def test_what_is_not_a_label_map_is_refused_by_name(array, message):
+    with pytest.raises(VolumeEVMError, match="^array: .*" + message):
+        VolumeEVM.from_labels(array)
+
+
+@pytest.mark.parametrize("labels", [[0, 1], [-2], [], ["liver"], [1.5], "12", [[1, 2]], 0])
+def test_bad_label_choices_are_refused(labels):
+    with pytest.raises(VolumeEVMError, match="labels must be"):
+        VolumeEVM.from_labels(np.ones((2, 2, 2), np.uint8), labels=labels)
+
+
+def test_more_than_65536_labels_are_refused_unless_some_are_picked():
+    array = np.arange(1, 2 * 3 * 10923 + 1, dtype=np.int32).reshape(2, 3, 10923)  # 65538 labels
+    with pytest.raises(VolumeEVMError, match="65538 labels, more than the 65536 .*labels="):
+        VolumeEVM.from_labels(array)
+    regions = VolumeEVM.from_labels(array, labels=[5, 40000])
+    assert {label: r.voxel_count for label, r in regions.items()} == {5: 1, 40000: 1}
+    assert regions[40000].evm == VolumeEVM.from_array(array, 40000, upper=40000).evm
+
+
+# ---------------------------------------------------------------------- measurements
+def test_a_box_measures_its_closed_forms():
+    spacing = (0.5, 1.25, 2.0)
+    array = np.zeros((10, 10, 10), np.int16)
+    array[1:5, 2:8, 3:4] = 7  # 4 x 6 x 1 voxels
+    m = VolumeEVM.from_array(array, 7, spacing=spacing, origin=(10.0, 20.0, 30.0)).measure()
+    sx, sy, sz = spacing
+    assert m["voxels"] == 24
+    assert m["volume_mm3"] == 24 * sx * sy * sz and m["volume_ml"] == m["volume_mm3"] / 1000
+    assert m["area_mm2"] == pytest.approx(2 * (6 * 1 * sy * sz + 4 * 1 * sx * sz + 4 * 6 * sx * sy), rel=1e-15)
+    # Voxel centre (i, j, k) sits at origin + index * spacing; corners half a voxel out.
+    assert m["bbox_mm"] == ((10.0 + 0.5 * sx, 20.0 + 1.5 * sy, 30.0 + 2.5 * sz),
+                            (10.0 + 4.5 * sx, 20.0 + 7.5 * sy, 30.0 + 3.5 * sz))
+    assert m["centroid_mm"] == (10.0 + 2.5 * sx, 20.0 + 4.5 * sy, 30.0 + 3.0 * sz)
+    assert m["components"] == 1
+
+
+def test_a_ball_measures_its_voxel_count_and_a_turned_grid_turns_the_centroid():
+    centre = np.array([12.0, 9.0, 10.0])
+    grid = np.stack(np.meshgrid(*map(np.arange, (25, 19, 21)), indexing="ij"), axis=-1)
+    array = (np.linalg.norm(grid - centre, axis=-1) <= 7.3).astype(np.uint8)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    vevm = VolumeEVM.from_array(array, 1, spacing=(0.7, 0.7, 1.1), origin=(5.0, 0.0, -3.0),
+                                orientation=turn)
+    m = vevm.measure()
+    count = int(array.sum())
+    assert m["voxels"] == count and m["volume_mm3"] == pytest.approx(count * 0.7 * 0.7 * 1.1, rel=1e-15)
+    # A ball's voxels are symmetric about its centre voxel: the centroid is that voxel's centre.
+    expected = vevm.index_to_physical() @ np.append(centre, 1.0)
+    assert m["centroid_mm"] == pytest.approx(tuple(expected[:3]), abs=1e-12)
+    # Area: every inside voxel's faces against outside voxels, counted directly.
+    padded = np.pad(array, 1)
+    faces = [np.count_nonzero(np.diff(padded, axis=axis)) for axis in range(3)]
+    sx, sy, sz = 0.7, 0.7, 1.1
+    assert m["area_mm2"] == pytest.approx(faces[0] * sy * sz + faces[1] * sx * sz + faces[2] * sx * sy, rel=1e-14)
+    assert m["components"] == 1
+
+
+def test_parts_and_an_emptied_region():
+    array = np.zeros((9, 9, 9), np.uint8)
+    array[0:2, 0:2, 0:2] = array[5:9, 5:9, 5:9] = array[0, 8, 8] = 1
+    vevm = VolumeEVM.from_array(array, 1)
+    assert vevm.measure()["components"] == 3
+    empty = VolumeEVM(EVM(), np.zeros(0), shape=(9, 9, 9)).measure()
+    assert empty == {"voxels": 0, "volume_mm3": 0.0, "volume_ml": 0.0, "area_mm2": 0.0,
+                     "bbox_mm": None, "centroid_mm": None, "components": 0}
+
+
+def test_shared_areas_of_the_liver_labels_equal_the_touching_voxel_faces(liver):
+    array, spacing = liver
+    measured = measure_labels(VolumeEVM.from_labels(array, spacing=spacing))
+    # Brute force: every pair of face-adjacent voxels with two different non-zero labels.
+    face_mm2 = (spacing[1] * spacing[2], spacing[0] * spacing[2], spacing[0] * spacing[1])
+    expected = {}
+    for axis in range(3):
+        a = np.moveaxis(array, axis, 0)
+        lo, hi = a[:-1].ravel(), a[1:].ravel()
+        touching = (lo != hi) & (lo > 0) & (hi > 0)
+        pairs, counts = np.unique(np.sort(np.stack([lo[touching], hi[touching]]), axis=0),
+                                  axis=1, return_counts=True)
+        for (p, q), n in zip(pairs.T.tolist(), counts.tolist()):
+            expected[p, q] = expected.get((p, q), 0.0) + n * face_mm2[axis]
+    assert expected  # the liver's labels do touch
+    got = {(p, q): area for p, row in measured.items() for q, area in row["shared_area_mm2"].items()
+           if p < q}
+    assert got.keys() == expected.keys()
+    for pair, area in expected.items():
+        assert got[pair] == pytest.approx(area, rel=1e-12)
+        assert measured[pair[0]]["shared_area_mm2"][pair[1]] == measured[pair[1]]["shared_area_mm2"][pair[0]]
+    # Each label's own volume is its voxel count.
+    for label, row in measured.items():
+        assert row["voxels"] == int(np.count_nonzero(array == label))
+        assert row["volume_ml"] == pytest.approx(row["voxels"] * math.prod(spacing) / 1000, rel=1e-15)
+
+
+def test_measurements_as_csv(tmp_path):
+    array = np.zeros((6, 6, 6), np.uint8)
+    array[:3], array[3:, :2] = 1, 2
+    measured = measure_labels(VolumeEVM.from_labels(array, spacing=(1.0, 2.0, 0.5)))
+    rows = [{"label": label, "name": f"part {label}", **row} for label, row in measured.items()]
+    path = write_measurements_csv(tmp_path / "labels.csv", rows)
+    with open(path, newline="") as file:
+        read = list(csv.DictReader(file))
+    assert [r["name"] for r in read] == ["part 1", "part 2"]
+    for row, back in zip(rows, read):
+        assert int(back["voxels"]) == row["voxels"]
+        assert float(back["volume_mm3"]) == pytest.approx(row["volume_mm3"], rel=1e-6)
+        assert float(back["area_mm2"]) == pytest.approx(row["area_mm2"], rel=1e-6)
+        assert tuple(map(float, back["centroid_mm"].split())) == pytest.approx(row["centroid_mm"], rel=1e-6)
+    with pytest.raises(VolumeEVMError, match="labels.csv"):
+        write_measurements_csv(path, rows)
+    with open(path, newline="") as file:
+        assert list(csv.DictReader(file))[0]["name"] == "part 1"  # left as it was
+
+
+def test_labels_touching_across_every_axis_share_exactly_their_contact():
+    """Two labels in a 3-D checkerboard touch on every face: each voxel's 6 faces are shared
+    (inside the grid), so the shared area is the whole boundary minus the grid's outside."""
+    index = np.indices((4, 4, 4)).sum(axis=0)
+    array = (1 + index % 2).astype(np.uint8)
+    measured = measure_labels(VolumeEVM.from_labels(array))
+    inner_faces = 3 * 3 * 4 * 4  # per axis: 3 planes inside of 4 x 4 faces
+    assert measured[1]["shared_area_mm2"] == {2: float(inner_faces)}
+    assert measured[1]["area_mm2"] + measured[2]["area_mm2"] == 2 * inner_faces + 6 * 16
+    assert all(itertools.chain(row["components"] == 32 for row in measured.values()))
