@@ -82,6 +82,7 @@ bench: bench-setup
 	.venv/py313/bin/python bench/bench_evm.py --out bench/results
 	.venv/py313/bin/python bench/bench_dvr.py --out bench/results
 	.venv/py313/bin/python bench/bench_stability.py --out bench/results
+	.venv/py313/bin/python bench/bench_labels.py --out bench/results
 	.venv/py313/bin/python bench/readme_tables.py
 
 clean:

@@ -58,9 +58,12 @@ def test_random_maps_build_every_label_as_its_band_build(seed, shape):
 
 @pytest.mark.parametrize("scale", [1, 70_000, 10**9], ids=["narrow", "wide", "sparse"])
 def test_label_values_far_apart_are_built_all_the_same(scale):
-    """Values up to 65536 apart use a lookup table, wider ones only the values present, and
-    values over 2**24 apart are renumbered by sorting: the same regions in every case."""
+    """Values up to 65536 number themselves, larger ones up to 2**22 only the values present, and
+    larger ones still are renumbered by sorting (0 kept as the background around the grid,
+    with or without 0 in the map): the same regions in every case."""
     array = np.random.default_rng(3).integers(0, 4, (7, 9, 8)).astype(np.int64) * scale
+    assert_same_as_band_builds(VolumeEVM.from_labels(array), array)
+    array += scale  # no background at all
     assert_same_as_band_builds(VolumeEVM.from_labels(array), array)
 
 

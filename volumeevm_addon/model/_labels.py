@@ -20,47 +20,67 @@ from . import _sweep
 MAX_LABELS = 1 << 16
 """The most labels one map may hold (65536): more is a density volume, not a segmentation."""
 
-_LOOKUP_RANGE = 1 << 24
-"""Label values spanning more than this many integers are renumbered by sorting first."""
+_LOOKUP_RANGE = 1 << 22
+"""Label values above this are renumbered by sorting first (the lookup table would be large)."""
 
 _BLOCK_VOXELS = 1 << 21
 """Voxels per block of x-slices one thread sweeps."""
 
 
 @kernel
-def _label_block(labels, ids, lo, first, stop, n_ids, ox, oy, oz):
+def _label_block(labels, ids, first, stop, n_ids, ox, oy, oz):
     """Every label's extreme vertices on the lattice planes ``x = first .. stop - 1``.
 
-    ``labels`` is the ``(X, Y, Z)`` map, ``ids[value - lo]`` a label's number (0 .. n_ids - 1)
+    ``labels`` is the ``(X, Y, Z)`` map, ``ids[value]`` a label's number (0 .. n_ids - 1)
     or -1 for the background and the labels not asked for. Returns the vertices' label numbers
     and packed keys (plane by plane, each plane in key order, so every label's keys come out
     sorted), and the voxel count of each label over the slices ``first .. stop - 1`` inside the
     grid.
+
+    The two slices around a plane are copied into planes with a ring of zeros (the background
+    outside the grid) and compared as they are; only a lattice point whose 8 cells are not all
+    the same value looks its labels up and counts them.
     """
     nx, ny, nz = labels.shape
-    before = np.full((ny + 2, nz + 2), -1, np.int32)  # label numbers, a ring of background
-    after = np.full((ny + 2, nz + 2), -1, np.int32)
+    before = np.zeros((ny + 2, nz + 2), labels.dtype)
+    after = np.zeros((ny + 2, nz + 2), labels.dtype)
     counts = np.zeros(n_ids, np.int64)
-    cells = np.empty(8, np.int32)
+    cells = np.empty(8, np.int64)  # the 8 values around a point
+    numbers = np.empty(8, np.int32)  # the label numbers with an odd count there
     out_ids = np.empty(1024, np.int32)
     out_keys = np.empty(1024, np.int64)
     n = 0
     if first > 0:
-        _fill(before, labels[first - 1], ids, lo)
+        before[1:ny + 1, 1:nz + 1] = labels[first - 1]
     for x in range(first, stop):
         if x < nx:
-            _fill(after, labels[x], ids, lo)
-            for y in range(1, ny + 1):
-                for z in range(1, nz + 1):
-                    if after[y, z] >= 0:
-                        counts[after[y, z]] += 1
+            for y in range(ny):
+                run_value, run = labels[x, y, 0], 0  # counted by runs: an increment per voxel
+                for z in range(nz):                  # would wait on the one before it
+                    value = labels[x, y, z]
+                    after[y + 1, z + 1] = value
+                    if value != run_value:
+                        if ids[run_value] >= 0:
+                            counts[ids[run_value]] += run
+                        run_value, run = value, 0
+                    run += 1
+                if ids[run_value] >= 0:
+                    counts[ids[run_value]] += run
         else:
-            after[:, :] = -1
+            after[:, :] = 0
         plane = np.int64(x + ox) << (2 * _sweep.BITS)
         for y in range(ny + 1):
             row = plane | (np.int64(y + oy) << _sweep.BITS)
+            # A row whose every column of 4 cells is one value has no vertex (two such columns
+            # hold 8 of one value or 4 and 4): a pass without branches finds most of them.
+            mixed = False
+            for z in range(nz + 2):
+                value = before[y, z]
+                mixed |= (before[y + 1, z] != value) | (after[y, z] != value) | (after[y + 1, z] != value)
+            if not mixed:
+                continue
             # Column z of the point's 4 rows is uniform when its 4 cells agree; a point is inside
-            # one label when its two columns are uniform with the same label.
+            # one label when its two columns are uniform with the same value.
             left = before[y, 0]
             left_uniform = before[y + 1, 0] == left and after[y, 0] == left and after[y + 1, 0] == left
             for z in range(nz + 1):
@@ -75,52 +95,59 @@ def _label_block(labels, ids, lo, first, stop, n_ids, ox, oy, oz):
                 cells[2], cells[3] = before[y + 1, z], before[y + 1, z + 1]
                 cells[4], cells[5] = after[y, z], after[y, z + 1]
                 cells[6], cells[7] = after[y + 1, z], after[y + 1, z + 1]
+                # Most such points lie between two values: each then has the parity of the
+                # first one's count (the counts sum to 8).
+                first_value, other, count = cells[0], -1, 0
                 for i in range(8):
-                    label = cells[i]
-                    if label < 0:
+                    if cells[i] == first_value:
+                        count += 1
+                    elif other < 0:
+                        other = cells[i]
+                    elif cells[i] != other:
+                        count = -1
+                        break
+                if count > 0:
+                    if count % 2 == 0:
                         continue
-                    seen = False
-                    for j in range(i):
-                        if cells[j] == label:
-                            seen = True
-                    if seen:
+                    numbers[0], numbers[1], found = ids[first_value], ids[other], 2
+                else:
+                    found = 0
+                    for i in range(8):
+                        if cells[i] < 0:
+                            continue
+                        count = 1
+                        for j in range(i + 1, 8):
+                            if cells[j] == cells[i]:
+                                count += 1
+                                cells[j] = -1  # counted: not a value of its own again
+                        if count % 2 == 1:
+                            numbers[found] = ids[cells[i]]
+                            found += 1
+                for i in range(found):
+                    if numbers[i] < 0:
                         continue
-                    count = 0
-                    for j in range(i, 8):
-                        if cells[j] == label:
-                            count += 1
-                    if count % 2 == 1:
-                        if n == len(out_keys):
-                            grown_ids = np.empty(2 * n, np.int32)
-                            grown_keys = np.empty(2 * n, np.int64)
-                            grown_ids[:n] = out_ids[:n]
-                            grown_keys[:n] = out_keys[:n]
-                            out_ids, out_keys = grown_ids, grown_keys
-                        out_ids[n] = label
-                        out_keys[n] = row | (z + oz)
-                        n += 1
+                    if n == len(out_keys):
+                        grown_ids = np.empty(2 * n, np.int32)
+                        grown_keys = np.empty(2 * n, np.int64)
+                        grown_ids[:n] = out_ids[:n]
+                        grown_keys[:n] = out_keys[:n]
+                        out_ids, out_keys = grown_ids, grown_keys
+                    out_ids[n] = numbers[i]
+                    out_keys[n] = row | (z + oz)
+                    n += 1
         before, after = after, before
     return out_ids[:n].copy(), out_keys[:n].copy(), counts
 
 
 @kernel
-def _fill(padded, labels, ids, lo):
-    """The label numbers of one ``(Y, Z)`` slice into the inside of its padded plane."""
-    ny, nz = labels.shape
-    for y in range(ny):
-        for z in range(nz):
-            padded[y + 1, z + 1] = ids[labels[y, z] - lo]
-
-
-@kernel
-def _present(labels, lo, size):
-    """How many voxels carry each value ``lo .. lo + size - 1`` (one pass, no copy)."""
+def _present(labels, size):
+    """How many voxels carry each value ``0 .. size - 1`` (one pass, no copy)."""
     counts = np.zeros(size, np.int64)
     nx, ny, nz = labels.shape
     for x in range(nx):
         for y in range(ny):
             for z in range(nz):
-                counts[labels[x, y, z] - lo] += 1
+                counts[labels[x, y, z]] += 1
     return counts
 
 
@@ -192,15 +219,18 @@ def label_regions(array, labels=None, *, source="array"):
     """
     array = checked_labels(array, source)
     wanted = _wanted(labels)
-    lo, hi = int(array.min()), int(array.max())
-    lookup = hi - lo < _LOOKUP_RANGE
+    hi = int(array.max())
+    lookup = hi < _LOOKUP_RANGE
     if lookup:
-        values = np.arange(lo, hi + 1)  # the value of each number value - lo
+        values = np.arange(hi + 1)  # number v is value v
         if len(values) > MAX_LABELS:  # a wide range: number only the values present
-            values = values[_present(array, lo, len(values)) > 0]
+            values = values[_present(array, hi + 1) > 0]
     else:  # values spread too far for a lookup table: renumber them by sorting
         values, inverse = np.unique(array, return_inverse=True)
-        array, lo = inverse.reshape(array.shape).astype(np.int32), 0
+        inverse = inverse.reshape(array.shape).astype(np.int32)
+        if values[0] != 0:  # number 0 stays the background (the zeros around the grid)
+            values, inverse = np.concatenate([[0], values]), inverse + 1
+        array = inverse
     candidates = values[values != 0] if wanted is None else np.intersect1d(values, wanted)
     if len(candidates) > MAX_LABELS:
         raise VolumeEVMError(
@@ -208,15 +238,15 @@ def label_regions(array, labels=None, *, source="array"):
             f"pick the labels you need with labels=, or build density bands with VolumeEVM.from_array"
         )
     # Each candidate's number, by its value's place in the lookup (-1: not built).
-    ids = np.full(int(values[-1]) - lo + 1 if lookup else len(values), -1, np.int32)
-    places = candidates - lo if lookup else np.searchsorted(values, candidates)
+    ids = np.full(int(values[-1]) + 1 if lookup else len(values), -1, np.int32)
+    places = candidates if lookup else np.searchsorted(values, candidates)
     ids[places] = np.arange(len(candidates), dtype=np.int32)
     nx, ny, nz = array.shape
     # Vertices are not known before the sweep: check what it keeps per slice and per label.
     check_memory(2 * 4 * (ny + 2) * (nz + 2) + 12 * len(ids), "sweeping the label map",
                  source=source, advice="pick fewer labels with labels=, or crop the volume")
     step = max(1, _BLOCK_VOXELS // max(1, ny * nz))
-    blocks = parallel_map(_label_block, [(array, ids, lo, x, min(x + step, nx + 1), len(candidates),
+    blocks = parallel_map(_label_block, [(array, ids, x, min(x + step, nx + 1), len(candidates),
                                           _sweep.OFFSET, _sweep.OFFSET, _sweep.OFFSET)
                                          for x in range(0, nx + 1, step)])
     vertex_ids = np.concatenate([b[0] for b in blocks])
