@@ -51,6 +51,9 @@ class Volume:
         The file or folder the volume was read from ("" for arrays made in memory).
     spacing_known : bool, optional
         False when the file carries no spacing and ``spacing`` is a guess of 1 mm.
+    labels : dict, optional
+        For a label map (a segmentation: integers, 0 = background), each label's name and
+        colour, ``label -> LabelInfo`` (:mod:`._label_table`); None for densities.
 
     Examples
     --------
@@ -67,6 +70,12 @@ class Volume:
     units: str = ""
     source: str = ""
     spacing_known: bool = True
+    labels: dict = None
+
+    @property
+    def is_label_map(self):
+        """True when the volume is a label map (its ``labels`` are known)."""
+        return self.labels is not None
 
     @property
     def shape(self):

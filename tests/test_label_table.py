@@ -1,0 +1,116 @@
+"""Label names and colours: Slicer's segment keys, ITK-SNAP's label description and JSON
+sidecars read exactly or refused by name, and disagreements with the data reported."""
+
+import json
+import warnings
+
+import nrrd
+import numpy as np
+import pytest
+
+from volumeevm_addon import VolumeEVMError
+from volumeevm_addon.model._label_table import (LabelInfo, default_label_info, label_table_for,
+                                                palette_color, read_label_table, slicer_segments)
+
+ITKSNAP = '''################################################
+# ITK-SnAP Label Description File
+#    IDX   -R-  -G-  -B-  -A--  VIS MSH  LABEL
+################################################
+    0     0    0    0        0  0  0    "Clear Label"
+    1   255    0    0        1  1  1    "Liver"
+    7     0  128  255      0.5  1  0    "Portal vein (main)"
+'''
+
+
+def test_slicer_segments_of_the_real_files(data_dir):
+    header = nrrd.read_header(str(data_dir / "slicer" / "Segmentation.seg.nrrd"))
+    segments = slicer_segments(header, "Segmentation.seg.nrrd")
+    names = [s["name"] for s in segments]
+    assert names[:2] == ["ribs", "cervical vertebral column"] and len(set(names)) == len(names)
+    assert all(s["layer"] == 0 for s in segments)
+    assert [s["value"] for s in segments] == list(range(1, len(segments) + 1))
+    assert segments[0]["color"] == (0.992157, 0.909804, 0.619608)
+    overlapping = slicer_segments(nrrd.read_header(str(data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd")),
+                                  "SegmentationOverlapping.seg.nrrd")
+    assert overlapping[-1] == {"id": overlapping[-1]["id"], "name": "overlapping sphere",
+                               "color": (0.862745, 0.960784, 0.0784314), "layer": 1, "value": 1}
+    assert {(s["layer"], s["value"]) for s in overlapping[:-1]} == {(0, v) for v in range(1, 8)}
+
+
+def _header(**changes):
+    header = {"Segment0_ID": "a", "Segment0_Name": "liver", "Segment0_Color": "1 0 0",
+              "Segment0_LabelValue": "1", "Segment0_Layer": "0",
+              "Segment1_ID": "b", "Segment1_Name": "vein", "Segment1_Color": "0 0 1",
+              "Segment1_LabelValue": "2", "Segment1_Layer": "0"}
+    header.update(changes)
+    return {k: v for k, v in header.items() if v is not None}
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"Segment1_Name": "liver"}, "Segment1: name 'liver' is also segment 0's"),
+    ({"Segment1_LabelValue": "1"}, "Segment1: layer 0, label value 1 is also segment 0's"),
+    ({"Segment1_Color": "0 0"}, "Segment1_Color: colour .* is not three numbers"),
+    ({"Segment1_Color": "red"}, "Segment1_Color: colour 'red' is not '#rrggbb'"),
+    ({"Segment1_Color": "0 0 300"}, "neither three numbers in 0..1 nor three integers"),
+    ({"Segment1_LabelValue": "two"}, "Segment1: LabelValue and Layer must be integers"),
+    ({"Segment1_LabelValue": "0"}, "LabelValue must be > 0"),
+    ({"Segment1_Layer": None}, "segment 1 has no Segment1_Layer"),
+])
+def test_bad_slicer_segment_keys_are_refused_by_name(changes, message):
+    with pytest.raises(VolumeEVMError, match="^x.seg.nrrd: .*" + message):
+        slicer_segments(_header(**changes), "x.seg.nrrd")
+
+
+def test_itksnap_and_json_tables(tmp_path):
+    path = tmp_path / "labels.txt"
+    path.write_text(ITKSNAP)
+    table = read_label_table(path)
+    assert table == {1: LabelInfo("Liver", (1.0, 0.0, 0.0)),
+                     7: LabelInfo("Portal vein (main)", (0.0, 128 / 255, 1.0))}
+    sidecar = tmp_path / "labels.json"
+    sidecar.write_text(json.dumps({"1": {"name": "Liver", "color": "#ff0000"},
+                                   "7": {"name": "Portal vein (main)", "color": [0, 128, 255]},
+                                   "9": {"name": "spleen", "color": [0.5, 0.25, 1.0]}}))
+    assert read_label_table(sidecar) == {**table, 9: LabelInfo("spleen", (0.5, 0.25, 1.0))}
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("t.txt", '  1 255 0 0 1 1 1 "A"\n  1 0 0 255 1 1 1 "B"\n', "line 2: label 1 is named twice"),
+    ("t.txt", '  1 255 0 0 1 1 "A"\n', "line 1: an ITK-SNAP label line has 8 fields"),
+    ("t.txt", '  1 256 0 0 1 1 1 "A"\n', "line 1: R G B must be integers in 0..255"),
+    ("t.txt", '  x 25 0 0 1 1 1 "A"\n', "line 1: label 'x' is not an integer >= 0"),
+    ("t.txt", '  1 25 0 0 1 1 1 "A\n', "line 1: No closing quotation"),
+    ("t.json", '{"1": {"name": "A"}}', "label '1': an entry needs 'name' and 'color'"),
+    ("t.json", '{"1": {"name": "", "color": "#000000"}}', "label 1 has no name"),
+    ("t.json", '{"-3": {"name": "A", "color": "#000000"}}', "is not an integer >= 0"),
+    ("t.json", '[1, 2]', "a label table is an object"),
+    ("t.json", '{"1": ', "not valid JSON"),
+    ("t.json", '{"1": {"name": "A", "color": [1, 2]}}', "colour \\[1, 2\\] is not three numbers"),
+])
+def test_bad_tables_are_refused_naming_the_file_and_line(tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(VolumeEVMError, match=f"^{path}: .*{message}"):
+        read_label_table(path)
+
+
+def test_disagreements_with_the_data_are_reported_not_silent():
+    table = {1: LabelInfo("Liver", (1.0, 0.0, 0.0)), 5: LabelInfo("Lesion", (0.0, 1.0, 0.0))}
+    with pytest.warns(UserWarning) as caught:
+        merged = label_table_for([0, 1, 2], table, source="seg.nii")
+    messages = [str(w.message) for w in caught]
+    assert "seg.nii: the label table names labels the data does not have: [5]" in messages
+    assert "seg.nii: labels [2] are not in the label table; they get the default names and colours" in messages
+    assert merged == {1: table[1], 2: default_label_info(2)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert label_table_for(np.array([3, 0, 1])) == {1: default_label_info(1), 3: default_label_info(3)}
+
+
+def test_the_palette_is_fixed_and_tells_neighbours_apart():
+    colors = [palette_color(label) for label in range(1, 101)]
+    assert palette_color(17) == palette_color(np.int64(17))  # the same on every call and type
+    assert all(0.0 <= c <= 1.0 for rgb in colors for c in rgb)
+    for a, b in zip(colors, colors[1:]):
+        assert max(abs(x - y) for x, y in zip(a, b)) > 0.15  # neighbouring labels differ
+    assert len(set(colors)) == 100
