@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from volumeevm_addon import (EVM, VolumeEVM, VolumeEVMError, measure_labels, phantoms,
-                             set_kernel_threads, write_measurements_csv)
+from volumeevm_addon import (EVM, LabelInfo, LabelSet, Volume, VolumeEVM, VolumeEVMError,
+                             box_evm, phantoms, set_kernel_threads)
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +179,7 @@ def test_parts_and_an_emptied_region():
 
 def test_shared_areas_of_the_liver_labels_equal_the_touching_voxel_faces(liver):
     array, spacing = liver
-    measured = measure_labels(VolumeEVM.from_labels(array, spacing=spacing))
+    measured = VolumeEVM.from_labels(array, spacing=spacing).measure()
     # Brute force: every pair of face-adjacent voxels with two different non-zero labels.
     face_mm2 = (spacing[1] * spacing[2], spacing[0] * spacing[2], spacing[0] * spacing[1])
     expected = {}
@@ -207,19 +207,23 @@ def test_shared_areas_of_the_liver_labels_equal_the_touching_voxel_faces(liver):
 def test_measurements_as_csv(tmp_path):
     array = np.zeros((6, 6, 6), np.uint8)
     array[:3], array[3:, :2] = 1, 2
-    measured = measure_labels(VolumeEVM.from_labels(array, spacing=(1.0, 2.0, 0.5)))
-    rows = [{"label": label, "name": f"part {label}", **row} for label, row in measured.items()]
-    path = write_measurements_csv(tmp_path / "labels.csv", rows)
+    infos = {1: LabelInfo("part 1", (1.0, 0.0, 0.0)), 2: LabelInfo("part, 2", (0.0, 0.0, 1.0))}
+    volume = Volume(array, spacing=(1.0, 2.0, 0.5), labels=infos)
+    regions = VolumeEVM.from_labels(volume)
+    assert regions.infos == infos
+    measured = regions.measure()
+    rows = [{"label": label, **row} for label, row in measured.items()]
+    path = regions.write_measurements(tmp_path / "labels.csv")
     with open(path, newline="") as file:
         read = list(csv.DictReader(file))
-    assert [r["name"] for r in read] == ["part 1", "part 2"]
+    assert [r["name"] for r in read] == ["part 1", "part, 2"]
     for row, back in zip(rows, read):
         assert int(back["voxels"]) == row["voxels"]
         assert float(back["volume_mm3"]) == pytest.approx(row["volume_mm3"], rel=1e-6)
         assert float(back["area_mm2"]) == pytest.approx(row["area_mm2"], rel=1e-6)
         assert tuple(map(float, back["centroid_mm"].split())) == pytest.approx(row["centroid_mm"], rel=1e-6)
     with pytest.raises(VolumeEVMError, match="labels.csv"):
-        write_measurements_csv(path, rows)
+        regions.write_measurements(path)
     with open(path, newline="") as file:
         assert list(csv.DictReader(file))[0]["name"] == "part 1"  # left as it was
 
@@ -229,8 +233,65 @@ def test_labels_touching_across_every_axis_share_exactly_their_contact():
     (inside the grid), so the shared area is the whole boundary minus the grid's outside."""
     index = np.indices((4, 4, 4)).sum(axis=0)
     array = (1 + index % 2).astype(np.uint8)
-    measured = measure_labels(VolumeEVM.from_labels(array))
+    measured = VolumeEVM.from_labels(array).measure()
     inner_faces = 3 * 3 * 4 * 4  # per axis: 3 planes inside of 4 x 4 faces
     assert measured[1]["shared_area_mm2"] == {2: float(inner_faces)}
     assert measured[1]["area_mm2"] + measured[2]["area_mm2"] == 2 * inner_faces + 6 * 16
     assert all(itertools.chain(row["components"] == 32 for row in measured.values()))
+
+
+# ---------------------------------------------------------------------- edits of all labels
+def _dense_labels(regions, shape):
+    """The label map a set stands for, rebuilt voxel by voxel (and each region's densities are
+    its label)."""
+    out = np.zeros(shape, np.int64)
+    for label, region in regions.items():
+        assert np.all(region.table(0) == label)
+        mask = region.evm.to_mask(shape)
+        assert not (out[mask] != 0).any()  # disjoint
+        out[mask] = label
+    return out
+
+
+def test_cut_keep_and_add_act_on_every_label_as_on_the_map(liver):
+    array, spacing = liver
+    crop = array[150:260, 120:230, 40:120]  # three labels meet here
+    regions = VolumeEVM.from_labels(crop, spacing=spacing)
+    assert len(regions) == 3
+    tool_mask = np.zeros(crop.shape, bool)
+    tool_mask[30:90, 20:70, 10:60] = True
+    tool = EVM.from_mask(tool_mask)
+    for edited, expected in [(regions.cut(tool), np.where(tool_mask, 0, crop)),
+                             (regions.keep(tool), np.where(tool_mask, crop, 0)),
+                             (regions.add(tool, 85), np.where(tool_mask, 85, crop)),
+                             (regions.add(tool, 7), np.where(tool_mask, 7, crop))]:
+        assert isinstance(edited, LabelSet)
+        assert np.array_equal(_dense_labels(edited, crop.shape), expected)
+        for label, region in edited.items():  # as a build from the edited map
+            assert region.evm == VolumeEVM.from_array(expected, label, upper=label).evm
+            assert region.threshold == region.upper == label
+    assert regions.add(tool, 7).infos[7] == LabelInfo("label 7", regions.add(tool, 7).infos[7].color)
+
+
+def test_a_label_an_edit_empties_leaves_the_set():
+    array = np.zeros((6, 6, 6), np.uint8)
+    array[:2], array[4:] = 1, 2
+    regions = VolumeEVM.from_labels(array)
+    assert list(regions.cut(box_evm((0, 0, 0), (2, 6, 6), (6, 6, 6)))) == [2]
+    assert list(regions.keep(box_evm((0, 0, 0), (3, 6, 6), (6, 6, 6)))) == [1]
+    assert list(regions.add(box_evm((0, 0, 0), (6, 6, 6), (6, 6, 6)), 2)) == [2]
+    with pytest.raises(VolumeEVMError, match="cut: the result would be empty"):
+        regions.cut(box_evm((0, 0, 0), (6, 6, 6), (6, 6, 6)))
+    with pytest.raises(VolumeEVMError, match="keep inside: the result would be empty"):
+        regions.keep(box_evm((2, 0, 0), (4, 6, 6), (6, 6, 6)))
+    with pytest.raises(VolumeEVMError, match="add: the tool has no voxel inside"):
+        regions.add(EVM.from_mask(np.ones((2, 2, 2), bool), offset=(7, 7, 7)), 1)
+    with pytest.raises(VolumeEVMError, match="add: label must be an integer > 0, got 0"):
+        regions.add(box_evm((0, 0, 0), (1, 1, 1), (6, 6, 6)), 0)
+
+
+def test_regions_of_different_grids_are_not_a_set():
+    a = VolumeEVM.from_array(np.ones((2, 2, 2)), 1)
+    b = VolumeEVM.from_array(np.ones((2, 2, 3)), 1)
+    with pytest.raises(VolumeEVMError, match="share one grid"):
+        LabelSet({1: a, 2: b})

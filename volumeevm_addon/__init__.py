@@ -28,7 +28,8 @@ from .model._cache import DerivedCache
 from .model._evm import EVM
 from .model._histogram import density_histogram, otsu_threshold
 from .model._levels import LEVELS
-from .model._measure import measure_labels, write_measurements_csv
+from .model._label_set import LabelSet
+from .model._label_table import LabelInfo
 from .model._mesh import BoundaryMesh, Polygons
 from .model._stack import EditStack, ToolOperation
 from .model._volume import BLENDER_UNITS_PER_MM, Volume, grid_to_world, index_to_physical
@@ -59,6 +60,8 @@ __all__ = [
     "GPU_UNIFORMS_GLSL",
     "LEVELS",
     "LIMIT_VARIABLE",
+    "LabelInfo",
+    "LabelSet",
     "MAX_SAMPLES",
     "METHODS",
     "MeshCheck",
@@ -90,7 +93,6 @@ __all__ = [
     "grid_to_world",
     "index_to_physical",
     "kernel_threads",
-    "measure_labels",
     "method_options",
     "openexr_module",
     "otsu_threshold",
@@ -108,6 +110,5 @@ __all__ = [
     "window_from_axial",
     "write_atomically",
     "write_exr",
-    "write_measurements_csv",
     "write_png",
 ]

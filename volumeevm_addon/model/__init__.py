@@ -17,4 +17,6 @@ One module per concept (private; the public names are imported from ``volumeevm_
 - ``_histogram.py``: a volume's densities histogram and Otsu's threshold.
 - ``_labels.py``: a label map's regions, every label in one sweep.
 - ``_measure.py``: exact measurements of regions and label sets (volume, area, shared faces).
+- ``_label_table.py``: label names and colours from segmentation files, and a fixed palette.
+- ``_label_set.py``: a label map's regions as one mapping, edited and measured together.
 """

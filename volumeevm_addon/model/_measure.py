@@ -154,16 +154,6 @@ def write_measurements_csv(path, rows, *, overwrite=False):
     ------
     VolumeEVMError
         If the file exists and ``overwrite`` is False, or cannot be written.
-
-    Examples
-    --------
-    >>> import numpy as np, tempfile, pathlib
-    >>> from volumeevm_addon import VolumeEVM
-    >>> array = np.zeros((4, 4, 4), np.uint8); array[:2] = 3
-    >>> rows = [{"label": 3, "name": "liver", **VolumeEVM.from_labels(array)[3].measure()}]
-    >>> path = write_measurements_csv(pathlib.Path(tempfile.mkdtemp()) / "m.csv", rows)
-    >>> path.read_text().splitlines()[1]
-    '3,liver,32,32,0.032,64,-0.5 -0.5 -0.5,1.5 3.5 3.5,0.5 1.5 1.5,1'
     """
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")

@@ -27,6 +27,7 @@ from .._memory import available_memory, check_memory
 from ._cache import DerivedCache, default_budget
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
+from ._label_set import LabelSet
 from ._labels import label_regions
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
@@ -266,9 +267,11 @@ class VolumeEVM:
 
         Returns
         -------
-        dict
-            ``label -> VolumeEVM`` in increasing label order; a wanted label with no voxels is
-            left out, with a warning naming it.
+        LabelSet
+            A mapping ``label -> VolumeEVM`` in increasing label order, with each label's name
+            and colour (``infos``: a Volume's ``labels``, a fixed palette otherwise) and edits
+            and measurements of all labels together; a wanted label with no voxels is left
+            out, with a warning naming it.
 
         Raises
         ------
@@ -286,6 +289,7 @@ class VolumeEVM:
         {1: 32, 7: 16}
         """
         geometry = {"spacing": spacing, "origin": origin, "orientation": orientation}
+        infos = None
         if isinstance(labels_map, Volume):
             given = [name for name, value in geometry.items() if value is not None]
             if given:
@@ -294,7 +298,7 @@ class VolumeEVM:
             geometry = {"spacing": labels_map.spacing, "origin": labels_map.origin,
                         "orientation": labels_map.orientation}
             units, source = labels_map.units, labels_map.source or "volume"
-            labels_map = labels_map.array
+            infos, labels_map = labels_map.labels, labels_map.array
         geometry = dict(zip(geometry, checked_geometry(
             (1.0, 1.0, 1.0) if geometry["spacing"] is None else geometry["spacing"],
             (0.0, 0.0, 0.0) if geometry["origin"] is None else geometry["origin"],
@@ -305,9 +309,9 @@ class VolumeEVM:
         shape = _grid_shape(labels_map.shape, f"{source}: ")
         check_memory(sum(count for _, count in regions.values()) * labels_map.dtype.itemsize,
                      "the label tables", source=source, advice="pick fewer labels with labels=")
-        return {label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
-                           shape=shape, units=units, threshold=label, upper=label, **geometry)
-                for label, (keys, count) in regions.items()}
+        return LabelSet({label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
+                                    shape=shape, units=units, threshold=label, upper=label, **geometry)
+                         for label, (keys, count) in regions.items()}, infos)
 
     # ------------------------------------------------------------------ densities
     @property
