@@ -3,6 +3,7 @@ DICOM as the standard says (unused bits, padding, one file opening its own serie
 and the ``units=`` override of ``read_volume``."""
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -192,3 +193,170 @@ def test_units_must_be_a_str(tmp_path, ct_crop, units):
                      "endian: little\nencoding: raw", ct_crop)
     with pytest.raises(VolumeEVMError, match=r"^units: .* is a (int|bytes|list); the data's"):
         read_volume(path, units=units)
+
+
+# ---------------------------------------------------------------------------------------------
+# DICOM
+
+
+def write_mr_series(folder, stored, edit=None):
+    """``stored`` (``(X, Y, Z)`` uint16 words, as they are in the file) as an MR series cloned
+    from pydicom's real ``MR_small.dcm``, 2 mm apart along z; ``edit(k, ds)`` may change a
+    slice. Returns the files in slice order."""
+    import copy
+
+    import pydicom
+    from pydicom.data import get_testdata_file
+    from pydicom.uid import generate_uid
+
+    folder.mkdir(exist_ok=True)
+    template = pydicom.dcmread(get_testdata_file("MR_small.dcm"))
+    del template.DataSetTrailingPadding  # so that the pixel data ends the file
+    uid = generate_uid()
+    files = []
+    for k in range(stored.shape[2]):
+        ds = copy.deepcopy(template)
+        ds.SeriesInstanceUID, ds.SOPInstanceUID = uid, generate_uid()
+        ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+        ds.Rows, ds.Columns = stored.shape[1], stored.shape[0]
+        ds.ImagePositionPatient = [-83.9063, -91.2, 6.6406 + 2.0 * k]
+        ds.PixelData = np.ascontiguousarray(stored[:, :, k].T, dtype="<u2").tobytes()
+        if edit is not None:
+            edit(k, ds)
+        files.append(folder / f"MR{k:03d}.dcm")
+        ds.save_as(files[-1], enforce_file_format=True)
+    return files
+
+
+def bits(stored_bits, signed):
+    def edit(k, ds):
+        ds.BitsStored, ds.HighBit, ds.PixelRepresentation = stored_bits, stored_bits - 1, signed
+    return edit
+
+
+@pytest.mark.parametrize("signed", [0, 1])
+def test_dicom_unused_high_bits_masked_or_sign_extended(tmp_path, signed):
+    """dcm2niix's QA pattern: 0x0F0F words with BitsStored 12, in both signednesses."""
+    rng = np.random.default_rng(20)
+    words = rng.integers(0, 0x1000, (16, 12, 5)).astype(np.uint16)
+    words[3, 4, :] = 0x0F0F
+    words[5, 6, 2] = 0xFFFF  # Siemens XA: a few pixels with every unused bit set
+    words[7, 1, 0] = 0xF800
+    files = write_mr_series(tmp_path / "s", words, edit=bits(12, signed))
+    value = words.astype(np.int32) & 0x0FFF  # PS3.5 8.1.1: bits above HighBit are not the value
+    if signed:
+        value = np.where(value & 0x800, value - 0x1000, value)
+    vol = read_volume(files[2])
+    assert vol.array.dtype == (np.int16 if signed else np.uint16)
+    np.testing.assert_array_equal(vol.array, value)
+    assert vol.array[3, 4, 0] == (-241 if signed else 0x0F0F)
+    assert vol.array[5, 6, 2] == (-1 if signed else 0x0FFF)
+    assert vol.units == ""  # MR values have no unit
+
+
+def test_dicom_pydicom_padded_file_reads(tmp_path):
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    path = tmp_path / "padded.dcm"
+    path.write_bytes(Path(get_testdata_file("MR_small_padded.dcm")).read_bytes())
+    padded = read_volume(path)
+    reference = pydicom.dcmread(get_testdata_file("MR_small.dcm")).pixel_array
+    np.testing.assert_array_equal(padded.array[:, :, 0], reference.T)
+
+
+def foreign_files(folder):
+    """Files of other projects' test folders that block a folder scan: a big-endian file
+    without preamble (pydicom), one without SeriesInstanceUID, text named .dcm."""
+    import shutil
+
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    shutil.copy(get_testdata_file("ExplVR_BigEndNoMeta.dcm"), folder / "bigend.dcm")
+    ds = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
+    del ds.SeriesInstanceUID
+    ds.save_as(folder / "noseries.dcm")
+    (folder / "notes.dcm").write_text("not DICOM\n")
+    return ["bigend.dcm", "noseries.dcm", "notes.dcm"]
+
+
+def test_dicom_one_file_opens_its_series_past_foreign_files(tmp_path):
+    words = np.random.default_rng(1).integers(0, 4000, (16, 12, 5)).astype(np.uint16)
+    files = write_mr_series(tmp_path / "s", words)
+    other = write_mr_series(tmp_path / "t", words[:, :, :2])
+    for path in other:  # another series in the same folder: ignored
+        path.rename(tmp_path / "s" / f"other_{path.name}")
+    skipped = foreign_files(tmp_path / "s")
+    with pytest.raises(VolumeEVMError, match="bigend.dcm: not a readable DICOM file"):
+        read_volume(tmp_path / "s")  # a folder: every DICOM file must read
+    with pytest.warns(UserWarning, match="3 other file.*skipped") as record:
+        vol = read_volume(files[3])
+    message = str(record[0].message)
+    assert message.startswith(str(files[3])) and all(name in message for name in skipped)
+    np.testing.assert_array_equal(vol.array, words.astype(np.int16))
+    np.testing.assert_allclose(vol.origin, (-83.9063, -91.2, 6.6406))
+    np.testing.assert_allclose(vol.spacing, (0.3125, 0.3125, 2.0))
+
+
+def test_dicom_one_file_broken_slice_of_its_series_is_an_error(tmp_path):
+    import pydicom
+
+    words = np.random.default_rng(2).integers(0, 4000, (16, 12, 5)).astype(np.uint16)
+    files = write_mr_series(tmp_path / "s", words)
+    foreign_files(tmp_path / "s")
+    raw = files[4].read_bytes()
+    files[4].write_bytes(raw[:-100])  # the header keeps its series UID
+    with pytest.warns(UserWarning), raises(files[4], "cannot decode the pixel data"):
+        read_volume(files[0])
+    ds = pydicom.dcmread(files[4])  # the slice as an old file without preamble: unreadable
+    ds.preamble, ds.file_meta = None, pydicom.dataset.FileMetaDataset()
+    pydicom.dcmwrite(files[4], ds, enforce_file_format=False, implicit_vr=False,
+                     little_endian=True)
+    assert files[4].read_bytes()[128:132] != b"DICM"
+    with raises(files[4], "not a readable DICOM file"):  # before the warning
+        read_volume(files[0])
+    # Cut before its series UID, a slice cannot be placed: pydicom reads the rest silently, so
+    # it is skipped, and the warning is all that shows it (here the last slice: 4 are left).
+    files[4].write_bytes(raw[:600])
+    with pytest.warns(UserWarning, match="MR004.dcm \\(this DICOM file has no SeriesInstance"):
+        assert read_volume(files[0]).array.shape == (16, 12, 4)
+    files[4].unlink()
+    files[2].unlink()  # a missing slice in the middle: found from the positions
+    with pytest.warns(UserWarning), raises(files[0], "not evenly spaced"):
+        read_volume(files[0])
+
+
+def test_dicom_chosen_file_without_series_reads_alone(tmp_path):
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    names = foreign_files(tmp_path)
+    vol = read_volume(tmp_path / names[1])
+    reference = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
+    expected = reference.pixel_array.T.astype(np.int32) * int(reference.RescaleSlope) + int(
+        reference.RescaleIntercept)
+    np.testing.assert_array_equal(vol.array[:, :, 0], expected)
+    assert vol.units == "HU"
+
+
+@pytest.mark.parametrize("modality, rescale, rescale_type, units", [
+    ("CT", True, None, "HU"), ("CT", True, "HU", "HU"), ("CT", True, "US", "HU"),
+    ("CT", False, None, ""), ("PT", True, "BQML", "BQML"), ("MR", False, None, ""),
+    ("OT", True, "OD", "OD"),
+])
+def test_dicom_data_units(tmp_path, modality, rescale, rescale_type, units):
+    words = np.full((4, 4, 2), 100, np.uint16)
+
+    def edit(k, ds):
+        ds.Modality = modality
+        if rescale:
+            ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
+        if rescale_type is not None:
+            ds.RescaleType = rescale_type
+
+    files = write_mr_series(tmp_path / "s", words, edit=edit)
+    vol = read_volume(files[0])
+    assert vol.units == units
+    assert read_volume(files[0], units="mm/s").units == "mm/s"
+    np.testing.assert_array_equal(vol.array, 100 - 1024 if rescale else 100)

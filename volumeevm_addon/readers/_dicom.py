@@ -17,27 +17,40 @@ from the image-plane attributes (DICOM PS3.3 C.7.6.2):
 - ``PixelSpacing`` is (between rows, between columns) = (y, x) spacing.
 - ``pixel_array`` is ``[row, column]`` = ``[y, x]``; it is transposed into ``[x, y, z]``.
 
+Stored values: the bits above ``BitsStored`` are not assumed zero (PS3.5 8.1.1; Siemens
+scanners leave values there): pydicom masks them for unsigned data and sign-extends from
+``HighBit`` for signed data, which must be ``BitsStored - 1``. Native pixel data longer than the
+image needs reads when the extra bytes are zero padding.
+
 Modality rescale ``RescaleSlope`` / ``RescaleIntercept`` is applied per slice. The result keeps
 the stored integer dtype when every slice's rescale is the identity, is ``int16`` (or ``int32``
 if the values need it) when slopes and intercepts are integers and the stored pixels are at
-most 16-bit, and ``float32`` otherwise. CT data is in Hounsfield units ("HU").
+most 16-bit, and ``float32`` otherwise. Units: ``RescaleType`` when it names them, else "HU"
+for a rescaled CT, else "".
 
 Which files are read. In a folder (sub-folders are not scanned) a regular file is taken as
 DICOM when it carries the DICOM marker (``DICM`` after the 128-byte preamble) or its name ends
-in ``.dcm`` or ``.dicom``; every such file must be readable, and an unreadable or truncated one
-is an error naming it, never skipped (skipping a first or last slice would shift the volume).
-Other files (a README, a ``.npy``) are skipped unread, and so are FIFOs, devices and sockets,
-which are never opened. A DICOM file without ``SeriesInstanceUID`` is an error unless it is a
-DICOMDIR, and so is a ``SeriesInstanceUID`` that is not a valid UID (a corrupt length field
-makes it swallow the elements that follow). Every file of the chosen series must be an image
-slice. Named files (a list, or the
-one file given) must all be readable DICOM regular files.
+in ``.dcm`` or ``.dicom``; when a folder is given every such file must be readable, and an
+unreadable or truncated one is an error naming it, never skipped (skipping a first or last slice
+would shift the volume). Other files (a README, a ``.npy``) are skipped unread, and so are
+FIFOs, devices and sockets, which are never opened. A DICOM file without ``SeriesInstanceUID``
+is an error unless it is a DICOMDIR, and so is a ``SeriesInstanceUID`` that is not a valid UID
+(a corrupt length field makes it swallow the elements that follow). Every file of the chosen
+series must be an image slice. Named files (a list, or the one file given) must all be readable
+DICOM regular files.
+
+One file given reads the series it belongs to: the other DICOM files of its folder that cannot
+be read without the DICOM file marker, have no (valid) series UID or repeat an image
+(``SOPInstanceUID``) are skipped and listed in a ``UserWarning``; a broken file with the marker
+or in which pydicom still finds the chosen series' UID is an error naming it; a missing slice
+is still found from the positions. A chosen file without a series UID is read alone.
 
 Refused with a message rather than guessed: several series in one folder (unless
 ``series_uid`` picks one), slices of different sizes, pixel formats, orientations or pixel
 spacings, two slices at one position, unevenly spaced slices (missing files), a rescale given in
 some slices only, a ``RescaleSlope`` of 0 or a non-finite one, pixel data whose length does not
-match ``Rows`` x ``Columns`` x ``BitsAllocated`` or that has bits set above ``BitsStored``,
+match ``Rows`` x ``Columns`` x ``BitsAllocated`` (shorter, or longer by more than zero padding),
+a ``HighBit`` other than ``BitsStored - 1``,
 multi-frame and colour images, and a series whose decoded volume would not fit in the memory
 available. pydicom's warnings about the deviations it tolerates are not shown: the checks above
 decide what is usable.
@@ -53,7 +66,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory, format_bytes
-from ._checks import checked_volume, import_reader_package, require_regular_file
+from ._checks import checked_volume, data_units, import_reader_package, require_regular_file
 
 #: Largest deviation of a slice step from the mean step, relative to the mean step.
 _SPACING_RTOL = 1e-2
@@ -104,28 +117,17 @@ def read_dicom(source, *, series_uid=None):
     files, label, named = _candidate_files(source)
     explicit = not isinstance(source, (str, os.PathLike))
     pydicom = import_reader_package("pydicom", "pydicom", label)
-    headers, must_read = {}, set(named)
-    for path in files:
-        if path in must_read or _marked_as_dicom(path):
-            headers[path] = _read_header(pydicom, path)
-    if series_uid is None and not explicit and named:
-        series_uid = str(headers[named[0]].get("SeriesInstanceUID", "")) or None
-
     name = (lambda path: str(path)) if explicit else (lambda path: path.name)
-    series = {}
-    for path, ds in headers.items():
-        if "SeriesInstanceUID" in ds:
-            uid = str(ds.SeriesInstanceUID)
-            if not _UID.fullmatch(uid):
-                raise VolumeEVMError(
-                    f"{path}: SeriesInstanceUID {uid[:80]!r} is not a valid UID (corrupt header?)"
-                )
-            series.setdefault(uid, []).append((path, ds))
-        elif ds.file_meta.get("MediaStorageSOPClassUID") != _DICOMDIR_CLASS:
-            raise VolumeEVMError(
-                f"{path}: this DICOM file has no SeriesInstanceUID (corrupt header?); it cannot "
-                f"be placed in a series"
-            )
+    if named and not explicit:  # one file: read the series it belongs to
+        series, uid = _series_of_file(pydicom, named[0], files, name, label)
+        series_uid = uid if series_uid is None else series_uid
+    else:
+        series = {}
+        for path in files:
+            if path in named or _marked_as_dicom(path):
+                ds = _read_header(pydicom, path)
+                series.setdefault(_series_uid(path, ds), []).append((path, ds))
+        series.pop(None, None)  # DICOMDIR files
     images = {uid: items for uid, items in series.items() if any("Rows" in ds for _, ds in items)}
     if not images:
         others = [name(path) for items in series.values() for path, _ in items]
@@ -152,12 +154,93 @@ def read_dicom(source, *, series_uid=None):
                 lambda s: "{} bits allocated, {} stored, {}".format(*s["pixel_format"]))
     order, geometry = _grid_geometry(slices, label)
     slices = [slices[i] for i in order]
+    units = _data_units(slices[0])
     slopes, intercepts = _rescale_values(slices, label)
     identity = bool(np.all(slopes == 1) and np.all(intercepts == 0))
     raw = _read_pixels(pydicom, slices, label, identity=identity)
     array = _rescale(raw, slopes, intercepts)
-    units = "HU" if slices[0]["modality"] == "CT" else ""
     return checked_volume(array, label, units=units, **geometry)
+
+
+def _series_uid(path, ds):
+    """A file's checked ``SeriesInstanceUID``; ``None`` for a DICOMDIR, which has none."""
+    if "SeriesInstanceUID" not in ds:
+        if ds.file_meta.get("MediaStorageSOPClassUID") == _DICOMDIR_CLASS:
+            return None
+        raise VolumeEVMError(
+            f"{path}: this DICOM file has no SeriesInstanceUID (corrupt header?); it cannot "
+            f"be placed in a series"
+        )
+    uid = str(ds.SeriesInstanceUID)
+    if not _UID.fullmatch(uid):
+        raise VolumeEVMError(
+            f"{path}: SeriesInstanceUID {uid[:80]!r} is not a valid UID (corrupt header?)"
+        )
+    return uid
+
+
+def _series_of_file(pydicom, chosen, files, name, label):
+    """``({uid: [(path, header)]}, uid)`` of the series ``chosen`` belongs to, from its folder.
+
+    The other files of the folder that carry a DICOM name or marker are read too; one that
+    has no series or an invalid UID, or fails without the DICOM file marker (a ``.dcm`` that is
+    not a DICOM file, or an old one without preamble) is skipped and named in a warning. A
+    file that fails but has the marker, or in which pydicom still finds the chosen series' UID,
+    may be a broken slice of that series: an error naming it.
+    A file with the ``SOPInstanceUID`` of one already taken is the same image (another copy or
+    encoding of it, as in pydicom's test folder) and is skipped too, the chosen file kept. A
+    chosen file without a ``SeriesInstanceUID`` is read alone.
+    """
+    ds = _read_header(pydicom, chosen)
+    if "SeriesInstanceUID" not in ds:
+        return {"": [(chosen, ds)]}, ""
+    uid = _series_uid(chosen, ds)
+    members, skipped = [(chosen, ds)], []
+    instances = {str(ds.get("SOPInstanceUID", "")): chosen}
+    for path in files:
+        if path == chosen or not _marked_as_dicom(path):
+            continue
+        try:
+            other = _read_header(pydicom, path)
+        except VolumeEVMError as exc:
+            if _has_dicm_marker(path) or _uid_despite_errors(pydicom, path) == uid:
+                raise
+            skipped.append(f"{name(path)} ({str(exc).removeprefix(f'{path}: ')})")
+            continue
+        try:
+            if _series_uid(path, other) != uid:
+                continue
+        except VolumeEVMError as exc:  # no series UID, or an invalid one
+            skipped.append(f"{name(path)} ({str(exc).removeprefix(f'{path}: ')})")
+            continue
+        instance = str(other.get("SOPInstanceUID", ""))
+        if instance and instance in instances:
+            skipped.append(f"{name(path)} (the same image as {name(instances[instance])}: "
+                           f"SOPInstanceUID {instance})")
+            continue
+        instances[instance] = path
+        members.append((path, other))
+    if skipped:
+        warnings.warn(
+            f"{label}: {len(skipped)} other file(s) of the folder are not readable DICOM, "
+            f"belong to no series or repeat an image, and were skipped: " + "; ".join(skipped[:5])
+            + ("; ..." if len(skipped) > 5 else ""),
+            UserWarning, stacklevel=2,
+        )
+    members.sort(key=lambda item: item[0])
+    return {uid: members}, uid
+
+
+def _uid_despite_errors(pydicom, path):
+    """The ``SeriesInstanceUID`` pydicom can still find in a file that failed to read, or ""."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(path, force=True, stop_before_pixels=True,
+                                 specific_tags=["SeriesInstanceUID"])
+            return str(ds.get("SeriesInstanceUID", ""))
+    except Exception:  # the file is broken in a way that hides its series: nothing to find
+        return ""
 
 
 def _candidate_files(source):
@@ -197,8 +280,11 @@ def _is_regular_file(path):
 
 def _marked_as_dicom(path):
     """Whether a file found in a folder must be read as DICOM: a DICOM name or the DICM marker."""
-    if path.name.lower().endswith(_DICOM_SUFFIXES):
-        return True
+    return path.name.lower().endswith(_DICOM_SUFFIXES) or _has_dicm_marker(path)
+
+
+def _has_dicm_marker(path):
+    """Whether a file has the DICOM file marker: ``DICM`` after the 128-byte preamble."""
     try:
         with open(path, "rb") as file:
             return file.read(132)[128:] == b"DICM"
@@ -248,6 +334,7 @@ def _slice_header(path, ds, name, label):
         ("stored", "BitsStored", None), ("signed", "PixelRepresentation", 0),
     ):
         header[key] = _integer(ds, keyword, default, where)
+    high_bit = _integer(ds, "HighBit", header["stored"] - 1, where)
     if header["frames"] != 1:
         raise VolumeEVMError(
             f"{where} has NumberOfFrames {header['frames']}; single-frame slices are needed "
@@ -261,6 +348,11 @@ def _slice_header(path, ds, name, label):
         raise VolumeEVMError(
             f"{where} has BitsAllocated {header['bits']} and BitsStored {header['stored']}; "
             f"the pixel format is corrupt or unsupported"
+        )
+    if high_bit != header["stored"] - 1:
+        raise VolumeEVMError(
+            f"{where} has HighBit {high_bit} with BitsStored {header['stored']}; an image's high "
+            f"bit is BitsStored - 1 (PS3.5 8.1.1): the pixel format is corrupt"
         )
     header["size"] = (header["columns"], header["rows"])
     header["pixel_format"] = (header["bits"], header["stored"],
@@ -282,6 +374,7 @@ def _slice_header(path, ds, name, label):
     header["orientation"] = _numbers(ds, "ImageOrientationPatient", 6, where)
     header["pixel_spacing"] = _numbers(ds, "PixelSpacing", 2, where)
     header["position"] = _numbers(ds, "ImagePositionPatient", 3, where)
+    header["rescale_type"] = str(ds.get("RescaleType", "") or "").strip()
     header["slope"] = _numbers(ds, "RescaleSlope", 1, where, required=False)
     header["intercept"] = _numbers(ds, "RescaleIntercept", 1, where, required=False)
     header["thickness"] = _thickness(ds)
@@ -343,6 +436,16 @@ def _thickness(ds):
             except (TypeError, ValueError):
                 return float("nan")
     return None
+
+
+def _data_units(header):
+    """Units of the rescaled values: ``RescaleType`` when it names them ("US" is unspecified),
+    else "HU" for a CT image with a rescale (PS3.3 C.8.2.1: CT rescales to Hounsfield units),
+    else "" (an MR's values have no unit)."""
+    if header["rescale_type"] and header["rescale_type"].upper() != "US":
+        return data_units(header["rescale_type"])
+    rescaled = header["slope"] is not None or header["intercept"] is not None
+    return "HU" if header["modality"] == "CT" and rescaled else ""
 
 
 def _check_same(slices, label, key, what, show, hint=""):
@@ -484,17 +587,9 @@ def _pixels(pydicom, header):
             ds = pydicom.dcmread(path)
             if "PixelData" not in ds:
                 raise VolumeEVMError(f"{path}: the file has no pixel data")
-            length = len(ds.PixelData)
-            native = header["syntax"] in _NATIVE_SYNTAXES + (_DEFLATED_SYNTAX,)
-            if native and length not in (header["pixel_bytes"], header["pixel_bytes"] + 1):
-                raise VolumeEVMError(
-                    f"{path}: cannot decode the pixel data (it holds {format_bytes(length)} but "
-                    f"{header['columns']}x{header['rows']} pixels of {header['bits']} bits "
-                    f"need {header['pixel_bytes']} bytes; corrupt header?)"
-                )
+            if header["syntax"] in _NATIVE_SYNTAXES + (_DEFLATED_SYNTAX,):
+                _check_length(ds.PixelData, header)
             pixels = ds.pixel_array
-            if native and header["stored"] < header["bits"] and header["bits"] >= 8:
-                _check_unused_bits(ds.PixelData, pixels, header)
     except VolumeEVMError:
         raise
     except Exception as exc:  # pydicom and its decoders fail in many ways on corrupt data
@@ -509,21 +604,26 @@ def _pixels(pydicom, header):
     return pixels
 
 
-def _check_unused_bits(data, pixels, header):
-    """Refuse pixel data with bits set above ``BitsStored`` (pydicom drops them silently).
+def _check_length(data, header):
+    """Refuse native pixel data shorter than the header needs, or longer with data past the end.
 
-    Such bits mean a corrupt ``BitsStored`` or overlays kept in the pixel data (retired from
-    DICOM, not supported): either way the values are not what the header says.
+    Trailing zero bytes are padding (some writers round the value up) and are not read; bytes
+    past the image that are not zero mean the header does not describe the data (a wrong
+    ``Rows``, ``Columns`` or ``BitsAllocated``). Zero padding cannot be told apart from a header
+    whose size was shrunk onto zero pixels.
     """
-    order = ">" if header["syntax"] == "1.2.840.10008.1.2.2" else "<"
-    kind = "i" if header["signed"] else "u"
-    stored = np.frombuffer(data, f"{order}{kind}{header['bits'] // 8}",
-                           count=header["rows"] * header["columns"])
-    if not np.array_equal(stored.reshape(pixels.shape), pixels):
+    needed = header["pixel_bytes"]
+    shape = f"{header['columns']}x{header['rows']} pixels of {header['bits']} bits"
+    if len(data) < needed:
         raise VolumeEVMError(
-            f"{header['path']}: the pixel data has values beyond BitsStored "
-            f"({header['stored']} of {header['bits']} bits, e.g. {stored.max()}); the header is "
-            f"corrupt or the file keeps overlays in the pixel data (not supported)"
+            f"{header['path']}: cannot decode the pixel data (it holds {format_bytes(len(data))}"
+            f" but {shape} need {needed} bytes; the data is missing or the header is corrupt)"
+        )
+    if np.frombuffer(data, np.uint8, offset=needed).any():
+        raise VolumeEVMError(
+            f"{header['path']}: cannot decode the pixel data (it holds {len(data)} bytes where "
+            f"{shape} need {needed}, and the {len(data) - needed} bytes after them are not "
+            f"zero padding; corrupt header?)"
         )
 
 
