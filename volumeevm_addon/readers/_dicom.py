@@ -200,10 +200,13 @@ def _series_of_file(pydicom, chosen, files, name, label):
     for path in files:
         if path == chosen or not _marked_as_dicom(path):
             continue
+        found = _bare_series_uid(pydicom, path)
+        if found != uid and _UID.fullmatch(found):
+            continue  # a file of another series: not read further
         try:
             other = _read_header(pydicom, path)
         except VolumeEVMError as exc:
-            if _has_dicm_marker(path) or _uid_despite_errors(pydicom, path) == uid:
+            if _has_dicm_marker(path) or found == uid:
                 raise
             skipped.append(f"{name(path)} ({str(exc).removeprefix(f'{path}: ')})")
             continue
@@ -231,8 +234,12 @@ def _series_of_file(pydicom, chosen, files, name, label):
     return {uid: members}, uid
 
 
-def _uid_despite_errors(pydicom, path):
-    """The ``SeriesInstanceUID`` pydicom can still find in a file that failed to read, or ""."""
+def _bare_series_uid(pydicom, path):
+    """The ``SeriesInstanceUID`` pydicom finds reading that element alone, or "".
+
+    Forced, so it is found also in a file the full read refuses (an old file without preamble);
+    quicker than the full read, which is kept for the files of the chosen series.
+    """
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
