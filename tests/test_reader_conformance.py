@@ -4,7 +4,8 @@ The files are those inside the packages the tests already install (nibabel's ``t
 ``nicom/tests/data``, pydicom's ``data/test_files``, scikit-image's ``data``) and the 3D Slicer
 files of the shared data (``slicer/``, from slicerio); pynrrd's wheel ships no test data. Every
 file whose name ``read_volume`` claims is read in its place (a ``.dcm`` with its folder, as a
-user would open it) and with the format's reference library (nibabel, pynrrd, pydicom,
+user would open it; nibabel's gzipped scanner files, ``.dcm.gz``, unzipped together into one
+folder) and with the format's reference library (nibabel, pynrrd, pydicom,
 tifffile). Each must end in one of:
 
 - ``exact``: the same values and dtype, and the same geometry, as the reference library gives;
@@ -15,6 +16,7 @@ failure. The table of every file and its outcome is printed (``pytest -s``). New
 their reference here when they land.
 """
 
+import gzip
 import importlib
 import re
 import warnings
@@ -28,6 +30,7 @@ from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import SUPPORTED_EXTENSIONS, read_volume
 
 from conftest import DATA
+from reader_files import assert_same_as_nibabel
 
 #: (package, folder inside it) of the test files other projects ship.
 SOURCES = [("nibabel", "tests/data"), ("nibabel", "nicom/tests/data"),
@@ -38,13 +41,19 @@ NRRD_TO_LPS = {"left-posterior-superior": (1, 1, 1), "right-anterior-superior": 
                "left-anterior-superior": (1, -1, 1)}
 
 
-def conformance_files():
+def conformance_files(unzipped):
     """``(source, path)`` of every file with an extension ``read_volume`` claims, except raw
-    data (``.raw``, ``.bin``: not self-describing, its layout is the caller's options)."""
+    data (``.raw``, ``.bin``: not self-describing, its layout is the caller's options);
+    ``.dcm.gz`` files are unzipped into the folder ``unzipped``."""
     found = []
     for package, folder in SOURCES:
         root = Path(importlib.import_module(package).__file__).parent / folder
         found += [(f"{package}/{folder}", path) for path in sorted(root.iterdir())]
+        for path in sorted(root.glob("*.dcm.gz")):
+            unzipped.mkdir(exist_ok=True)
+            target = unzipped / path.name.removesuffix(".gz")
+            target.write_bytes(gzip.decompress(path.read_bytes()))
+            found.append((f"{package}/{folder}", target))
     found += [("shared/data/slicer", path) for path in sorted((DATA / "slicer").iterdir())]
     return [(source, path) for source, path in found
             if path.is_file() and path.name.lower().endswith(tuple(REFERENCES))]
@@ -91,10 +100,17 @@ def check_nrrd(vol, path):
 
 
 def check_dicom(vol, path):
-    """The chosen file's slice of the volume against pydicom's reading of that file."""
+    """The chosen file's slice of the volume against pydicom's reading of that file; an
+    enhanced multi-frame or mosaic file against nibabel's reading of it."""
     import pydicom
 
     ds = pydicom.dcmread(path)
+    if "PerFrameFunctionalGroupsSequence" in ds or "MOSAIC" in ds.get("ImageType", []):
+        groups = ds.PerFrameFunctionalGroupsSequence[0] if "NumberOfFrames" in ds else ds
+        rescale = groups.get("PixelValueTransformationSequence", [ds])[0]
+        assert float(rescale.get("RescaleIntercept", 0)) == 0
+        assert_same_as_nibabel(vol, path, float(rescale.get("RescaleSlope", 1)))
+        return
     pixels = ds.pixel_array.T
     slope, intercept = float(ds.get("RescaleSlope", 1)), float(ds.get("RescaleIntercept", 0))
     if (slope, intercept) != (1.0, 0.0):
@@ -157,8 +173,8 @@ def test_every_self_describing_format_has_a_reference():
     assert set(SUPPORTED_EXTENSIONS) - set(REFERENCES) == {".raw", ".bin", ".den"}
 
 
-def test_other_projects_test_files():
-    files = conformance_files()
+def test_other_projects_test_files(tmp_path):
+    files = conformance_files(tmp_path / "nicom_gz")
     assert len(files) >= 90
     rows = [(source, path.name, *outcome(path)) for source, path in files]
     width = max(len(name) for _, name, _, _ in rows)

@@ -263,8 +263,8 @@ def test_dicom_lone_slice_needs_a_positive_thickness(tmp_path, ct_crop):
 
 @pytest.mark.parametrize("changes, match", [
     ({"BitsAllocated": 12}, "BitsAllocated 12 and BitsStored 16"),
-    ({"NumberOfFrames": 2}, r"has NumberOfFrames 2; single-frame slices are needed"),
-    ({"NumberOfFrames": 0}, r"has NumberOfFrames 0; single-frame slices are needed"),
+    ({"NumberOfFrames": 2}, r"has NumberOfFrames 2; single-frame slices or an enhanced"),
+    ({"NumberOfFrames": 0}, r"has NumberOfFrames 0; single-frame slices or an enhanced"),
     ({"PixelRepresentation": 0}, "mixes pixel formats"),
     ({"BitsStored": 12, "HighBit": 11}, "mixes pixel formats"),
 ])

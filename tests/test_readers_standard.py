@@ -10,7 +10,7 @@ import pytest
 
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
-from reader_files import write_nrrd
+from reader_files import assert_same_as_nibabel, write_nrrd
 
 
 def raises(path, match):
@@ -362,3 +362,107 @@ def test_dicom_data_units(tmp_path, modality, rescale, rescale_type, units):
     assert vol.units == units
     assert read_volume(files[0], units="mm/s").units == "mm/s"
     np.testing.assert_array_equal(vol.array, 100 - 1024 if rescale else 100)
+
+
+# ---------------------------------------------------------------------------------------------
+# DICOM: enhanced multi-frame and Siemens mosaic, against nibabel's DICOM wrappers
+
+
+def nicom_file(tmp_path, name, pixels=None):
+    """A real scanner file of nibabel's ``nicom/tests/data`` (shipped gzipped), unzipped into
+    ``tmp_path``; ``pixels(ds)`` may give new pixel words (the shipped files' are all zero)."""
+    import gzip
+
+    import nibabel
+    import pydicom
+
+    source = Path(nibabel.__file__).parent / "nicom" / "tests" / "data" / f"{name}.dcm.gz"
+    path = tmp_path / f"{name}.dcm"
+    path.write_bytes(gzip.decompress(source.read_bytes()))
+    if pixels is not None:
+        ds = pydicom.dcmread(path)
+        ds.PixelData = pixels(ds).astype("<u2").tobytes()
+        ds.save_as(path)
+    return path
+
+
+def test_dicom_enhanced_multiframe_philips(tmp_path):
+    """A Philips enhanced MR export: 176 frames in one file, each placed by its own
+    PlanePositionSequence; the per-frame rescale (2.1079...) applied."""
+    frames = np.random.default_rng(4).integers(0, 4096, (176, 256, 256), dtype=np.uint16)
+    path = nicom_file(tmp_path, "philips_mprage", lambda ds: frames)
+    vol = read_volume(path)
+    assert vol.array.shape == (256, 256, 176) and vol.array.dtype == np.float32
+    slope = np.float32(2.10793650793650)  # frames 1 to 176 lie along the stacking direction
+    np.testing.assert_array_equal(vol.array, frames.T.astype(np.float32) * slope)
+    np.testing.assert_allclose(vol.spacing, (1, 1, 1), rtol=1e-5)
+    np.testing.assert_allclose(vol.origin, (92.7090416119899, -125.12766968458,
+                                            136.495256863534))  # frame 1's position
+    data = assert_same_as_nibabel(vol, path, scale=2.10793650793650)
+    assert np.ptp(data) > 4000
+
+
+def test_dicom_enhanced_multiframe_refusals(tmp_path):
+    import pydicom
+
+    path = nicom_file(tmp_path, "philips_mprage")
+    ds = pydicom.dcmread(path)  # its first 8 frames, for speed
+    ds.NumberOfFrames = 8
+    ds.PixelData = ds.PixelData[:8 * 256 * 256 * 2]
+    ds.PerFrameFunctionalGroupsSequence = ds.PerFrameFunctionalGroupsSequence[:8]
+    ds.save_as(path)
+    assert read_volume(path).array.shape == (256, 256, 8)
+    ds.PerFrameFunctionalGroupsSequence = ds.PerFrameFunctionalGroupsSequence[:7]
+    ds.save_as(path)
+    with raises(path, "NumberOfFrames 8 but 7 per-frame functional groups"):
+        read_volume(path)
+    ds = pydicom.dcmread(path)
+    ds.PerFrameFunctionalGroupsSequence.append(ds.PerFrameFunctionalGroupsSequence[6])
+    position = ds.PerFrameFunctionalGroupsSequence[1].PlanePositionSequence[0]
+    position.ImagePositionPatient = ds.PerFrameFunctionalGroupsSequence[0].PlanePositionSequence[
+        0].ImagePositionPatient  # two frames at one place: a second echo or time point
+    ds.save_as(path)
+    with raises(path, "share one position.*frame 1 and .*frame 2"):
+        read_volume(path)
+    ds.NumberOfFrames = 2
+    del ds.PerFrameFunctionalGroupsSequence  # a multi-frame image without its frames' places
+    ds.PixelData = ds.PixelData[:2 * 256 * 256 * 2]
+    ds.save_as(path)
+    with raises(path, "NumberOfFrames 2; single-frame slices or an enhanced multi-frame"):
+        read_volume(path)
+
+
+def mosaic_words(ds):
+    """A volume of 48 slices of 128 x 128 with distinct values, tiled 7 x 7 as Siemens does."""
+    words = np.zeros((ds.Rows, ds.Columns), np.uint16)
+    values = np.arange(128 * 128 * 48).reshape(48, 128, 128) % 4093 + 1
+    for k in range(48):
+        r, c = divmod(k, 7)
+        words[r * 128:(r + 1) * 128, c * 128:(c + 1) * 128] = values[k]
+    return words
+
+
+def test_dicom_siemens_mosaic(tmp_path):
+    """A Siemens DWI mosaic: 48 slices tiled in one 896 x 896 image, the count and the normal's
+    sign in the CSA header; one file of the series is one volume."""
+    path = nicom_file(tmp_path, "siemens_dwi_1000", mosaic_words)
+    nicom_file(tmp_path, "siemens_dwi_0", mosaic_words)  # same series, same place: b=0
+    vol = read_volume(path)
+    assert vol.array.shape == (128, 128, 48) and vol.array.dtype == np.uint16
+    expected = np.arange(128 * 128 * 48).reshape(48, 128, 128) % 4093 + 1
+    np.testing.assert_array_equal(vol.array, expected.transpose(2, 1, 0))
+    np.testing.assert_allclose(vol.spacing, (1.796875, 1.796875, 3.0), rtol=1e-5)
+    assert_same_as_nibabel(vol, path)
+    with raises(tmp_path, "share one position"):
+        read_volume(tmp_path)  # the folder: two volumes at one place
+
+
+def test_dicom_mosaic_without_csa_header(tmp_path):
+    import pydicom
+
+    path = nicom_file(tmp_path, "siemens_dwi_0")
+    ds = pydicom.dcmread(path)
+    del ds[0x0029, 0x1010]
+    ds.save_as(path)
+    with raises(path, "is a mosaic .*without the Siemens CSA image header"):
+        read_volume(path)

@@ -1,7 +1,17 @@
 """DICOM image series (a folder, one file of the series, or a list of files) via pydicom.
 
-A series is the set of single-frame images sharing a ``SeriesInstanceUID``. The grid is built
-from the image-plane attributes (DICOM PS3.3 C.7.6.2):
+A series is the set of images sharing a ``SeriesInstanceUID``; each image gives one slice,
+or several:
+
+- an enhanced multi-frame image (Enhanced CT and MR, what current Siemens XA, Philips and GE
+  scanners export: ``PerFrameFunctionalGroupsSequence``) gives one slice per frame, with the
+  plane position and orientation, pixel measures and rescale of its shared and per-frame
+  functional groups (PS3.3 C.7.6.16);
+- a Siemens mosaic (``ImageType`` with ``MOSAIC``) gives the slices tiled in it, as many as
+  the CSA header's ``NumberOfImagesInMosaic``, placed as nibabel and dcm2niix place them (see
+  :func:`_mosaic_headers`); one mosaic file given is read alone, being a whole volume.
+
+The grid is built from the slices' image-plane attributes (DICOM PS3.3 C.7.6.2):
 
 - ``ImageOrientationPatient`` = (row direction, column direction) in LPS: the row direction is
   the way the column index (x) grows, the column direction the way the row index (y) grows;
@@ -47,15 +57,17 @@ is still found from the positions. A chosen file without a series UID is read al
 
 Refused with a message rather than guessed: several series in one folder (unless
 ``series_uid`` picks one), slices of different sizes, pixel formats, orientations or pixel
-spacings, two slices at one position, unevenly spaced slices (missing files), a rescale given in
-some slices only, a ``RescaleSlope`` of 0 or a non-finite one, pixel data whose length does not
-match ``Rows`` x ``Columns`` x ``BitsAllocated`` (shorter, or longer by more than zero padding),
-a ``HighBit`` other than ``BitsStored - 1``,
-multi-frame and colour images, and a series whose decoded volume would not fit in the memory
+spacings, two slices at one position (several echoes, time points or stacks), unevenly spaced
+slices (missing files), a rescale given in some slices only, a ``RescaleSlope`` of 0 or a
+non-finite one, pixel data whose length does not match the frames x ``Rows`` x ``Columns`` x
+``BitsAllocated`` (shorter, or longer by more than zero padding), a ``HighBit`` other than
+``BitsStored - 1``, multi-frame images without per-frame functional groups, colour images, a
+mosaic without its CSA header, and a series whose decoded volume would not fit in the memory
 available. pydicom's warnings about the deviations it tolerates are not shown: the checks above
 decide what is usable.
 """
 
+import math
 import os
 import re
 import stat
@@ -81,6 +93,12 @@ _DICOM_SUFFIXES = (".dcm", ".dicom")
 _DICOMDIR_CLASS = "1.2.840.10008.1.3.10"
 #: A DICOM UID: at most 64 characters, numbers separated by dots (PS3.5 9.1).
 _UID = re.compile(r"(?=.{1,64}$)[0-9]+(\.[0-9]+)*")
+#: Functional group macros whose attributes an enhanced multi-frame image's frame takes.
+_FRAME_MACROS = ("PlanePositionSequence", "PlaneOrientationSequence", "PixelMeasuresSequence",
+                 "PixelValueTransformationSequence")
+#: Attributes of an enhanced multi-frame image that every frame shares.
+_FRAME_IMAGE_KEYWORDS = ("Modality", "Rows", "Columns", "NumberOfFrames", "SamplesPerPixel",
+                         "BitsAllocated", "BitsStored", "HighBit", "PixelRepresentation")
 #: Transfer syntaxes whose pixel data is stored as is (the bytes needed follow from the header).
 _NATIVE_SYNTAXES = ("1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2")
 _DEFLATED_SYNTAX = "1.2.840.10008.1.2.1.99"
@@ -147,7 +165,8 @@ def read_dicom(source, *, series_uid=None):
             f"{label}: no series with SeriesInstanceUID {uid!r}; the series found are:\n"
             + _describe(images, name)
         )
-    slices = [_slice_header(path, ds, name(path), label) for path, ds in images[uid]]
+    slices = [header for path, ds in images[uid]
+              for header in _image_headers(pydicom, path, ds, name(path), label)]
     _check_same(slices, label, "size", "image sizes", lambda s: f"{s['columns']}x{s['rows']}",
                 " (columns x rows)")
     _check_same(slices, label, "pixel_format", "pixel formats",
@@ -189,12 +208,15 @@ def _series_of_file(pydicom, chosen, files, name, label):
     may be a broken slice of that series: an error naming it.
     A file with the ``SOPInstanceUID`` of one already taken is the same image (another copy or
     encoding of it, as in pydicom's test folder) and is skipped too, the chosen file kept. A
-    chosen file without a ``SeriesInstanceUID`` is read alone.
+    chosen file without a ``SeriesInstanceUID`` is read alone, and so is a Siemens mosaic: a
+    whole volume, whose series holds the other time points or diffusion directions.
     """
     ds = _read_header(pydicom, chosen)
     if "SeriesInstanceUID" not in ds:
         return {"": [(chosen, ds)]}, ""
     uid = _series_uid(chosen, ds)
+    if _is_mosaic(ds):
+        return {uid: [(chosen, ds)]}, uid
     members, skipped = [(chosen, ds)], []
     instances = {str(ds.get("SOPInstanceUID", "")): chosen}
     for path in files:
@@ -329,12 +351,121 @@ def _describe(series, name):
     return "\n".join(lines)
 
 
-def _slice_header(path, ds, name, label):
-    """The attributes the reader uses, from one slice's header, checked and as plain numbers."""
+def _image_headers(pydicom, path, ds, name, label):
+    """The slice headers of one file: one for a single-frame image, one per frame for an
+    enhanced multi-frame image (its frames are slices placed by their own functional groups),
+    one per tile of a Siemens mosaic."""
+    if "PerFrameFunctionalGroupsSequence" in ds:
+        frames = _frames(pydicom, ds, f"{label}: {name}")
+        return [_slice_header(path, frame, f"{name} frame {k + 1}", label, part=(k,))
+                for k, frame in enumerate(frames)]
+    if _is_mosaic(ds):
+        return _mosaic_headers(path, ds, name, label)
+    return [_slice_header(path, ds, name, label)]
+
+
+def _is_mosaic(ds):
+    """Whether an image is a Siemens mosaic (``ImageType`` holds ``MOSAIC``)."""
+    image_type = ds.get("ImageType") or []
+    image_type = [image_type] if isinstance(image_type, str) else image_type
+    return "MOSAIC" in [str(value).strip().upper() for value in image_type]
+
+
+def _mosaic_headers(path, ds, name, label):
+    """One slice header per tile of a Siemens mosaic, placed as the CSA header says.
+
+    The image holds ``NumberOfImagesInMosaic`` tiles (Siemens' CSA image header, read with
+    nibabel's ``csareader``) in a square grid of ``ceil(sqrt(n))`` tiles a side, row by row.
+    ``ImagePositionPatient`` is that of the whole mosaic's first pixel; the first tile's is
+    shifted by half the difference of the mosaic and tile sizes (the correction nibabel and
+    dcm2niix apply). Tiles stack along the slice normal, signed as the CSA ``SliceNormalVector``
+    says, ``SpacingBetweenSlices`` (else ``SliceThickness``) apart.
+    """
+    where = f"{label}: {name}"
+    header = _slice_header(path, ds, name, label, part=(slice(None), slice(None)))
+    csareader = import_reader_package("nibabel.nicom.csareader", "nibabel", where)
+    try:
+        csa = csareader.get_csa_header(ds, "image")
+        count = None if csa is None else int(csareader.get_n_mosaic(csa))
+        csa_normal = None if csa is None else csareader.get_slice_normal(csa)
+    except Exception as exc:  # nibabel reports a corrupt CSA header in several ways
+        raise VolumeEVMError(f"{where} is a mosaic with a corrupt CSA header ({exc})") from exc
+    if count is None:
+        raise VolumeEVMError(
+            f"{where} is a mosaic (ImageType MOSAIC) without the Siemens CSA image header that "
+            f"gives its number of slices"
+        )
+    side = math.ceil(math.sqrt(count)) if count > 0 else 0
+    rows, columns = header["rows"], header["columns"]
+    if count < 1 or rows % side or columns % side:
+        raise VolumeEVMError(
+            f"{where} is a mosaic of {columns}x{rows} pixels that cannot hold {count} slices "
+            f"in a square grid (corrupt CSA header?)"
+        )
+    tile_rows, tile_columns = rows // side, columns // side
+    row_dir, col_dir = header["orientation"][:3], header["orientation"][3:]
+    shift = ((columns - tile_columns) / 2 * header["pixel_spacing"][1] * row_dir
+             + (rows - tile_rows) / 2 * header["pixel_spacing"][0] * col_dir)
+    normal = np.cross(row_dir, col_dir)
+    if csa_normal is not None and np.dot(csa_normal, normal) < 0:
+        normal = -normal
+    step = 1.0 if header["thickness"] is None else header["thickness"]
+    if not step > 0:
+        raise VolumeEVMError(f"{where} is a mosaic whose slice spacing is {step} mm")
+    headers = []
+    for k in range(count):
+        r0, c0 = (k // side) * tile_rows, (k % side) * tile_columns
+        headers.append({
+            **header, "name": f"{name} tile {k + 1}", "rows": tile_rows,
+            "columns": tile_columns, "size": (tile_columns, tile_rows),
+            "part": (slice(r0, r0 + tile_rows), slice(c0, c0 + tile_columns)),
+            "position": header["position"] + shift + k * step * normal,
+        })
+    return headers
+
+
+def _frames(pydicom, ds, where):
+    """One dataset per frame of an enhanced multi-frame image (PS3.3 C.7.6.16): the image's
+    pixel attributes with those of the shared functional groups, overridden by the frame's own
+    (plane position and orientation, pixel measures, pixel value transformation)."""
+    count = _integer(ds, "NumberOfFrames", None, where)
+    per_frame = ds.PerFrameFunctionalGroupsSequence
+    if len(per_frame) != count:
+        raise VolumeEVMError(
+            f"{where} has NumberOfFrames {count} but {len(per_frame)} per-frame functional "
+            f"groups (corrupt header?)"
+        )
+    shared = ds.get("SharedFunctionalGroupsSequence") or [pydicom.Dataset()]
+    frames = []
+    for groups in per_frame:
+        frame = pydicom.Dataset()
+        frame.file_meta = ds.file_meta
+        for keyword in _FRAME_IMAGE_KEYWORDS:
+            if keyword in ds:
+                frame[keyword] = ds[keyword]
+        for group in (shared[0], groups):
+            for macro in _FRAME_MACROS:
+                items = group.get(macro)
+                if items:
+                    for element in items[0]:
+                        frame[element.tag] = element
+        frames.append(frame)
+    return frames
+
+
+def _slice_header(path, ds, name, label, *, part=None):
+    """The attributes the reader uses, from one slice's header, checked and as plain numbers.
+
+    ``part`` indexes the slice in its file's decoded pixel array when the file holds several:
+    ``(k,)`` for frame ``k`` of an enhanced multi-frame file (whose ``ds`` is that frame's
+    dataset from :func:`_frames`), a tile's rows and columns for a mosaic; ``None`` for a
+    single-frame image.
+    """
     where = f"{label}: {name}"
     if "Rows" not in ds:
         raise VolumeEVMError(f"{where} is not an image (no Rows) but belongs to the series")
-    header = {"path": path, "name": name, "modality": str(ds.get("Modality", ""))}
+    header = {"path": path, "name": name, "modality": str(ds.get("Modality", "")),
+              "part": part}
     for key, keyword, default in (
         ("rows", "Rows", None), ("columns", "Columns", None), ("frames", "NumberOfFrames", 1),
         ("samples", "SamplesPerPixel", 1), ("bits", "BitsAllocated", None),
@@ -342,10 +473,10 @@ def _slice_header(path, ds, name, label):
     ):
         header[key] = _integer(ds, keyword, default, where)
     high_bit = _integer(ds, "HighBit", header["stored"] - 1, where)
-    if header["frames"] != 1:
+    if (header["frames"] != 1 and part is None) or header["frames"] < 1:
         raise VolumeEVMError(
-            f"{where} has NumberOfFrames {header['frames']}; single-frame slices are needed "
-            f"(multi-frame images are not supported)"
+            f"{where} has NumberOfFrames {header['frames']}; single-frame slices or an enhanced "
+            f"multi-frame image (with per-frame functional groups) are needed"
         )
     if header["samples"] != 1:
         raise VolumeEVMError(f"{where} is a colour image; a grey series is needed")
@@ -365,7 +496,10 @@ def _slice_header(path, ds, name, label):
     header["pixel_format"] = (header["bits"], header["stored"],
                               "signed" if header["signed"] else "unsigned")
     header["syntax"] = str(ds.file_meta.get("TransferSyntaxUID", ""))
-    header["pixel_bytes"] = (header["rows"] * header["columns"] * header["bits"] + 7) // 8
+    # The whole file's decoded pixel array (every frame) and its bytes.
+    header["file_shape"] = ((header["frames"],) if header["frames"] > 1 else ()) + (
+        header["rows"], header["columns"])
+    header["pixel_bytes"] = (math.prod(header["file_shape"]) * header["bits"] + 7) // 8
     if header["syntax"] in _NATIVE_SYNTAXES:
         try:
             file_bytes = path.stat().st_size
@@ -559,21 +693,27 @@ def _read_pixels(pydicom, slices, label, *, identity):
 
     The peak is the stored array, the rescaled copy (at most 4 bytes a voxel) unless the
     rescale is the identity, a 1-byte mask for the finiteness check of float data, and a few
-    slices being decoded.
+    slices being decoded (a multi-frame file is decoded whole, once).
     """
     first = slices[0]
     columns, rows, count = first["columns"], first["rows"], len(slices)
     stored_bytes = max(first["bits"] // 8, 1)
     per_voxel = stored_bytes + (0 if identity else 4 + 1)
     check_memory(
-        columns * rows * count * per_voxel + 4 * first["pixel_bytes"],
+        columns * rows * count * per_voxel
+        + (2 if first["part"] is not None else 4) * first["pixel_bytes"],
         f"reading {count} slices of {columns}x{rows} pixels",
         source=label,
         advice="read fewer slices (pass a list of files) or free memory",
     )
-    raw = None
+    raw, decoded = None, {}
     for k, header in enumerate(slices):
-        pixels = _pixels(pydicom, header)
+        if header["part"] is None:
+            pixels = _pixels(pydicom, header)
+        else:
+            if header["path"] not in decoded:  # the one multi-frame or mosaic file being read
+                decoded = {header["path"]: _pixels(pydicom, header)}
+            pixels = decoded[header["path"]][header["part"]]
         if raw is None:
             raw = np.empty((columns, rows, count), dtype=pixels.dtype)
         elif pixels.dtype != raw.dtype:
@@ -586,7 +726,8 @@ def _read_pixels(pydicom, slices, label, *, identity):
 
 
 def _pixels(pydicom, header):
-    """The ``[row, column]`` pixel array of one single-frame slice, its size checked."""
+    """The pixel array of a slice's file, ``[row, column]`` (``[frame, row, column]`` for a
+    multi-frame file), its size checked."""
     path = header["path"]
     try:
         with warnings.catch_warnings():
@@ -603,10 +744,11 @@ def _pixels(pydicom, header):
         raise VolumeEVMError(
             f"{path}: cannot decode the pixel data ({type(exc).__name__}: {exc})"
         ) from exc
-    if pixels.shape != (header["rows"], header["columns"]) or pixels.dtype.kind not in "uif":
+    shape = header["file_shape"]
+    if pixels.shape != shape or pixels.dtype.kind not in "uif":
         raise VolumeEVMError(
             f"{path}: the pixel data decodes to shape {pixels.shape} ({pixels.dtype}), not "
-            f"{header['rows']} rows x {header['columns']} columns of grey values"
+            f"{' x '.join(map(str, shape))} (frames, rows, columns) of grey values"
         )
     return pixels
 
@@ -620,7 +762,9 @@ def _check_length(data, header):
     whose size was shrunk onto zero pixels.
     """
     needed = header["pixel_bytes"]
-    shape = f"{header['columns']}x{header['rows']} pixels of {header['bits']} bits"
+    *frames, rows, columns = header["file_shape"]
+    shape = (f"{frames[0]} frames of " if frames else "") + (
+        f"{columns}x{rows} pixels of {header['bits']} bits")
     if len(data) < needed:
         raise VolumeEVMError(
             f"{header['path']}: cannot decode the pixel data (it holds {format_bytes(len(data))}"
