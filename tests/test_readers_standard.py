@@ -3,6 +3,7 @@ DICOM as the standard says (unused bits, padding, one file opening its own serie
 and the ``units=`` override of ``read_volume``."""
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -465,4 +466,31 @@ def test_dicom_mosaic_without_csa_header(tmp_path):
     del ds[0x0029, 0x1010]
     ds.save_as(path)
     with raises(path, "is a mosaic .*without the Siemens CSA image header"):
+        read_volume(path)
+
+
+@pytest.mark.parametrize("count", [0, 26, 90, 4097, 896 * 896])
+def test_dicom_mosaic_slice_count_must_fit(tmp_path, count):
+    """A CSA slice count the mosaic cannot hold in a square grid (or absurdly many) is refused."""
+    import pydicom
+
+    with warnings.catch_warnings():  # nibabel: "The DICOM readers are highly experimental"
+        warnings.simplefilter("ignore")
+        from nibabel.nicom import csareader
+
+    path = nicom_file(tmp_path, "siemens_dwi_0")
+    ds = pydicom.dcmread(path)
+    raw = ds[0x0029, 0x1010].value
+    csa = csareader.read(raw)
+    assert csareader.get_n_mosaic(csa) == 48
+    # The count is text in its CSA item, "48" padded with spaces: rewrite it at that length.
+    old = b"48      "
+    start = raw.index(old, raw.index(b"NumberOfImagesInMosaic"))
+    new = f"{count:<8}".encode()
+    ds[0x0029, 0x1010].value = raw[:start] + new + raw[start + len(old):]
+    assert csareader.get_n_mosaic(csareader.read(ds[0x0029, 0x1010].value)) == count
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds.save_as(path)
+    with raises(path, f"cannot hold {count} slices in a square grid"):
         read_volume(path)

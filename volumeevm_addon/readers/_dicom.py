@@ -96,6 +96,9 @@ _UID = re.compile(r"(?=.{1,64}$)[0-9]+(\.[0-9]+)*")
 #: Functional group macros whose attributes an enhanced multi-frame image's frame takes.
 _FRAME_MACROS = ("PlanePositionSequence", "PlaneOrientationSequence", "PixelMeasuresSequence",
                  "PixelValueTransformationSequence")
+#: Most slices a mosaic may claim: far beyond any scanner's (a corrupt count of millions of
+#: one-pixel tiles would otherwise cost a header per tile).
+_MAX_MOSAIC_SLICES = 4096
 #: Attributes of an enhanced multi-frame image that every frame shares.
 _FRAME_IMAGE_KEYWORDS = ("Modality", "Rows", "Columns", "NumberOfFrames", "SamplesPerPixel",
                          "BitsAllocated", "BitsStored", "HighBit", "PixelRepresentation")
@@ -383,7 +386,9 @@ def _mosaic_headers(path, ds, name, label):
     """
     where = f"{label}: {name}"
     header = _slice_header(path, ds, name, label, part=(slice(None), slice(None)))
-    csareader = import_reader_package("nibabel.nicom.csareader", "nibabel", where)
+    with warnings.catch_warnings():  # nibabel.nicom warns that its DICOM *readers* are
+        warnings.simplefilter("ignore")  # experimental; only its CSA header parser is used
+        csareader = import_reader_package("nibabel.nicom.csareader", "nibabel", where)
     try:
         csa = csareader.get_csa_header(ds, "image")
         count = None if csa is None else int(csareader.get_n_mosaic(csa))
@@ -395,9 +400,9 @@ def _mosaic_headers(path, ds, name, label):
             f"{where} is a mosaic (ImageType MOSAIC) without the Siemens CSA image header that "
             f"gives its number of slices"
         )
-    side = math.ceil(math.sqrt(count)) if count > 0 else 0
+    side = math.ceil(math.sqrt(count)) if 0 < count <= _MAX_MOSAIC_SLICES else 0
     rows, columns = header["rows"], header["columns"]
-    if count < 1 or rows % side or columns % side:
+    if side == 0 or rows % side or columns % side:
         raise VolumeEVMError(
             f"{where} is a mosaic of {columns}x{rows} pixels that cannot hold {count} slices "
             f"in a square grid (corrupt CSA header?)"
