@@ -146,7 +146,7 @@ def read_nrrd(path):
             require_regular_file(data_file)
             with open_file(data_file) as g:
                 data = _read_data(g, header, sizes, dtype, encoding, path,
-                                  f"{path} (data file {data_file})")
+                                  f"{path}: data file {data_file}")
     spacing, origin, orientation = _geometry(header, path)
     return checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation,
                           units=data_units(header.get("sample units", "")))
