@@ -2,7 +2,8 @@
 
 Each format is written as its own tools write it: a DICOM series cloned from pydicom's real
 ``CT_small.dcm``; TIFF stacks by tifffile in its plain, ImageJ and OME flavours; NRRD by pynrrd;
-VolPack ``.den`` with brainsmall's header; NIfTI headers patched without repair.
+VolPack ``.den`` with brainsmall's header; NIfTI headers patched without repair. DICOM volumes
+can be compared with nibabel's own DICOM reading (:func:`assert_same_as_nibabel`).
 """
 
 import copy
@@ -101,3 +102,31 @@ def patch_nifti(data, **fields):
     for name, value in fields.items():
         header[name] = value
     return header.binaryblock + data[348:]
+
+
+def assert_same_as_nibabel(vol, path, scale=1.0):
+    """Voxel centres of ``vol`` (the corners and 20000 more) land on voxels of nibabel's reading
+    of ``path`` (by the two affines) holding the same value (times ``scale``, which nibabel
+    leaves out)."""
+    import pydicom
+
+    with warnings.catch_warnings():  # nibabel: "The DICOM readers are highly experimental"
+        warnings.simplefilter("ignore")
+        from nibabel.nicom import dicomwrappers
+
+        wrapper = dicomwrappers.wrapper_from_data(pydicom.dcmread(path))
+        data = wrapper.get_data()
+    ours = np.eye(4)
+    ours[:3, :3] = vol.orientation * np.array(vol.spacing)
+    ours[:3, 3] = vol.origin
+    shape = np.array(vol.array.shape)
+    corners = np.array(np.meshgrid(*[[0, n - 1] for n in shape])).reshape(3, -1)
+    index = np.hstack([corners, np.random.default_rng(5).integers(0, shape[:, None],
+                                                                   (3, 20000))])
+    world = ours[:3, :3] @ index + ours[:3, 3:]
+    theirs = np.linalg.solve(wrapper.affine[:3, :3], world - wrapper.affine[:3, 3:])
+    assert np.abs(theirs - np.round(theirs)).max() < 0.01
+    theirs = tuple(np.round(theirs).astype(int))
+    expected = data[theirs].astype(np.float32) * np.float32(scale)
+    np.testing.assert_array_equal(vol.array[tuple(index)], expected.astype(vol.array.dtype))
+    return data

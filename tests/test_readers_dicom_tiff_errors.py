@@ -263,8 +263,8 @@ def test_dicom_lone_slice_needs_a_positive_thickness(tmp_path, ct_crop):
 
 @pytest.mark.parametrize("changes, match", [
     ({"BitsAllocated": 12}, "BitsAllocated 12 and BitsStored 16"),
-    ({"NumberOfFrames": 2}, r"has NumberOfFrames 2; single-frame slices are needed"),
-    ({"NumberOfFrames": 0}, r"has NumberOfFrames 0; single-frame slices are needed"),
+    ({"NumberOfFrames": 2}, r"has NumberOfFrames 2; single-frame slices or an enhanced"),
+    ({"NumberOfFrames": 0}, r"has NumberOfFrames 0; single-frame slices or an enhanced"),
     ({"PixelRepresentation": 0}, "mixes pixel formats"),
     ({"BitsStored": 12, "HighBit": 11}, "mixes pixel formats"),
 ])
@@ -274,21 +274,33 @@ def test_dicom_pixel_format_problems(tmp_path, ct_crop, changes, match):
         read_volume(tmp_path / "s")
 
 
-def test_dicom_bits_above_bits_stored_are_refused(tmp_path, ct_crop):
-    # pydicom masks the bits above BitsStored: HU + 1024 in 8 bits would wrap silently.
+def test_dicom_bits_above_bits_stored_follow_the_standard(tmp_path, ct_crop):
+    # PS3.5 8.1.1: the bits above HighBit are not part of the value; signed values are
+    # sign-extended from HighBit. A HighBit that disagrees with BitsStored is a corrupt header.
     files = write_series(tmp_path / "s", ct_crop,
                          edit=edit_slices(range(6), BitsStored=8, HighBit=7))
-    with raises(files[0], "values beyond BitsStored \\(8 of 16 bits"):
-        read_volume(tmp_path / "s")
+    stored = (ct_crop.astype(np.int32) + 1024) & 0xFF
+    expected = np.where(stored >= 0x80, stored - 0x100, stored) - 1024
+    vol = read_volume(tmp_path / "s")
+    np.testing.assert_array_equal(vol.array, expected)
+    write_series(tmp_path / "t", ct_crop, edit=edit_slices(range(6), BitsStored=8))
+    with raises(tmp_path / "t", "IM0000.dcm has HighBit 15 with BitsStored 8"):
+        read_volume(tmp_path / "t")
 
 
 def test_dicom_pixel_data_longer_than_the_header_says(tmp_path, ct_crop):
-    def longer(k, ds):
+    def padded(k, ds):
         if k == 4:
             ds.PixelData += b"\0\0" * 16
 
+    def longer(k, ds):
+        if k == 4:
+            ds.PixelData += b"\1\0" * 16
+
+    write_series(tmp_path / "p", ct_crop, edit=padded)  # zero padding: read
+    np.testing.assert_array_equal(read_volume(tmp_path / "p").array, ct_crop)
     files = write_series(tmp_path / "s", ct_crop, edit=longer)
-    with raises(files[4], "cannot decode the pixel data.*need 768 bytes"):
+    with raises(files[4], "need 768, and the 32 bytes after them are not zero padding"):
         read_volume(tmp_path / "s")
 
 

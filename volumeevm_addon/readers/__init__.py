@@ -21,6 +21,7 @@ to the library's own error if any:
   allocation nor silently different voxels.
 """
 
+import dataclasses
 import errno
 import os
 import stat
@@ -56,7 +57,7 @@ SUPPORTED_EXTENSIONS = tuple(_READERS)
 __all__ = ["SUPPORTED_EXTENSIONS", "read_volume"]
 
 
-def read_volume(path, **options):
+def read_volume(path, *, units=None, **options):
     """Read a volume file, DICOM folder or list of DICOM files.
 
     Parameters
@@ -64,6 +65,11 @@ def read_volume(path, **options):
     path : str, Path or sequence of str or Path
         A file with one of :data:`SUPPORTED_EXTENSIONS`, a folder holding a DICOM series, or
         the files of one DICOM series.
+    units : str, optional
+        The data's units ("HU", ...), overriding what the file says; for a file that states
+        none (most NRRD and every NIfTI file, where the format has no field for it). ``None``
+        keeps the file's own: DICOM ``RescaleType``, else "HU" for a rescaled CT; NRRD
+        ``sample units``; the ``.npy`` sidecar's ``units``; "" when the file says nothing.
     **options
         Format options, keyword only:
 
@@ -77,8 +83,9 @@ def read_volume(path, **options):
     Returns
     -------
     Volume
-        Densities ``(X, Y, Z)`` in data units, with spacing (mm), origin (centre of voxel
-        ``(0, 0, 0)``, mm, LPS) and orientation (columns in LPS); ``source`` is ``str(path)``.
+        Densities ``(X, Y, Z)`` in data units (``units``), with spacing (mm), origin (centre
+        of voxel ``(0, 0, 0)``, mm, LPS) and orientation (columns in LPS); ``source`` is
+        ``str(path)``.
 
     Raises
     ------
@@ -86,8 +93,8 @@ def read_volume(path, **options):
         If the path is not a ``str`` or ``Path`` (a ``bytes`` path), does not exist (or is a
         broken link), cannot be accessed, is neither a regular file nor a folder (a FIFO or
         device would be read forever), is a folder named like a volume file, has an unsupported
-        extension, or the reader finds the file unusable or too large for the memory available
-        (the message names the file and the problem).
+        extension, ``units`` is not a ``str``, or the reader finds the file unusable or too
+        large for the memory available (the message names the file and the problem).
     TypeError
         If an option is not one the format takes.
 
@@ -96,7 +103,20 @@ def read_volume(path, **options):
     >>> vol = read_volume("head.nrrd")  # doctest: +SKIP
     >>> vol.array.shape, vol.spacing  # doctest: +SKIP
     ((256, 256, 108), (0.957, 0.957, 1.5))
+    >>> read_volume("chest.nrrd", units="HU").units  # doctest: +SKIP
+    'HU'
     """
+    if units is not None and not isinstance(units, str):
+        raise VolumeEVMError(
+            f"units: {units!r} is a {type(units).__name__}; the data's units are a str such as "
+            f"'HU', or None to keep what the file says"
+        )
+    volume = _read(path, options)
+    return volume if units is None else dataclasses.replace(volume, units=units.strip())
+
+
+def _read(path, options):
+    """The volume at ``path`` as its reader gives it (see :func:`read_volume`)."""
     if isinstance(path, (bytes, bytearray)):
         raise VolumeEVMError(
             f"{path!r}: a path given as bytes is not supported; pass a str or pathlib.Path "

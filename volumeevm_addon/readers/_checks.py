@@ -30,23 +30,23 @@ from ..model._volume import Volume
 #: full-size copy of the data.
 _CHUNK_BYTES = 1 << 20
 
-#: Length units found in file headers (NRRD, NIfTI, ImageJ, OME), as millimetres per unit.
+#: Length units found in file headers (NRRD, NIfTI, ImageJ, OME), as millimetres per unit, in
+#: the spellings tools write (Fiji's NRRD writer: "microns"; ImageJ: ``\\u00B5m``).
 MM_PER_UNIT = {
-    "mm": 1.0,
-    "millimeter": 1.0,
-    "millimetre": 1.0,
-    "cm": 10.0,
-    "m": 1000.0,
-    "meter": 1000.0,
-    "metre": 1000.0,
-    "um": 1e-3,
-    "µm": 1e-3,
-    "\u03bcm": 1e-3,
-    "\\u00b5m": 1e-3,  # ImageJ writes the micro sign escaped: unit=\u00B5m
-    "micron": 1e-3,
-    "micrometer": 1e-3,
-    "nm": 1e-6,
+    **dict.fromkeys(["mm", "millimeter", "millimeters", "millimetre", "millimetres"], 1.0),
+    **dict.fromkeys(["cm", "centimeter", "centimeters", "centimetre", "centimetres"], 10.0),
+    **dict.fromkeys(["m", "meter", "meters", "metre", "metres"], 1000.0),
+    **dict.fromkeys(["um", "\u00b5m", "\u03bcm", "\\u00b5m", "micron", "microns", "micrometer",
+                     "micrometers", "micrometre", "micrometres"], 1e-3),
+    **dict.fromkeys(["nm", "nanometer", "nanometers", "nanometre", "nanometres"], 1e-6),
 }
+
+#: Length "units" that say the spacing is not known (ImageJ and Fiji write "pixel" for an
+#: uncalibrated image): the spacing is reported unknown, not refused.
+UNKNOWN_LENGTH_UNITS = frozenset(["pixel", "pixels", ""])
+
+#: Spellings of data units mapped to the short names the core uses.
+_DATA_UNIT_ALIASES = {"hounsfield units": "HU", "hounsfield unit": "HU", "hu": "HU"}
 
 
 def import_reader_package(module, pip_name, path):
@@ -113,6 +113,23 @@ def mm_per_unit(unit, path, what):
             f"{', '.join(sorted(MM_PER_UNIT))}"
         )
     return MM_PER_UNIT[key]
+
+
+def data_units(text):
+    """The data units a header states, as the core names them ("Hounsfield units" -> "HU").
+
+    Parameters
+    ----------
+    text : str
+        The header's value, surrounding white space and quotes ignored.
+
+    Returns
+    -------
+    str
+        The units, "" when ``text`` is empty.
+    """
+    text = str(text).strip().strip('"').strip()
+    return _DATA_UNIT_ALIASES.get(text.lower(), text)
 
 
 def require_regular_file(path):

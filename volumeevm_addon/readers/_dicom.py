@@ -1,7 +1,17 @@
 """DICOM image series (a folder, one file of the series, or a list of files) via pydicom.
 
-A series is the set of single-frame images sharing a ``SeriesInstanceUID``. The grid is built
-from the image-plane attributes (DICOM PS3.3 C.7.6.2):
+A series is the set of images sharing a ``SeriesInstanceUID``; each image gives one slice,
+or several:
+
+- an enhanced multi-frame image (Enhanced CT and MR, what current Siemens XA, Philips and GE
+  scanners export: ``PerFrameFunctionalGroupsSequence``) gives one slice per frame, with the
+  plane position and orientation, pixel measures and rescale of its shared and per-frame
+  functional groups (PS3.3 C.7.6.16);
+- a Siemens mosaic (``ImageType`` with ``MOSAIC``) gives the slices tiled in it, as many as
+  the CSA header's ``NumberOfImagesInMosaic``, placed as nibabel and dcm2niix place them (see
+  :func:`_mosaic_headers`); one mosaic file given is read alone, being a whole volume.
+
+The grid is built from the slices' image-plane attributes (DICOM PS3.3 C.7.6.2):
 
 - ``ImageOrientationPatient`` = (row direction, column direction) in LPS: the row direction is
   the way the column index (x) grows, the column direction the way the row index (y) grows;
@@ -17,32 +27,47 @@ from the image-plane attributes (DICOM PS3.3 C.7.6.2):
 - ``PixelSpacing`` is (between rows, between columns) = (y, x) spacing.
 - ``pixel_array`` is ``[row, column]`` = ``[y, x]``; it is transposed into ``[x, y, z]``.
 
+Stored values: the bits above ``BitsStored`` are not assumed zero (PS3.5 8.1.1; Siemens
+scanners leave values there): pydicom masks them for unsigned data and sign-extends from
+``HighBit`` for signed data, which must be ``BitsStored - 1``. Native pixel data longer than the
+image needs reads when the extra bytes are zero padding.
+
 Modality rescale ``RescaleSlope`` / ``RescaleIntercept`` is applied per slice. The result keeps
 the stored integer dtype when every slice's rescale is the identity, is ``int16`` (or ``int32``
 if the values need it) when slopes and intercepts are integers and the stored pixels are at
-most 16-bit, and ``float32`` otherwise. CT data is in Hounsfield units ("HU").
+most 16-bit, and ``float32`` otherwise. Units: ``RescaleType`` when it names them, else "HU"
+for a rescaled CT, else "".
 
 Which files are read. In a folder (sub-folders are not scanned) a regular file is taken as
 DICOM when it carries the DICOM marker (``DICM`` after the 128-byte preamble) or its name ends
-in ``.dcm`` or ``.dicom``; every such file must be readable, and an unreadable or truncated one
-is an error naming it, never skipped (skipping a first or last slice would shift the volume).
-Other files (a README, a ``.npy``) are skipped unread, and so are FIFOs, devices and sockets,
-which are never opened. A DICOM file without ``SeriesInstanceUID`` is an error unless it is a
-DICOMDIR, and so is a ``SeriesInstanceUID`` that is not a valid UID (a corrupt length field
-makes it swallow the elements that follow). Every file of the chosen series must be an image
-slice. Named files (a list, or the
-one file given) must all be readable DICOM regular files.
+in ``.dcm`` or ``.dicom``; when a folder is given every such file must be readable, and an
+unreadable or truncated one is an error naming it, never skipped (skipping a first or last slice
+would shift the volume). Other files (a README, a ``.npy``) are skipped unread, and so are
+FIFOs, devices and sockets, which are never opened. A DICOM file without ``SeriesInstanceUID``
+is an error unless it is a DICOMDIR, and so is a ``SeriesInstanceUID`` that is not a valid UID
+(a corrupt length field makes it swallow the elements that follow). Every file of the chosen
+series must be an image slice. Named files (a list, or the one file given) must all be readable
+DICOM regular files.
+
+One file given reads the series it belongs to: the other DICOM files of its folder that cannot
+be read without the DICOM file marker, have no (valid) series UID or repeat an image
+(``SOPInstanceUID``) are skipped and listed in a ``UserWarning``; a broken file with the marker
+or in which pydicom still finds the chosen series' UID is an error naming it; a missing slice
+is still found from the positions. A chosen file without a series UID is read alone.
 
 Refused with a message rather than guessed: several series in one folder (unless
 ``series_uid`` picks one), slices of different sizes, pixel formats, orientations or pixel
-spacings, two slices at one position, unevenly spaced slices (missing files), a rescale given in
-some slices only, a ``RescaleSlope`` of 0 or a non-finite one, pixel data whose length does not
-match ``Rows`` x ``Columns`` x ``BitsAllocated`` or that has bits set above ``BitsStored``,
-multi-frame and colour images, and a series whose decoded volume would not fit in the memory
+spacings, two slices at one position (several echoes, time points or stacks), unevenly spaced
+slices (missing files), a rescale given in some slices only, a ``RescaleSlope`` of 0 or a
+non-finite one, pixel data whose length does not match the frames x ``Rows`` x ``Columns`` x
+``BitsAllocated`` (shorter, or longer by more than zero padding), a ``HighBit`` other than
+``BitsStored - 1``, multi-frame images without per-frame functional groups, colour images, a
+mosaic without its CSA header, and a series whose decoded volume would not fit in the memory
 available. pydicom's warnings about the deviations it tolerates are not shown: the checks above
 decide what is usable.
 """
 
+import math
 import os
 import re
 import stat
@@ -53,7 +78,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory, format_bytes
-from ._checks import checked_volume, import_reader_package, require_regular_file
+from ._checks import checked_volume, data_units, import_reader_package, require_regular_file
 
 #: Largest deviation of a slice step from the mean step, relative to the mean step.
 _SPACING_RTOL = 1e-2
@@ -68,6 +93,15 @@ _DICOM_SUFFIXES = (".dcm", ".dicom")
 _DICOMDIR_CLASS = "1.2.840.10008.1.3.10"
 #: A DICOM UID: at most 64 characters, numbers separated by dots (PS3.5 9.1).
 _UID = re.compile(r"(?=.{1,64}$)[0-9]+(\.[0-9]+)*")
+#: Functional group macros whose attributes an enhanced multi-frame image's frame takes.
+_FRAME_MACROS = ("PlanePositionSequence", "PlaneOrientationSequence", "PixelMeasuresSequence",
+                 "PixelValueTransformationSequence")
+#: Most slices a mosaic may claim: far beyond any scanner's (a corrupt count of millions of
+#: one-pixel tiles would otherwise cost a header per tile).
+_MAX_MOSAIC_SLICES = 4096
+#: Attributes of an enhanced multi-frame image that every frame shares.
+_FRAME_IMAGE_KEYWORDS = ("Modality", "Rows", "Columns", "NumberOfFrames", "SamplesPerPixel",
+                         "BitsAllocated", "BitsStored", "HighBit", "PixelRepresentation")
 #: Transfer syntaxes whose pixel data is stored as is (the bytes needed follow from the header).
 _NATIVE_SYNTAXES = ("1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2")
 _DEFLATED_SYNTAX = "1.2.840.10008.1.2.1.99"
@@ -104,28 +138,17 @@ def read_dicom(source, *, series_uid=None):
     files, label, named = _candidate_files(source)
     explicit = not isinstance(source, (str, os.PathLike))
     pydicom = import_reader_package("pydicom", "pydicom", label)
-    headers, must_read = {}, set(named)
-    for path in files:
-        if path in must_read or _marked_as_dicom(path):
-            headers[path] = _read_header(pydicom, path)
-    if series_uid is None and not explicit and named:
-        series_uid = str(headers[named[0]].get("SeriesInstanceUID", "")) or None
-
     name = (lambda path: str(path)) if explicit else (lambda path: path.name)
-    series = {}
-    for path, ds in headers.items():
-        if "SeriesInstanceUID" in ds:
-            uid = str(ds.SeriesInstanceUID)
-            if not _UID.fullmatch(uid):
-                raise VolumeEVMError(
-                    f"{path}: SeriesInstanceUID {uid[:80]!r} is not a valid UID (corrupt header?)"
-                )
-            series.setdefault(uid, []).append((path, ds))
-        elif ds.file_meta.get("MediaStorageSOPClassUID") != _DICOMDIR_CLASS:
-            raise VolumeEVMError(
-                f"{path}: this DICOM file has no SeriesInstanceUID (corrupt header?); it cannot "
-                f"be placed in a series"
-            )
+    if named and not explicit:  # one file: read the series it belongs to
+        series, uid = _series_of_file(pydicom, named[0], files, name, label)
+        series_uid = uid if series_uid is None else series_uid
+    else:
+        series = {}
+        for path in files:
+            if path in named or _marked_as_dicom(path):
+                ds = _read_header(pydicom, path)
+                series.setdefault(_series_uid(path, ds), []).append((path, ds))
+        series.pop(None, None)  # DICOMDIR files
     images = {uid: items for uid, items in series.items() if any("Rows" in ds for _, ds in items)}
     if not images:
         others = [name(path) for items in series.values() for path, _ in items]
@@ -145,19 +168,111 @@ def read_dicom(source, *, series_uid=None):
             f"{label}: no series with SeriesInstanceUID {uid!r}; the series found are:\n"
             + _describe(images, name)
         )
-    slices = [_slice_header(path, ds, name(path), label) for path, ds in images[uid]]
+    slices = [header for path, ds in images[uid]
+              for header in _image_headers(pydicom, path, ds, name(path), label)]
     _check_same(slices, label, "size", "image sizes", lambda s: f"{s['columns']}x{s['rows']}",
                 " (columns x rows)")
     _check_same(slices, label, "pixel_format", "pixel formats",
                 lambda s: "{} bits allocated, {} stored, {}".format(*s["pixel_format"]))
     order, geometry = _grid_geometry(slices, label)
     slices = [slices[i] for i in order]
+    units = _data_units(slices[0])
     slopes, intercepts = _rescale_values(slices, label)
     identity = bool(np.all(slopes == 1) and np.all(intercepts == 0))
     raw = _read_pixels(pydicom, slices, label, identity=identity)
     array = _rescale(raw, slopes, intercepts)
-    units = "HU" if slices[0]["modality"] == "CT" else ""
     return checked_volume(array, label, units=units, **geometry)
+
+
+def _series_uid(path, ds):
+    """A file's checked ``SeriesInstanceUID``; ``None`` for a DICOMDIR, which has none."""
+    if "SeriesInstanceUID" not in ds:
+        if ds.file_meta.get("MediaStorageSOPClassUID") == _DICOMDIR_CLASS:
+            return None
+        raise VolumeEVMError(
+            f"{path}: this DICOM file has no SeriesInstanceUID (corrupt header?); it cannot "
+            f"be placed in a series"
+        )
+    uid = str(ds.SeriesInstanceUID)
+    if not _UID.fullmatch(uid):
+        raise VolumeEVMError(
+            f"{path}: SeriesInstanceUID {uid[:80]!r} is not a valid UID (corrupt header?)"
+        )
+    return uid
+
+
+def _series_of_file(pydicom, chosen, files, name, label):
+    """``({uid: [(path, header)]}, uid)`` of the series ``chosen`` belongs to, from its folder.
+
+    The other files of the folder that carry a DICOM name or marker are read too; one that
+    has no series or an invalid UID, or fails without the DICOM file marker (a ``.dcm`` that is
+    not a DICOM file, or an old one without preamble) is skipped and named in a warning. A
+    file that fails but has the marker, or in which pydicom still finds the chosen series' UID,
+    may be a broken slice of that series: an error naming it.
+    A file with the ``SOPInstanceUID`` of one already taken is the same image (another copy or
+    encoding of it, as in pydicom's test folder) and is skipped too, the chosen file kept. A
+    chosen file without a ``SeriesInstanceUID`` is read alone, and so is a Siemens mosaic: a
+    whole volume, whose series holds the other time points or diffusion directions.
+    """
+    ds = _read_header(pydicom, chosen)
+    if "SeriesInstanceUID" not in ds:
+        return {"": [(chosen, ds)]}, ""
+    uid = _series_uid(chosen, ds)
+    if _is_mosaic(ds):
+        return {uid: [(chosen, ds)]}, uid
+    members, skipped = [(chosen, ds)], []
+    instances = {str(ds.get("SOPInstanceUID", "")): chosen}
+    for path in files:
+        if path == chosen or not _marked_as_dicom(path):
+            continue
+        found = _bare_series_uid(pydicom, path)
+        if found != uid and _UID.fullmatch(found):
+            continue  # a file of another series: not read further
+        try:
+            other = _read_header(pydicom, path)
+        except VolumeEVMError as exc:
+            if _has_dicm_marker(path) or found == uid:
+                raise
+            skipped.append(f"{name(path)} ({str(exc).removeprefix(f'{path}: ')})")
+            continue
+        try:
+            if _series_uid(path, other) != uid:
+                continue
+        except VolumeEVMError as exc:  # no series UID, or an invalid one
+            skipped.append(f"{name(path)} ({str(exc).removeprefix(f'{path}: ')})")
+            continue
+        instance = str(other.get("SOPInstanceUID", ""))
+        if instance and instance in instances:
+            skipped.append(f"{name(path)} (the same image as {name(instances[instance])}: "
+                           f"SOPInstanceUID {instance})")
+            continue
+        instances[instance] = path
+        members.append((path, other))
+    if skipped:
+        warnings.warn(
+            f"{label}: {len(skipped)} other file(s) of the folder are not readable DICOM, "
+            f"belong to no series or repeat an image, and were skipped: " + "; ".join(skipped[:5])
+            + ("; ..." if len(skipped) > 5 else ""),
+            UserWarning, stacklevel=2,
+        )
+    members.sort(key=lambda item: item[0])
+    return {uid: members}, uid
+
+
+def _bare_series_uid(pydicom, path):
+    """The ``SeriesInstanceUID`` pydicom finds reading that element alone, or "".
+
+    Forced, so it is found also in a file the full read refuses (an old file without preamble);
+    quicker than the full read, which is kept for the files of the chosen series.
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(path, force=True, stop_before_pixels=True,
+                                 specific_tags=["SeriesInstanceUID"])
+            return str(ds.get("SeriesInstanceUID", ""))
+    except Exception:  # the file is broken in a way that hides its series: nothing to find
+        return ""
 
 
 def _candidate_files(source):
@@ -197,8 +312,11 @@ def _is_regular_file(path):
 
 def _marked_as_dicom(path):
     """Whether a file found in a folder must be read as DICOM: a DICOM name or the DICM marker."""
-    if path.name.lower().endswith(_DICOM_SUFFIXES):
-        return True
+    return path.name.lower().endswith(_DICOM_SUFFIXES) or _has_dicm_marker(path)
+
+
+def _has_dicm_marker(path):
+    """Whether a file has the DICOM file marker: ``DICM`` after the 128-byte preamble."""
     try:
         with open(path, "rb") as file:
             return file.read(132)[128:] == b"DICM"
@@ -236,22 +354,134 @@ def _describe(series, name):
     return "\n".join(lines)
 
 
-def _slice_header(path, ds, name, label):
-    """The attributes the reader uses, from one slice's header, checked and as plain numbers."""
+def _image_headers(pydicom, path, ds, name, label):
+    """The slice headers of one file: one for a single-frame image, one per frame for an
+    enhanced multi-frame image (its frames are slices placed by their own functional groups),
+    one per tile of a Siemens mosaic."""
+    if "PerFrameFunctionalGroupsSequence" in ds:
+        frames = _frames(pydicom, ds, f"{label}: {name}")
+        return [_slice_header(path, frame, f"{name} frame {k + 1}", label, part=(k,))
+                for k, frame in enumerate(frames)]
+    if _is_mosaic(ds):
+        return _mosaic_headers(path, ds, name, label)
+    return [_slice_header(path, ds, name, label)]
+
+
+def _is_mosaic(ds):
+    """Whether an image is a Siemens mosaic (``ImageType`` holds ``MOSAIC``)."""
+    image_type = ds.get("ImageType") or []
+    image_type = [image_type] if isinstance(image_type, str) else image_type
+    return "MOSAIC" in [str(value).strip().upper() for value in image_type]
+
+
+def _mosaic_headers(path, ds, name, label):
+    """One slice header per tile of a Siemens mosaic, placed as the CSA header says.
+
+    The image holds ``NumberOfImagesInMosaic`` tiles (Siemens' CSA image header, read with
+    nibabel's ``csareader``) in a square grid of ``ceil(sqrt(n))`` tiles a side, row by row.
+    ``ImagePositionPatient`` is that of the whole mosaic's first pixel; the first tile's is
+    shifted by half the difference of the mosaic and tile sizes (the correction nibabel and
+    dcm2niix apply). Tiles stack along the slice normal, signed as the CSA ``SliceNormalVector``
+    says, ``SpacingBetweenSlices`` (else ``SliceThickness``) apart.
+    """
+    where = f"{label}: {name}"
+    header = _slice_header(path, ds, name, label, part=(slice(None), slice(None)))
+    with warnings.catch_warnings():  # nibabel.nicom warns that its DICOM *readers* are
+        warnings.simplefilter("ignore")  # experimental; only its CSA header parser is used
+        csareader = import_reader_package("nibabel.nicom.csareader", "nibabel", where)
+    try:
+        csa = csareader.get_csa_header(ds, "image")
+        count = None if csa is None else int(csareader.get_n_mosaic(csa))
+        csa_normal = None if csa is None else csareader.get_slice_normal(csa)
+    except Exception as exc:  # nibabel reports a corrupt CSA header in several ways
+        raise VolumeEVMError(f"{where} is a mosaic with a corrupt CSA header ({exc})") from exc
+    if count is None:
+        raise VolumeEVMError(
+            f"{where} is a mosaic (ImageType MOSAIC) without the Siemens CSA image header that "
+            f"gives its number of slices"
+        )
+    side = math.ceil(math.sqrt(count)) if 0 < count <= _MAX_MOSAIC_SLICES else 0
+    rows, columns = header["rows"], header["columns"]
+    if side == 0 or rows % side or columns % side:
+        raise VolumeEVMError(
+            f"{where} is a mosaic of {columns}x{rows} pixels that cannot hold {count} slices "
+            f"in a square grid (corrupt CSA header?)"
+        )
+    tile_rows, tile_columns = rows // side, columns // side
+    row_dir, col_dir = header["orientation"][:3], header["orientation"][3:]
+    shift = ((columns - tile_columns) / 2 * header["pixel_spacing"][1] * row_dir
+             + (rows - tile_rows) / 2 * header["pixel_spacing"][0] * col_dir)
+    normal = np.cross(row_dir, col_dir)
+    if csa_normal is not None and np.dot(csa_normal, normal) < 0:
+        normal = -normal
+    step = 1.0 if header["thickness"] is None else header["thickness"]
+    if not step > 0:
+        raise VolumeEVMError(f"{where} is a mosaic whose slice spacing is {step} mm")
+    headers = []
+    for k in range(count):
+        r0, c0 = (k // side) * tile_rows, (k % side) * tile_columns
+        headers.append({
+            **header, "name": f"{name} tile {k + 1}", "rows": tile_rows,
+            "columns": tile_columns, "size": (tile_columns, tile_rows),
+            "part": (slice(r0, r0 + tile_rows), slice(c0, c0 + tile_columns)),
+            "position": header["position"] + shift + k * step * normal,
+        })
+    return headers
+
+
+def _frames(pydicom, ds, where):
+    """One dataset per frame of an enhanced multi-frame image (PS3.3 C.7.6.16): the image's
+    pixel attributes with those of the shared functional groups, overridden by the frame's own
+    (plane position and orientation, pixel measures, pixel value transformation)."""
+    count = _integer(ds, "NumberOfFrames", None, where)
+    per_frame = ds.PerFrameFunctionalGroupsSequence
+    if len(per_frame) != count:
+        raise VolumeEVMError(
+            f"{where} has NumberOfFrames {count} but {len(per_frame)} per-frame functional "
+            f"groups (corrupt header?)"
+        )
+    shared = ds.get("SharedFunctionalGroupsSequence") or [pydicom.Dataset()]
+    frames = []
+    for groups in per_frame:
+        frame = pydicom.Dataset()
+        frame.file_meta = ds.file_meta
+        for keyword in _FRAME_IMAGE_KEYWORDS:
+            if keyword in ds:
+                frame[keyword] = ds[keyword]
+        for group in (shared[0], groups):
+            for macro in _FRAME_MACROS:
+                items = group.get(macro)
+                if items:
+                    for element in items[0]:
+                        frame[element.tag] = element
+        frames.append(frame)
+    return frames
+
+
+def _slice_header(path, ds, name, label, *, part=None):
+    """The attributes the reader uses, from one slice's header, checked and as plain numbers.
+
+    ``part`` indexes the slice in its file's decoded pixel array when the file holds several:
+    ``(k,)`` for frame ``k`` of an enhanced multi-frame file (whose ``ds`` is that frame's
+    dataset from :func:`_frames`), a tile's rows and columns for a mosaic; ``None`` for a
+    single-frame image.
+    """
     where = f"{label}: {name}"
     if "Rows" not in ds:
         raise VolumeEVMError(f"{where} is not an image (no Rows) but belongs to the series")
-    header = {"path": path, "name": name, "modality": str(ds.get("Modality", ""))}
+    header = {"path": path, "name": name, "modality": str(ds.get("Modality", "")),
+              "part": part}
     for key, keyword, default in (
         ("rows", "Rows", None), ("columns", "Columns", None), ("frames", "NumberOfFrames", 1),
         ("samples", "SamplesPerPixel", 1), ("bits", "BitsAllocated", None),
         ("stored", "BitsStored", None), ("signed", "PixelRepresentation", 0),
     ):
         header[key] = _integer(ds, keyword, default, where)
-    if header["frames"] != 1:
+    high_bit = _integer(ds, "HighBit", header["stored"] - 1, where)
+    if (header["frames"] != 1 and part is None) or header["frames"] < 1:
         raise VolumeEVMError(
-            f"{where} has NumberOfFrames {header['frames']}; single-frame slices are needed "
-            f"(multi-frame images are not supported)"
+            f"{where} has NumberOfFrames {header['frames']}; single-frame slices or an enhanced "
+            f"multi-frame image (with per-frame functional groups) are needed"
         )
     if header["samples"] != 1:
         raise VolumeEVMError(f"{where} is a colour image; a grey series is needed")
@@ -262,11 +492,19 @@ def _slice_header(path, ds, name, label):
             f"{where} has BitsAllocated {header['bits']} and BitsStored {header['stored']}; "
             f"the pixel format is corrupt or unsupported"
         )
+    if high_bit != header["stored"] - 1:
+        raise VolumeEVMError(
+            f"{where} has HighBit {high_bit} with BitsStored {header['stored']}; an image's high "
+            f"bit is BitsStored - 1 (PS3.5 8.1.1): the pixel format is corrupt"
+        )
     header["size"] = (header["columns"], header["rows"])
     header["pixel_format"] = (header["bits"], header["stored"],
                               "signed" if header["signed"] else "unsigned")
     header["syntax"] = str(ds.file_meta.get("TransferSyntaxUID", ""))
-    header["pixel_bytes"] = (header["rows"] * header["columns"] * header["bits"] + 7) // 8
+    # The whole file's decoded pixel array (every frame) and its bytes.
+    header["file_shape"] = ((header["frames"],) if header["frames"] > 1 else ()) + (
+        header["rows"], header["columns"])
+    header["pixel_bytes"] = (math.prod(header["file_shape"]) * header["bits"] + 7) // 8
     if header["syntax"] in _NATIVE_SYNTAXES:
         try:
             file_bytes = path.stat().st_size
@@ -282,6 +520,7 @@ def _slice_header(path, ds, name, label):
     header["orientation"] = _numbers(ds, "ImageOrientationPatient", 6, where)
     header["pixel_spacing"] = _numbers(ds, "PixelSpacing", 2, where)
     header["position"] = _numbers(ds, "ImagePositionPatient", 3, where)
+    header["rescale_type"] = str(ds.get("RescaleType", "") or "").strip()
     header["slope"] = _numbers(ds, "RescaleSlope", 1, where, required=False)
     header["intercept"] = _numbers(ds, "RescaleIntercept", 1, where, required=False)
     header["thickness"] = _thickness(ds)
@@ -343,6 +582,16 @@ def _thickness(ds):
             except (TypeError, ValueError):
                 return float("nan")
     return None
+
+
+def _data_units(header):
+    """Units of the rescaled values: ``RescaleType`` when it names them ("US" is unspecified),
+    else "HU" for a CT image with a rescale (PS3.3 C.8.2.1: CT rescales to Hounsfield units),
+    else "" (an MR's values have no unit)."""
+    if header["rescale_type"] and header["rescale_type"].upper() != "US":
+        return data_units(header["rescale_type"])
+    rescaled = header["slope"] is not None or header["intercept"] is not None
+    return "HU" if header["modality"] == "CT" and rescaled else ""
 
 
 def _check_same(slices, label, key, what, show, hint=""):
@@ -449,21 +698,27 @@ def _read_pixels(pydicom, slices, label, *, identity):
 
     The peak is the stored array, the rescaled copy (at most 4 bytes a voxel) unless the
     rescale is the identity, a 1-byte mask for the finiteness check of float data, and a few
-    slices being decoded.
+    slices being decoded (a multi-frame file is decoded whole, once).
     """
     first = slices[0]
     columns, rows, count = first["columns"], first["rows"], len(slices)
     stored_bytes = max(first["bits"] // 8, 1)
     per_voxel = stored_bytes + (0 if identity else 4 + 1)
     check_memory(
-        columns * rows * count * per_voxel + 4 * first["pixel_bytes"],
+        columns * rows * count * per_voxel
+        + (2 if first["part"] is not None else 4) * first["pixel_bytes"],
         f"reading {count} slices of {columns}x{rows} pixels",
         source=label,
         advice="read fewer slices (pass a list of files) or free memory",
     )
-    raw = None
+    raw, decoded = None, {}
     for k, header in enumerate(slices):
-        pixels = _pixels(pydicom, header)
+        if header["part"] is None:
+            pixels = _pixels(pydicom, header)
+        else:
+            if header["path"] not in decoded:  # the one multi-frame or mosaic file being read
+                decoded = {header["path"]: _pixels(pydicom, header)}
+            pixels = decoded[header["path"]][header["part"]]
         if raw is None:
             raw = np.empty((columns, rows, count), dtype=pixels.dtype)
         elif pixels.dtype != raw.dtype:
@@ -476,7 +731,8 @@ def _read_pixels(pydicom, slices, label, *, identity):
 
 
 def _pixels(pydicom, header):
-    """The ``[row, column]`` pixel array of one single-frame slice, its size checked."""
+    """The pixel array of a slice's file, ``[row, column]`` (``[frame, row, column]`` for a
+    multi-frame file), its size checked."""
     path = header["path"]
     try:
         with warnings.catch_warnings():
@@ -484,46 +740,46 @@ def _pixels(pydicom, header):
             ds = pydicom.dcmread(path)
             if "PixelData" not in ds:
                 raise VolumeEVMError(f"{path}: the file has no pixel data")
-            length = len(ds.PixelData)
-            native = header["syntax"] in _NATIVE_SYNTAXES + (_DEFLATED_SYNTAX,)
-            if native and length not in (header["pixel_bytes"], header["pixel_bytes"] + 1):
-                raise VolumeEVMError(
-                    f"{path}: cannot decode the pixel data (it holds {format_bytes(length)} but "
-                    f"{header['columns']}x{header['rows']} pixels of {header['bits']} bits "
-                    f"need {header['pixel_bytes']} bytes; corrupt header?)"
-                )
+            if header["syntax"] in _NATIVE_SYNTAXES + (_DEFLATED_SYNTAX,):
+                _check_length(ds.PixelData, header)
             pixels = ds.pixel_array
-            if native and header["stored"] < header["bits"] and header["bits"] >= 8:
-                _check_unused_bits(ds.PixelData, pixels, header)
     except VolumeEVMError:
         raise
     except Exception as exc:  # pydicom and its decoders fail in many ways on corrupt data
         raise VolumeEVMError(
             f"{path}: cannot decode the pixel data ({type(exc).__name__}: {exc})"
         ) from exc
-    if pixels.shape != (header["rows"], header["columns"]) or pixels.dtype.kind not in "uif":
+    shape = header["file_shape"]
+    if pixels.shape != shape or pixels.dtype.kind not in "uif":
         raise VolumeEVMError(
             f"{path}: the pixel data decodes to shape {pixels.shape} ({pixels.dtype}), not "
-            f"{header['rows']} rows x {header['columns']} columns of grey values"
+            f"{' x '.join(map(str, shape))} (frames, rows, columns) of grey values"
         )
     return pixels
 
 
-def _check_unused_bits(data, pixels, header):
-    """Refuse pixel data with bits set above ``BitsStored`` (pydicom drops them silently).
+def _check_length(data, header):
+    """Refuse native pixel data shorter than the header needs, or longer with data past the end.
 
-    Such bits mean a corrupt ``BitsStored`` or overlays kept in the pixel data (retired from
-    DICOM, not supported): either way the values are not what the header says.
+    Trailing zero bytes are padding (some writers round the value up) and are not read; bytes
+    past the image that are not zero mean the header does not describe the data (a wrong
+    ``Rows``, ``Columns`` or ``BitsAllocated``). Zero padding cannot be told apart from a header
+    whose size was shrunk onto zero pixels.
     """
-    order = ">" if header["syntax"] == "1.2.840.10008.1.2.2" else "<"
-    kind = "i" if header["signed"] else "u"
-    stored = np.frombuffer(data, f"{order}{kind}{header['bits'] // 8}",
-                           count=header["rows"] * header["columns"])
-    if not np.array_equal(stored.reshape(pixels.shape), pixels):
+    needed = header["pixel_bytes"]
+    *frames, rows, columns = header["file_shape"]
+    shape = (f"{frames[0]} frames of " if frames else "") + (
+        f"{columns}x{rows} pixels of {header['bits']} bits")
+    if len(data) < needed:
         raise VolumeEVMError(
-            f"{header['path']}: the pixel data has values beyond BitsStored "
-            f"({header['stored']} of {header['bits']} bits, e.g. {stored.max()}); the header is "
-            f"corrupt or the file keeps overlays in the pixel data (not supported)"
+            f"{header['path']}: cannot decode the pixel data (it holds {format_bytes(len(data))}"
+            f" but {shape} need {needed} bytes; the data is missing or the header is corrupt)"
+        )
+    if np.frombuffer(data, np.uint8, offset=needed).any():
+        raise VolumeEVMError(
+            f"{header['path']}: cannot decode the pixel data (it holds {len(data)} bytes where "
+            f"{shape} need {needed}, and the {len(data) - needed} bytes after them are not "
+            f"zero padding; corrupt header?)"
         )
 
 

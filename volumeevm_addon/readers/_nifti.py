@@ -23,6 +23,10 @@ value that is not a positive finite number is a corrupt header.
 a slope of 0 or NaN means no scaling (NIfTI standard). With identity scaling the stored dtype is
 kept, so an ``int16`` file stays ``int16``. Trailing axes of length 1 (``(X, Y, Z, 1)`` files)
 are dropped.
+
+Data units: the NIfTI header has no field for them (``xyzt_units`` are space and time,
+``intent_*`` the statistic, ``descrip`` free text), so the volume's ``units`` are "" and the
+caller says them (``read_volume(path, units="HU")``).
 """
 
 import gzip

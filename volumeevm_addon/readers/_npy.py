@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import check_read_memory, checked_volume, open_file, read_payload
+from ._checks import check_read_memory, checked_volume, data_units, open_file, read_payload
 
 #: ``numpy.lib.format`` header readers by format version (3.0 only adds UTF-8 field names,
 #: which a volume's plain dtype never needs).
@@ -30,10 +30,6 @@ _HEADER_READERS = {
     (1, 0): np.lib.format.read_array_header_1_0,
     (2, 0): np.lib.format.read_array_header_2_0,
 }
-
-#: Sidecar spellings of data units mapped to the short names the core uses.
-_UNIT_ALIASES = {"hounsfield units": "HU", "hounsfield unit": "HU", "hu": "HU"}
-
 
 def read_npy(path):
     """Read a ``.npy`` volume indexed ``[x, y, z]`` and its optional JSON sidecar.
@@ -129,8 +125,7 @@ def _read_sidecar(sidecar, array):
         raise VolumeEVMError(
             f"{sidecar}: dtype {meta['dtype']} does not match the array's dtype {array.dtype}"
         )
-    units = str(meta.get("units", ""))
-    units = _UNIT_ALIASES.get(units.lower(), units)
+    units = data_units(meta.get("units", ""))
     if "spacing_mm" not in meta or not meta.get("spacing_known", True):
         return None, units
     spacing = meta["spacing_mm"]

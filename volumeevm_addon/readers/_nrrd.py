@@ -20,8 +20,17 @@ coordinates, its length is the spacing) and ``space origin`` is the centre of th
 Patient spaces are converted to LPS by flipping the axes the space names opposite ways
 (RAS flips x and y, LAS flips y). Spaces without a patient frame (``scanner-xyz``,
 ``3D-right-handed``) are taken as they are. Without ``space directions`` the per-axis
-``spacings`` field is used, and without either the spacing is unknown. ``space units`` other
-than millimetres are converted to millimetres.
+``spacings`` field (Teem writes it for files without a space) is used with the per-axis
+``units``, and without either the spacing is unknown. ``space units`` (or ``units``) other than
+millimetres are converted to millimetres, in the spellings tools write ("microns" from Fiji);
+"pixel" (Fiji's uncalibrated images) means the spacing is unknown.
+
+Axis kinds: every axis whose ``kinds`` entry is not spatial (``domain``, ``space``, or none
+given) is refused: a colour, vector or list component, time or complex parts would otherwise be
+read as a grey volume whose first axis is the colour channel.
+
+Data units: the NRRD ``sample units`` field ("HU" and its spellings), else "" (the format has no
+other field for it; Slicer writes none).
 """
 
 import bz2
@@ -39,6 +48,8 @@ from ._checks import (
     check_read_memory,
     checked_volume,
     import_reader_package,
+    UNKNOWN_LENGTH_UNITS,
+    data_units,
     mm_per_unit,
     open_file,
     read_payload,
@@ -85,6 +96,9 @@ _TYPES = {
     "double": "f8",
 }
 
+#: Axis kinds of a spatial axis ("???" and "none" say nothing, which pynrrd and Teem allow).
+_SPATIAL_KINDS = frozenset(["domain", "space", "none", "???"])
+
 #: Encodings and the opener of the decompressing reader each needs (``None``: plain bytes).
 _ENCODINGS = {"raw": None, "gzip": gzip.open, "gz": gzip.open, "bzip2": bz2.open, "bz2": bz2.open,
               "ascii": None, "text": None, "txt": None}
@@ -127,13 +141,15 @@ def read_nrrd(path):
         sizes, dtype, encoding = _layout(header, path)
         data_file = _data_file(header, path)
         if data_file is None:
-            data = _read_data(f, header, sizes, dtype, encoding, path, path)
+            data = _read_data(f, header, sizes, dtype, encoding, path, str(path))
         else:
             require_regular_file(data_file)
             with open_file(data_file) as g:
-                data = _read_data(g, header, sizes, dtype, encoding, data_file, path)
+                data = _read_data(g, header, sizes, dtype, encoding, path,
+                                  f"{path}: data file {data_file}")
     spacing, origin, orientation = _geometry(header, path)
-    return checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation)
+    return checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation,
+                          units=data_units(header.get("sample units", "")))
 
 
 def _header_lines(f, path):
@@ -203,6 +219,7 @@ def _layout(header, path):
             f"{path}: corrupt NRRD file (sizes {list(sizes)} are not {header['dimension']} "
             f"positive numbers as 'dimension' says)"
         )
+    _check_kinds(header, path)
     check_ndim(sizes, path)
     if header["type"] not in _TYPES:
         raise VolumeEVMError(
@@ -225,6 +242,27 @@ def _layout(header, path):
             )
         dtype = dtype.newbyteorder(endian)
     return sizes, dtype, encoding
+
+
+def _check_kinds(header, path):
+    """Refuse axes that are not spatial (``kinds``: colour, vector, list, time, complex...)."""
+    kinds = header.get("kinds")
+    if kinds is None:
+        return
+    kinds = [str(kind) for kind in kinds]
+    if len(kinds) != header["dimension"]:
+        raise VolumeEVMError(
+            f"{path}: corrupt NRRD file ('kinds' gives {len(kinds)} kinds for "
+            f"{header['dimension']} axes)"
+        )
+    odd = [(axis, kind) for axis, kind in enumerate(kinds) if kind.lower() not in _SPATIAL_KINDS]
+    if odd:
+        axis, kind = odd[0]
+        raise VolumeEVMError(
+            f"{path}: axis {axis} of the NRRD data is of kind {kind!r} (kinds: {' '.join(kinds)}),"
+            f" not a spatial axis; a volume needs 3 spatial axes (domain or space): colour, "
+            f"vector, list, time and complex axes are not read as grey levels"
+        )
 
 
 def _data_file(header, path):
@@ -252,41 +290,41 @@ def _skips(header, encoding, path):
     return line_skip, byte_skip
 
 
-def _read_data(f, header, sizes, dtype, encoding, path, source):
+def _read_data(f, header, sizes, dtype, encoding, path, where):
     """The samples as an ``(X, Y, Z)`` array, from ``f`` positioned after the header (if any).
 
-    ``path`` is the file ``f`` reads (named in messages about the data), ``source`` the file the
-    user opened (named when the volume would not fit in memory).
+    ``path`` is the file the user opened (the header), ``where`` how messages name the data: the
+    header file, and for a detached header also the data file ``f`` reads.
     """
-    line_skip, byte_skip = _skips(header, encoding, path)
+    line_skip, byte_skip = _skips(header, encoding, where)
     for _ in range(line_skip):
         line = f.readline(_MAX_HEADER_BYTES)
         if len(line) == _MAX_HEADER_BYTES and not line.endswith(b"\n"):
-            raise VolumeEVMError(f"{path}: 'line skip' passes a line longer than 1 MiB")
+            raise VolumeEVMError(f"{where}: 'line skip' passes a line longer than 1 MiB")
     count = math.prod(sizes)
     nbytes = count * dtype.itemsize
     size = os.fstat(f.fileno()).st_size
     if encoding in ("ascii", "text", "txt"):
-        check_read_memory(source, sizes, dtype, copies=2,
+        check_read_memory(path, sizes, dtype, copies=2,
                           extra=size + _ASCII_BYTES_PER_VALUE * count)
         f.seek(max(byte_skip, 0), os.SEEK_CUR)
-        return _parse_ascii(f.read(), count, dtype, path).reshape(sizes[::-1]).T
+        return _parse_ascii(f.read(), count, dtype, where).reshape(sizes[::-1]).T
     if encoding == "raw":
         start = size - nbytes if byte_skip == -1 else f.tell() + byte_skip
         if start < f.tell() or size - start != nbytes:
             held = size - f.tell() - max(byte_skip, 0)
             raise VolumeEVMError(
-                f"{path}: corrupt NRRD file (the data holds {held} bytes "
+                f"{where}: corrupt NRRD file (the data holds {held} bytes "
                 f"but sizes {list(sizes)} of {dtype.name} need exactly {nbytes}); the file is "
                 f"truncated or its header is corrupt"
             )
-        check_read_memory(source, sizes, dtype, copies=2)  # the file's bytes, then C order
+        check_read_memory(path, sizes, dtype, copies=2)  # the file's bytes, then C order
         f.seek(start)
-        buffer = read_payload(f, nbytes, path, "NRRD raw data")
+        buffer = read_payload(f, nbytes, where, "NRRD raw data")
         skip = 0
     else:
-        check_read_memory(source, sizes, dtype, copies=2, extra=byte_skip)
-        buffer = read_payload(_ENCODINGS[encoding](f), byte_skip + nbytes, path,
+        check_read_memory(path, sizes, dtype, copies=2, extra=byte_skip)
+        buffer = read_payload(_ENCODINGS[encoding](f), byte_skip + nbytes, where,
                               f"{encoding}-compressed NRRD data")
         skip = byte_skip
     return np.frombuffer(buffer, dtype, count, skip).reshape(sizes[::-1]).T
@@ -323,12 +361,18 @@ def _geometry(header, path):
         raise VolumeEVMError(
             f"{path}: 'space dimension' is {header['space dimension']}; a volume needs 3"
         )
-    units = header.get("space units")
+    # Per-axis 'units' give the unit of 'spacings'; 'space directions' are in 'space units'.
+    spatial = "space directions" in header or "space units" in header
+    field = "space units" if spatial else "units"
+    units = header.get(field)
     scale = np.ones(3)
+    known = True
     if units is not None:
         if len(units) != 3:
-            raise VolumeEVMError(f"{path}: corrupt header: 'space units' {units} is not 3 units")
-        scale = np.array([mm_per_unit(u, path, "'space units'") for u in units], dtype=float)
+            raise VolumeEVMError(f"{path}: corrupt header: '{field}' {units} is not 3 units")
+        known = not any(str(u).strip().lower() in UNKNOWN_LENGTH_UNITS for u in units)
+        if known:
+            scale = np.array([mm_per_unit(u, path, f"'{field}'") for u in units], dtype=float)
 
     directions = header.get("space directions")
     if directions is not None:
@@ -357,4 +401,4 @@ def _geometry(header, path):
     origin = np.asarray(header.get("space origin", np.zeros(3)), dtype=np.float64)
     if origin.shape != (3,):
         raise VolumeEVMError(f"{path}: corrupt header: 'space origin' {origin} is not 3-D")
-    return spacing, origin * scale * sign, orientation
+    return (spacing if known else None), origin * scale * sign, orientation

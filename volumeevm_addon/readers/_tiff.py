@@ -34,7 +34,14 @@ from pathlib import Path
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ._checks import check_ndim, checked_volume, import_reader_package, mm_per_unit, require_regular_file
+from ._checks import (
+    UNKNOWN_LENGTH_UNITS,
+    check_ndim,
+    checked_volume,
+    import_reader_package,
+    mm_per_unit,
+    require_regular_file,
+)
 
 #: TIFF compression code of uncompressed data.
 _UNCOMPRESSED = 1
@@ -241,7 +248,7 @@ def _imagej_spacing(tif, series, path):
             f"{path}: the ImageJ description says images={meta['images']} but the file holds "
             f"{series.shape[0]} slices; the file is truncated or its metadata corrupt"
         )
-    if str(meta.get("unit", "pixel")).lower() in ("pixel", "pixels", ""):
+    if str(meta.get("unit", "pixel")).lower() in UNKNOWN_LENGTH_UNITS:
         return None
     scale = mm_per_unit(meta["unit"], path, "the ImageJ 'unit'")
     per_unit = []
