@@ -8,9 +8,9 @@ import nrrd
 import numpy as np
 import pytest
 
-from volumeevm_addon import VolumeEVMError
-from volumeevm_addon.model._label_table import (LabelInfo, default_label_info, label_table_for,
-                                                palette_color, read_label_table, slicer_segments)
+from volumeevm_addon import LabelInfo, VolumeEVM, VolumeEVMError, read_volume
+from volumeevm_addon.model._label_table import (default_label_info, label_table_for, palette_color,
+                                                read_label_table, slicer_segments)
 
 ITKSNAP = '''################################################
 # ITK-SnAP Label Description File
@@ -114,3 +114,53 @@ def test_the_palette_is_fixed_and_tells_neighbours_apart():
     for a, b in zip(colors, colors[1:]):
         assert max(abs(x - y) for x, y in zip(a, b)) > 0.15  # neighbouring labels differ
     assert len(set(colors)) == 100
+
+
+# ---------------------------------------------------------------------- read_volume(labels=)
+def test_a_slicer_segmentation_reads_as_named_coloured_labels(data_dir):
+    path = data_dir / "slicer" / "Segmentation.seg.nrrd"
+    volume = read_volume(path)
+    header = nrrd.read_header(str(path))
+    segments = slicer_segments(header, str(path))
+    assert volume.is_label_map
+    assert volume.labels == {s["value"]: LabelInfo(s["name"], s["color"]) for s in segments}
+    data, _ = nrrd.read(str(path))
+    assert np.array_equal(volume.array, data)
+    regions = VolumeEVM.from_labels(volume)
+    assert regions.infos == volume.labels
+    for label, region in regions.items():
+        assert region.evm == VolumeEVM.from_array(data, label, upper=label).evm
+    assert not read_volume(path, labels=False).is_label_map
+
+
+def test_a_segmentation_in_layers_is_refused_naming_every_segment(data_dir):
+    path = data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd"
+    with pytest.raises(VolumeEVMError, match=r"2 layers .*layer 0: ribs, .*layer 1: overlapping sphere"):
+        read_volume(path)
+
+
+def test_a_label_map_with_its_table_or_the_palette(tmp_path, data_dir):
+    array = np.load(data_dir / "seg_liver_cgal.npy")
+    np.save(tmp_path / "liver.npy", array)
+    table = tmp_path / "liver.txt"
+    table.write_text('  84 255 0 0 1 1 1 "vessel"\n  85 0 255 0 1 1 1 "tumour"\n'
+                     ' 127 0 0 255 1 1 1 "liver"\n 255 255 255 0 1 1 1 "body"\n')
+    volume = read_volume(tmp_path / "liver.npy", labels=table)
+    assert volume.is_label_map and [i.name for i in volume.labels.values()] == ["vessel", "tumour", "liver", "body"]
+    assert volume.labels[127].color == (0.0, 0.0, 1.0)
+    plain = read_volume(tmp_path / "liver.npy", labels=True)
+    assert plain.labels == {label: default_label_info(label) for label in (84, 85, 127, 255)}
+    assert not read_volume(tmp_path / "liver.npy").is_label_map
+    table.write_text(' 127 0 0 255 1 1 1 "liver"\n 300 9 9 9 1 1 1 "spleen"\n')
+    with pytest.warns(UserWarning) as caught:
+        read_volume(tmp_path / "liver.npy", labels=table)
+    assert {str(w.message).split(": ", 1)[1] for w in caught} == {
+        "the label table names labels the data does not have: [300]",
+        "labels [84, 85, 255] are not in the label table; they get the default names and colours"}
+
+
+def test_what_is_not_a_label_map_is_refused_when_read_as_one(data_dir):
+    with pytest.raises(VolumeEVMError, match=r"CTChest4.nrrd: a label map holds labels >= 0"):
+        read_volume(data_dir / "slicer" / "CTChest4.nrrd", labels=True)
+    with pytest.raises(VolumeEVMError, match=r"labels: 3 is not True, False, None or a label table"):
+        read_volume(data_dir / "slicer" / "CTChest4.nrrd", labels=3)

@@ -278,3 +278,22 @@ def _wanted(labels):
         raise VolumeEVMError(f"labels must be one or more integers > 0 (0 is the background), "
                              f"got {labels!r}")
     return wanted
+
+
+def labels_present(array, source="array"):
+    """The labels a map holds, 0 (the background) left out: sorted int64.
+
+    One counting pass for labels up to 2**22, a sort otherwise.
+
+    Raises
+    ------
+    VolumeEVMError
+        For what :func:`checked_labels` refuses.
+    """
+    array = checked_labels(array, source)
+    hi = int(array.max())
+    if hi < _LOOKUP_RANGE:
+        values = np.flatnonzero(_present(array, hi + 1))
+    else:
+        values = np.unique(array).astype(np.int64)
+    return values[values != 0]

@@ -30,6 +30,7 @@ from pathlib import Path
 from .._errors import VolumeEVMError
 from ._den import read_den
 from ._dicom import read_dicom
+from ._labels import as_label_map
 from ._nifti import read_nifti
 from ._npy import read_npy
 from ._nrrd import read_nrrd
@@ -57,7 +58,7 @@ SUPPORTED_EXTENSIONS = tuple(_READERS)
 __all__ = ["SUPPORTED_EXTENSIONS", "read_volume"]
 
 
-def read_volume(path, *, units=None, **options):
+def read_volume(path, *, units=None, labels=None, **options):
     """Read a volume file, DICOM folder or list of DICOM files.
 
     Parameters
@@ -70,6 +71,13 @@ def read_volume(path, *, units=None, **options):
         none (most NRRD and every NIfTI file, where the format has no field for it). ``None``
         keeps the file's own: DICOM ``RescaleType``, else "HU" for a rescaled CT; NRRD
         ``sample units``; the ``.npy`` sidecar's ``units``; "" when the file says nothing.
+    labels : bool, str or os.PathLike, optional
+        Whether the volume is a label map (a segmentation: integers, 0 = background), and its
+        labels' names and colours. ``None`` keeps what the file says (a 3D Slicer
+        ``.seg.nrrd`` is a label map with its segments' names and colours); ``True`` reads a
+        label map named and coloured by a fixed palette; a path reads one named by that label
+        table (ITK-SNAP label description ``.txt``, or JSON ``{label: {name, color}}``);
+        ``False`` reads densities. The result's ``labels`` holds them (``is_label_map``).
     **options
         Format options, keyword only:
 
@@ -93,8 +101,10 @@ def read_volume(path, *, units=None, **options):
         If the path is not a ``str`` or ``Path`` (a ``bytes`` path), does not exist (or is a
         broken link), cannot be accessed, is neither a regular file nor a folder (a FIFO or
         device would be read forever), is a folder named like a volume file, has an unsupported
-        extension, ``units`` is not a ``str``, or the reader finds the file unusable or too
-        large for the memory available (the message names the file and the problem).
+        extension, ``units`` is not a ``str``, ``labels`` is not as above, its label table is
+        malformed, a label map's data are not integers >= 0, or the reader finds the file
+        unusable or too large for the memory available (the message names the file and the
+        problem).
     TypeError
         If an option is not one the format takes.
 
@@ -111,7 +121,9 @@ def read_volume(path, *, units=None, **options):
             f"units: {units!r} is a {type(units).__name__}; the data's units are a str such as "
             f"'HU', or None to keep what the file says"
         )
-    volume = _read(path, options)
+    if not (labels is None or isinstance(labels, (bool, str, os.PathLike))):
+        raise VolumeEVMError(f"labels: {labels!r} is not True, False, None or a label table's path")
+    volume = as_label_map(_read(path, options), labels)
     return volume if units is None else dataclasses.replace(volume, units=units.strip())
 
 

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import VolumeEVMError
+from ..model._label_table import LabelInfo, slicer_segments
 from ._checks import (
     check_ndim,
     check_read_memory,
@@ -55,6 +56,7 @@ from ._checks import (
     read_payload,
     require_regular_file,
 )
+from ._labels import label_map
 
 #: Sign per space axis that maps a NRRD space to LPS.
 _TO_LPS = {
@@ -112,7 +114,8 @@ _ASCII_BYTES_PER_VALUE = 64
 
 
 def read_nrrd(path):
-    """Read a 3-D scalar NRRD file.
+    """Read a 3-D scalar NRRD file (a 3D Slicer ``.seg.nrrd`` as a label map with its segments'
+    names and colours).
 
     Parameters
     ----------
@@ -138,6 +141,14 @@ def read_nrrd(path):
     path = Path(path)
     with open_file(path) as f:
         header = _parse_header(nrrd, _header_lines(f, path), path)
+        segments = slicer_segments(header, path)
+        if segments and len({s["layer"] for s in segments}) > 1:
+            raise VolumeEVMError(
+                f"{path}: a 3D Slicer segmentation in {len({s['layer'] for s in segments})} layers "
+                f"(segments that overlap: {_by_layer(segments)}); a label map holds one label per "
+                f"voxel, so VolumeEVM reads single-layer segmentations only: in Slicer, export "
+                f"the overlapping segments to separate files"
+            )
         sizes, dtype, encoding = _layout(header, path)
         data_file = _data_file(header, path)
         if data_file is None:
@@ -148,8 +159,19 @@ def read_nrrd(path):
                 data = _read_data(g, header, sizes, dtype, encoding, path,
                                   f"{path}: data file {data_file}")
     spacing, origin, orientation = _geometry(header, path)
-    return checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation,
-                          units=data_units(header.get("sample units", "")))
+    volume = checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation,
+                            units=data_units(header.get("sample units", "")))
+    if not segments:
+        return volume
+    table = {s["value"]: LabelInfo(s["name"], s["color"]) for s in segments}
+    return label_map(volume, table)
+
+
+def _by_layer(segments):
+    """``layer 0: ribs, ...; layer 1: ...`` for a message."""
+    layers = sorted({s["layer"] for s in segments})
+    return "; ".join(f"layer {layer}: " + ", ".join(s["name"] for s in segments if s["layer"] == layer)
+                     for layer in layers)
 
 
 def _header_lines(f, path):
