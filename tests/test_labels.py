@@ -295,3 +295,52 @@ def test_regions_of_different_grids_are_not_a_set():
     b = VolumeEVM.from_array(np.ones((2, 2, 3)), 1)
     with pytest.raises(VolumeEVMError, match="share one grid"):
         LabelSet({1: a, 2: b})
+
+
+def _unit_faces(evm):
+    """Every unit face of an EVM's mesh as rows ``(axis, plane, b, c, sign)``: each polygon is
+    a rectangle (with collinear T-junction corners) in a lattice plane, cut into its unit
+    squares; ``sign`` is the side its outward normal points to."""
+    vertices, polygons = evm.mesh()
+    rows = []
+    for loop in polygons:
+        corners = vertices[loop].astype(np.int64)
+        axis = int(np.flatnonzero(np.ptp(corners, axis=0) == 0)[0])
+        b_axis, c_axis = [a for a in range(3) if a != axis]
+        e1, e2 = corners[1] - corners[0], corners[2] - corners[1]
+        normal = np.cross(e1, e2) if np.cross(e1, e2).any() else np.cross(corners[2] - corners[0], corners[-1] - corners[0])
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        b, c = np.meshgrid(np.arange(lo[b_axis], hi[b_axis]), np.arange(lo[c_axis], hi[c_axis]), indexing="ij")
+        rows.append(np.stack([np.full(b.size, axis), np.full(b.size, lo[axis]), b.ravel(), c.ravel(),
+                              np.full(b.size, np.sign(normal[axis]))], axis=1))
+    return np.concatenate(rows)
+
+
+def test_touching_labels_meshes_cover_their_contact_exactly_once_from_each_side(liver):
+    """No gap, no overlap: the unit faces of a label's mesh that face another label's are
+    exactly the voxel faces the two labels share, each covered once by each mesh, with
+    opposite normals."""
+    array, _ = liver
+    crop = array[150:260, 120:230, 40:120]
+    regions = VolumeEVM.from_labels(crop)
+    faces = {label: _unit_faces(region.evm) for label, region in regions.items()}
+    for label, rows in faces.items():  # each mesh covers each unit face once: no overlap
+        assert len(np.unique(rows[:, :4], axis=0)) == len(rows)
+        assert len(rows) == regions[label].evm.area()
+    shared = 0
+    for p, q in itertools.combinations(regions, 2):
+        fp, fq = faces[p], faces[q]
+        common = {tuple(r[:4]) for r in fp} & {tuple(r[:4]) for r in fq}
+        # Brute force: voxel faces between p and q, as (axis, plane, b, c).
+        expected = set()
+        for axis in range(3):
+            a = np.moveaxis(crop, axis, 0)
+            touching = ((a[:-1] == p) & (a[1:] == q)) | ((a[:-1] == q) & (a[1:] == p))
+            for plane, b, c in zip(*np.nonzero(touching)):
+                expected.add((axis, plane + 1, b, c))
+        assert common == expected, (p, q)
+        sign_p = {tuple(r[:4]): r[4] for r in fp}
+        sign_q = {tuple(r[:4]): r[4] for r in fq}
+        assert all(sign_p[f] == -sign_q[f] for f in common)
+        shared += len(common)
+    assert shared > 1000  # the labels do touch, over many faces
