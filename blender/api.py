@@ -7,6 +7,7 @@
     vol = api.import_volume("/data/head.nrrd")
     api.build(vol, threshold=300.0)                 # data units (HU for CT)
     surface = api.make_mesh(vol)
+    labels = api.make_label_meshes(api.import_volume("/data/seg.seg.nrrd"))  # one per label
 
 CAD tools (a non-destructive stack per volume object, see :func:`add_tool`)::
 
@@ -25,11 +26,12 @@ Errors: bad input raises :class:`VolumeEVMError` (and ``OSError`` for unreadable
 the error, ``import_volume``, ``build``, ``make_mesh``, ``add_tool`` and ``render_dvr`` leave the
 scene as it was. Under ``blender --background`` progress lines ``[volumeevm] 42% building EVM``
 are printed. Each function is documented where it lives: :mod:`.volumes` (import, build, mesh),
-:mod:`.tool_stack` (CAD tools), :mod:`.dvr` (rendering), :mod:`.transfer` (the Render
+:mod:`.labels` (label maps), :mod:`.tool_stack` (CAD tools), :mod:`.dvr` (rendering), :mod:`.transfer` (the Render
 settings' transfer function), :mod:`.compositor` (F12).
 """
 
 from .compositor import setup_compositor
+from .labels import make_label_meshes
 from .dvr import DVRResult, render_dvr, render_dvr_animation
 from .objects import get_vevm, volume_object
 from .tool_stack import (
@@ -44,7 +46,7 @@ from .tool_stack import (
 from .transfer import load_preset, set_transfer_function, transfer_function
 from .volumes import build, get_volume, import_volume, make_mesh
 
-__all__ = ["import_volume", "build", "make_mesh", "volume_object", "get_vevm", "get_volume",
+__all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "volume_object", "get_vevm", "get_volume",
            "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
            "stack_state", "render_dvr", "render_dvr_animation", "DVRResult",
            "transfer_function", "set_transfer_function", "load_preset", "setup_compositor"]

@@ -125,6 +125,7 @@ def import_job(context, path, *, name=None, **reader_options):
         s.origin = vol.origin
         s.orientation = np.asarray(vol.orientation, np.float64).ravel().tolist()
         s.spacing_known = vol.spacing_known
+        s.label_count = len(vol.labels) if vol.is_label_map else 0
         s.units = vol.units
         s.dtype = str(vol.array.dtype)
         s.value_min, s.value_max = lo, hi

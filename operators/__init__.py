@@ -6,12 +6,13 @@ Each operator reads its properties and Blender state, calls one function of the 
 in order.
 """
 
-from . import build, import_volume, mesh, render, tools
+from . import build, import_volume, labels, mesh, render, tools
 
 CLASSES = [
     *import_volume.CLASSES,
     *build.CLASSES,
     *mesh.CLASSES,
+    *labels.CLASSES,
     *tools.CLASSES,
     *render.CLASSES,
 ]

@@ -212,6 +212,10 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
         layout = self.layout
         s = active_volume(context).volumeevm
         layout.operator("volumeevm.make_mesh", icon="MESH_DATA")
+        if s.label_count:  # a label map: every label its own object
+            row = layout.row(align=True)
+            row.operator("volumeevm.make_label_meshes", icon="GROUP_VERTEX").single_mesh = False
+            row.operator("volumeevm.make_label_meshes", text="One Mesh").single_mesh = True
         surface = s.surface
         if surface is not None and surface.type == "MESH":
             mesh = surface.data

@@ -139,6 +139,7 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
                                      default=(1, 0, 0, 0, 1, 0, 0, 0, 1),
                                      description="Index axis directions in LPS (3x3, row-major)")
     spacing_known: BoolProperty(name="Spacing Known", default=True)
+    label_count: IntProperty(name="Labels", description="A label map's labels (0: not a label map)")
     units: StringProperty(name="Units", description="The data's own units (e.g. HU)")
     dtype: StringProperty(name="Data Type")
     value_min: FloatProperty(name="Minimum", description="Smallest density (data units)")

@@ -1,0 +1,80 @@
+"""Label maps in the real bpy: a Slicer segmentation becomes named, coloured mesh objects (one
+per segment, each exactly the core's mesh), or one mesh with a material per label; a volume that
+is not a label map is refused with the scene left as it was.
+
+Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
+"""
+
+import bpy
+import numpy as np
+import pytest
+from blender_helpers import api, assert_surface_is, core, ext, fresh, mesh_arrays  # noqa: F401
+
+
+@pytest.fixture
+def segmentation(data_dir):
+    return data_dir / "slicer" / "Segmentation.seg.nrrd"
+
+
+def test_a_segmentation_becomes_one_named_coloured_object_per_segment(api, core, segmentation):
+    vol = api.import_volume(segmentation)
+    made = api.make_label_meshes(vol)
+    volume = core.read_volume(segmentation)
+    regions = core.VolumeEVM.from_labels(volume)
+    assert [o.name for o in made] == [volume.labels[label].name for label in regions]
+    collection = bpy.data.collections["Segmentation.seg labels"]
+    parent = bpy.data.objects["Segmentation.seg labels"]
+    assert parent.parent == vol and parent.name in collection.objects
+    for obj, (label, region) in zip(made, regions.items()):
+        assert obj.parent == parent and obj.name in collection.objects
+        assert obj["volumeevm_label"] == label
+        assert_surface_is(obj, region)  # exactly the core's mesh of that label
+        color = volume.labels[label].color
+        assert tuple(obj.color)[:3] == pytest.approx(color, abs=1e-6)
+        material = obj.data.materials[0]
+        assert tuple(material.diffuse_color)[:3] == pytest.approx(color, abs=1e-6)
+        base = material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value
+        assert tuple(base)[:3] == pytest.approx(color, abs=1e-6)
+    # Made again: the new objects replace the old ones, nothing is left behind.
+    again = api.make_label_meshes(vol)
+    assert len(again) == len(regions)
+    assert len(bpy.data.collections) == 1
+    assert sum(1 for o in bpy.data.objects if "volumeevm_label" in o) == len(regions)
+
+
+def test_one_mesh_with_a_material_and_a_label_per_face(api, core, segmentation):
+    vol = api.import_volume(segmentation)
+    (obj,) = api.make_label_meshes(vol, single_mesh=True)
+    regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
+    counts = [len(region.mesh()[1]) for region in regions.values()]
+    mesh = obj.data
+    labels = np.empty(len(mesh.polygons), np.int32)
+    mesh.attributes["label"].data.foreach_get("value", labels)
+    assert labels.tolist() == np.repeat(list(regions), counts).tolist()
+    slots = np.empty(len(mesh.polygons), np.int32)
+    mesh.polygons.foreach_get("material_index", slots)
+    names = [mesh.materials[s].name for s in slots[np.cumsum(counts) - 1]]
+    assert names == [f"Segmentation.seg {regions.infos[label].name}" for label in regions]
+    co, indices, _, _ = mesh_arrays(mesh)
+    first_vertices = len(regions[next(iter(regions))].mesh()[0])
+    np.testing.assert_array_equal(co[:first_vertices],
+                                  (regions[next(iter(regions))].mesh()[0] * 0.001).astype(np.float32))
+
+
+def test_a_volume_that_is_not_a_label_map_is_refused_and_nothing_changes(api, core, data_dir):
+    vol = api.import_volume(data_dir / "slicer" / "CTChest4.nrrd")
+    before = {o.name for o in bpy.data.objects}, len(bpy.data.collections), len(bpy.data.materials)
+    with pytest.raises(core.VolumeEVMError, match="CTChest4.nrrd: a label map holds labels >= 0"):
+        api.make_label_meshes(vol)
+    assert ({o.name for o in bpy.data.objects}, len(bpy.data.collections), len(bpy.data.materials)) == before
+
+
+def test_the_operator_makes_them_from_the_sidebar(api, segmentation):
+    vol = api.import_volume(segmentation)
+    assert vol.volumeevm.label_count == 7  # the panel offers the label buttons
+    assert api.import_volume(segmentation, labels=False).volumeevm.label_count == 0
+    bpy.context.view_layer.objects.active = vol
+    assert bpy.ops.volumeevm.make_label_meshes.poll()
+    assert bpy.ops.volumeevm.make_label_meshes(single_mesh=True) == {"FINISHED"}
+    made = bpy.data.objects["Segmentation.seg labels mesh"]
+    assert "label" in made.data.attributes and len(made.data.materials) == 7
