@@ -22,7 +22,6 @@ import bpy
 import numpy as np
 
 from ..volumeevm_addon import Polygons, VolumeEVM, VolumeEVMError
-from ..volumeevm_addon.readers._labels import label_map
 from . import jobs
 from .meshes import Faces, fill_mesh, surface_geometry
 from .objects import volume_object
@@ -31,10 +30,8 @@ from .volumes import _read_steps, _source_of
 
 def _label_steps(uid, path, options):
     volume = yield from _read_steps(uid, path, options)
-    if not volume.is_label_map:
-        volume = label_map(volume)  # refused, naming the file, unless integers >= 0
     yield 0.2, "building every label"
-    regions = VolumeEVM.from_labels(volume)
+    regions = VolumeEVM.from_labels(volume)  # refused, naming the file, unless integers >= 0
     meshes = []
     for number, (label, region) in enumerate(regions.items()):
         yield 0.3 + 0.6 * number / len(regions), f"meshing {regions.infos[label].name}"
