@@ -212,6 +212,7 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
         layout = self.layout
         s = active_volume(context).volumeevm
         layout.operator("volumeevm.make_mesh", icon="MESH_DATA")
+        layout.operator("volumeevm.make_mesh", text="Make Manifold Mesh (3D print)").manifold = True
         surface = s.surface
         if surface is not None and surface.type == "MESH":
             mesh = surface.data

@@ -112,6 +112,25 @@ class Polygons:
         following[last] = self.starts
         return self.indices, self.indices[following]
 
+    def unique_edges(self):
+        """Each undirected edge once, with each loop corner's edge (as Blender stores them).
+
+        :meth:`BoundaryMesh.edges` gives the same for its own mesh without sorting; this is
+        for any polygons (the manifold mesh's).
+
+        Returns
+        -------
+        edges : (E, 2) ndarray of np.int32
+            The two vertices of every edge, lower index first, sorted.
+        corner_edges : (L,) ndarray of np.int32
+            The edge from loop corner ``i`` to the next corner of its polygon.
+        """
+        u, v = self.edges()
+        keys = (np.minimum(u, v).astype(np.int64) << 32) | np.maximum(u, v)
+        unique, corner_edges = np.unique(keys, return_inverse=True)
+        edges = np.stack([unique >> 32, unique & 0xFFFFFFFF], axis=1).astype(np.int32)
+        return edges, corner_edges.reshape(-1).astype(np.int32)
+
 
 @kernel
 def _advance(open_runs, n_open, runs, n_runs, a, b, found, n_found, following):
