@@ -74,7 +74,8 @@ def _pair_and_fan(vertices, indices, starts, sizes):
     direction : (F, 3) int64
         Per fan, the sum of the octants (-1 or +1 per axis) of its faces' solid voxels at the
         vertex: a corner's voxel beside its outgoing edge, and the one beside its incoming edge
-        when that is another (a T-junction in a straight side).
+        when that is another (a T-junction in a straight side). Zero for the fan of a vertex
+        with one fan (it does not move).
     twin, quadrant : (L,) int32, (L, 3) int8
         Each corner's paired corner, and the side (-1, 0 or +1 per axis) of its edge's voxel.
     shared : (L,) bool
@@ -82,6 +83,7 @@ def _pair_and_fan(vertices, indices, starts, sizes):
     """
     n_corners = len(indices)
     following = np.empty(n_corners, np.int32)
+    target = np.empty(n_corners, np.int32)  # the vertex each corner's edge goes to
     step = np.zeros((n_corners, 3), np.int8)
     quadrant = np.zeros((n_corners, 3), np.int8)
     normal = np.zeros(3, np.int8)
@@ -90,6 +92,7 @@ def _pair_and_fan(vertices, indices, starts, sizes):
         for h in range(starts[p], starts[p] + sizes[p]):
             following[h] = h + 1 if h + 1 < starts[p] + sizes[p] else starts[p]
             a, b = indices[h], indices[following[h]]
+            target[h] = b
             for axis in range(3):
                 step[h, axis] = np.sign(vertices[b, axis] - vertices[a, axis])
                 area[axis] += (vertices[a, (axis + 1) % 3] * vertices[b, (axis + 2) % 3]
@@ -114,11 +117,11 @@ def _pair_and_fan(vertices, indices, starts, sizes):
     twin = np.full(n_corners, -1, np.int32)
     shared = np.zeros(n_corners, np.bool_)
     for h in range(n_corners):
-        u, v = indices[h], indices[following[h]]
+        u, v = indices[h], target[h]
         found = 0
         for k in range(first[v], first[v + 1]):
             g = at_vertex[k]
-            if indices[following[g]] == u:
+            if target[g] == u:
                 found += 1
                 if twin[h] < 0 or _same(quadrant, g, h):
                     twin[h] = g
@@ -127,26 +130,32 @@ def _pair_and_fan(vertices, indices, starts, sizes):
     previous[following] = np.arange(n_corners, dtype=np.int32)
     fan = np.full(n_corners, -1, np.int32)
     fan_vertex = np.empty(n_corners, np.int32)
-    direction = np.zeros((n_corners, 3), np.int64)
+    fans = np.zeros(len(vertices), np.int32)
     count = 0
     for h in at_vertex:
         if fan[h] >= 0:
             continue
         fan_vertex[count] = indices[h]
+        fans[indices[h]] += 1
         g = h
         while fan[g] < 0:
             fan[g] = count
-            e = previous[g]
-            same_voxel = True  # a corner of a rectangle, not a T-junction
-            for axis in range(3):
-                direction[count, axis] += step[g, axis] + quadrant[g, axis]
-                same_voxel &= quadrant[e, axis] - step[e, axis] == step[g, axis] + quadrant[g, axis]
-            if not same_voxel:
-                for axis in range(3):
-                    direction[count, axis] += quadrant[e, axis] - step[e, axis]
             g = following[twin[g]]
         count += 1
-    return fan, fan_vertex[:count].copy(), direction[:count].copy(), twin, quadrant, shared
+    # The directions, needed where a vertex has more than one fan only.
+    direction = np.zeros((count, 3), np.int64)
+    for g in range(n_corners):
+        if fans[indices[g]] < 2:
+            continue
+        e = previous[g]
+        same_voxel = True  # a corner of a rectangle, not a T-junction
+        for axis in range(3):
+            direction[fan[g], axis] += step[g, axis] + quadrant[g, axis]
+            same_voxel &= quadrant[e, axis] - step[e, axis] == step[g, axis] + quadrant[g, axis]
+        if not same_voxel:
+            for axis in range(3):
+                direction[fan[g], axis] += quadrant[e, axis] - step[e, axis]
+    return fan, fan_vertex[:count].copy(), direction, twin, quadrant, shared
 
 
 def split_non_manifold(vertices, polygons, epsilon=EPSILON):
