@@ -12,14 +12,16 @@ from blender_helpers import (  # noqa: F401 (fixtures)
     CT_BONE_HU, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
 
 
-def stl_round_trip(surface, path):
-    """Export ``surface`` alone with Blender's STL exporter (in mm: 1 mm = 0.001 Blender units)
-    and import it again; returns the imported object."""
+def round_trip(surface, path):
+    """Export ``surface`` alone with Blender's own exporter of ``path``'s format (STL, OBJ or
+    PLY; in mm: 1 mm = 0.001 Blender units) and import it again; returns the imported object."""
     bpy.ops.object.select_all(action="DESELECT")
     surface.select_set(True)
-    assert bpy.ops.wm.stl_export(filepath=str(path), export_selected_objects=True,
-                                 global_scale=1000.0) == {"FINISHED"}
-    assert bpy.ops.wm.stl_import(filepath=str(path)) == {"FINISHED"}
+    fmt = path.suffix[1:]
+    export, load = getattr(bpy.ops.wm, f"{fmt}_export"), getattr(bpy.ops.wm, f"{fmt}_import")
+    written = export(filepath=str(path), export_selected_objects=True, global_scale=1000.0)
+    assert written == {"FINISHED"}
+    assert load(filepath=str(path)) == {"FINISHED"}
     return bpy.context.selected_objects[0]
 
 
@@ -45,7 +47,7 @@ def test_manifold_mesh_exports_to_a_closed_manifold_stl(tmp_path, ct_crop_npy, c
 
     # The plain mesh has edges where bone voxels touch along an edge only: not manifold.
     assert bpy.ops.volumeevm.make_mesh() == {"FINISHED"}
-    plain = stl_round_trip(bpy.context.active_object, tmp_path / "plain.stl")
+    plain = round_trip(bpy.context.active_object, tmp_path / "plain.stl")
     assert manifold_counts(plain)[0] > 0
 
     bpy.context.view_layer.objects.active = volume
@@ -58,7 +60,7 @@ def test_manifold_mesh_exports_to_a_closed_manifold_stl(tmp_path, ct_crop_npy, c
     np.testing.assert_array_equal(totals, polygons.sizes)
     assert manifold_counts(surface) == (0, 0, 0)
 
-    printed = stl_round_trip(surface, tmp_path / "bone.stl")
+    printed = round_trip(surface, tmp_path / "bone.stl")
     # Blender's importer merges coincident points: none of the split copies merged.
     assert len(printed.data.vertices) == len(vertices)
     assert manifold_counts(printed) == (0, 0, 0)
@@ -67,6 +69,10 @@ def test_manifold_mesh_exports_to_a_closed_manifold_stl(tmp_path, ct_crop_npy, c
     expected = (vertices * 0.001).astype(np.float32) * np.float32(1000.0)
     np.testing.assert_allclose(np.unique(imported.reshape(-1, 3), axis=0),
                                np.unique(expected, axis=0), rtol=0, atol=1e-4)
+    for fmt in ("obj", "ply"):  # n-gons kept as they are
+        printed = round_trip(surface, tmp_path / f"bone.{fmt}")
+        assert len(printed.data.vertices) == len(vertices)
+        assert manifold_counts(printed) == (0, 0, 0), fmt
 
 
 def test_make_manifold_mesh_api(api, core, data_dir, tmp_path):
