@@ -22,7 +22,8 @@ an edge, four faces share that mesh edge (two directed each way), so the mesh st
 consistently oriented but that edge is non-manifold. Where voxels touch only at a point, the
 faces of both sheets share that vertex. Nothing is duplicated or split apart to hide these: the
 mesh is the exact boundary of the voxel region, and Blender shows such edges and vertices as
-non-manifold (Select > Select All by Trait > Non Manifold).
+non-manifold (Select > Select All by Trait > Non Manifold). :mod:`._manifold` splits them, for
+3D printing.
 
 Memory is checked (:func:`volumeevm_addon.check_memory`) after each axis's sweep, whose own
 working set is a few arrays the size of its vertices: the rectangles found so far give the peak
