@@ -42,7 +42,7 @@ class Faces:
         return len(self.edges), len(self.polygons.indices), len(self.polygons)
 
 
-def surface_geometry(vevm, previous=None):
+def surface_geometry(vevm, previous=None, manifold=False):
     """The boundary mesh of a VolumeEVM, ready for :func:`fill_mesh`.
 
     Parameters
@@ -52,6 +52,9 @@ def surface_geometry(vevm, previous=None):
         ``(co, boundary)`` of an earlier region of the same grid (what this returned for it):
         the mesh is updated where the two differ (:meth:`BoundaryMesh.updated`), and only the
         new vertices are placed (the others keep their positions).
+    manifold : bool
+        Make the manifold mesh for 3D printing instead (``vevm.mesh(manifold=True)``), from
+        scratch; ``boundary`` is then None.
 
     Returns
     -------
@@ -61,6 +64,9 @@ def surface_geometry(vevm, previous=None):
     boundary : BoundaryMesh
         The core's mesh, to update the next one from.
     """
+    if manifold:
+        vertices, polygons = vevm.evm.mesh(manifold=True)
+        return _blender_units(vevm, vertices), Faces(polygons, *polygons.unique_edges()), None
     if previous is None:
         boundary = BoundaryMesh(vevm.evm)
         co = _blender_units(vevm, boundary.vertices)

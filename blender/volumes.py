@@ -241,19 +241,19 @@ def build(obj, threshold=None, upper=None):
 
 
 # ---------------------------------------------------------------------------- mesh
-def _mesh_steps(vevm_or_path):
+def _mesh_steps(vevm_or_path, manifold):
     if isinstance(vevm_or_path, VolumeEVM):
         vevm = vevm_or_path
     else:
         yield 0.0, "loading VolumeEVM"
         vevm = VolumeEVM.load(vevm_or_path)
     yield 0.2, "meshing"
-    co, faces, _ = surface_geometry(vevm)
+    co, faces, _ = surface_geometry(vevm, manifold=manifold)
     yield 0.9, "making the mesh object"
     return vevm, co, faces
 
 
-def mesh_job(context, obj):
+def mesh_job(context, obj, manifold=False):
     """The make-mesh job (see :func:`make_mesh`)."""
     vol_obj = volume_object(obj)
     s = vol_obj.volumeevm
@@ -281,12 +281,15 @@ def mesh_job(context, obj):
             refresh_quietly(owner, context.evaluated_depsgraph_get())
         return surface
 
-    return jobs.Job(f"Mesh of {name}", _mesh_steps(cached if cached is not None else path),
-                    commit)
+    steps = _mesh_steps(cached if cached is not None else path, manifold)
+    return jobs.Job(f"Mesh of {name}", steps, commit)
 
 
-def make_mesh(obj):
+def make_mesh(obj, manifold=False):
     """Make (or refresh) the surface mesh object of a volume's VolumeEVM.
+
+    With ``manifold`` the mesh is the one for 3D printing (``vevm.mesh(manifold=True)``):
+    every edge with two faces, every vertex one fan.
 
     Returns
     -------
@@ -299,4 +302,4 @@ def make_mesh(obj):
     VolumeEVMError
         Not a volume object, no VolumeEVM built yet, a sidecar file that is gone.
     """
-    return jobs.run(mesh_job(bpy.context, obj))
+    return jobs.run(mesh_job(bpy.context, obj, manifold))

@@ -14,12 +14,18 @@ class VOLUMEEVM_OT_make_mesh(jobs.JobOperator, bpy.types.Operator):
     bl_label = "Make Mesh"
     bl_options = {"REGISTER", "UNDO"}
 
+    manifold: bpy.props.BoolProperty(
+        name="Manifold (for 3D printing)",
+        description="Split the edges and vertices where voxels touch only along an edge or at "
+                    "a point (copies 0.001 voxel apart), so that every edge has two faces",
+        default=False)
+
     @classmethod
     def poll(cls, context):
         return poll_volume(cls, context, built=True) is not None
 
     def job(self, context):
-        return volumes.mesh_job(context, active_volume(context))
+        return volumes.mesh_job(context, active_volume(context), self.manifold)
 
     def finished(self, context, surface):
         mesh = surface.data

@@ -106,3 +106,14 @@ def test_mesh_does_not_depend_on_how_the_work_is_cut(mask, block_vertices, block
         set_kernel_threads(previous)
     for a, b in zip(whole, cut):
         assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_unique_edges_are_the_boundary_meshs_edges(data_dir):
+    """The sorting edge table of any polygons (the manifold mesh's) gives the boundary mesh the
+    same edges as its own along-the-lines table, and each corner the same edge."""
+    mesh = _mesh.BoundaryMesh(EVM.from_mask(np.load(data_dir / "ct_skull_cgal.npy") >= 2.9))
+    edges, corner_edges = mesh.edges()
+    unique, corner_unique = mesh.polygons.unique_edges()
+    assert unique.dtype == corner_unique.dtype == np.int32
+    np.testing.assert_array_equal(unique, np.unique(np.sort(edges, axis=1), axis=0))
+    np.testing.assert_array_equal(unique[corner_unique], np.sort(edges[corner_edges], axis=1))

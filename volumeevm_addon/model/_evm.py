@@ -858,13 +858,20 @@ class EVM:
         box = np.array([lo, hi], np.int64) + _sweep.OFFSET
         return EVM._from_keys(_clip_keys(self.keys(), box[0], box[1]))
 
-    def mesh(self):
+    def mesh(self, manifold=False):
         """Boundary as a closed, outward polygon mesh in lattice units; see :mod:`._mesh`.
+
+        Parameters
+        ----------
+        manifold : bool
+            Split the edges and vertices where voxels touch only along an edge or at a point,
+            so that every edge has two faces and every vertex one fan (for 3D printing); the
+            copies move off the lattice by ``1e-3`` voxel. See :mod:`._manifold`.
 
         Returns
         -------
         vertices : (n, 3) ndarray of np.float64
-            Lattice points (voxel corners).
+            Lattice points (voxel corners), and with ``manifold`` the split copies.
         polygons : Polygons
             Faces merged per plane, counter-clockwise seen from outside.
 
@@ -873,6 +880,10 @@ class EVM:
         VolumeEVMError
             When the mesh would need more memory than is available.
         """
+        if manifold:
+            from ._manifold import manifold_mesh
+
+            return manifold_mesh(self)
         from ._mesh import boundary_mesh
 
         return boundary_mesh(self)

@@ -22,7 +22,8 @@ an edge, four faces share that mesh edge (two directed each way), so the mesh st
 consistently oriented but that edge is non-manifold. Where voxels touch only at a point, the
 faces of both sheets share that vertex. Nothing is duplicated or split apart to hide these: the
 mesh is the exact boundary of the voxel region, and Blender shows such edges and vertices as
-non-manifold (Select > Select All by Trait > Non Manifold).
+non-manifold (Select > Select All by Trait > Non Manifold). :mod:`._manifold` splits them, for
+3D printing.
 
 Memory is checked (:func:`volumeevm_addon.check_memory`) after each axis's sweep, whose own
 working set is a few arrays the size of its vertices: the rectangles found so far give the peak
@@ -111,6 +112,25 @@ class Polygons:
         last = self.starts + self.sizes - 1
         following[last] = self.starts
         return self.indices, self.indices[following]
+
+    def unique_edges(self):
+        """Each undirected edge once, with each loop corner's edge (as Blender stores them).
+
+        :meth:`BoundaryMesh.edges` gives the same for its own mesh without sorting; this is
+        for any polygons (the manifold mesh's).
+
+        Returns
+        -------
+        edges : (E, 2) ndarray of np.int32
+            The two vertices of every edge, lower index first, sorted.
+        corner_edges : (L,) ndarray of np.int32
+            The edge from loop corner ``i`` to the next corner of its polygon.
+        """
+        u, v = self.edges()
+        keys = (np.minimum(u, v).astype(np.int64) << 32) | np.maximum(u, v)
+        unique, corner_edges = np.unique(keys, return_inverse=True)
+        edges = np.stack([unique >> 32, unique & 0xFFFFFFFF], axis=1).astype(np.int32)
+        return edges, corner_edges.reshape(-1).astype(np.int32)
 
 
 @kernel

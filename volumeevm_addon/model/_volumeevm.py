@@ -604,8 +604,14 @@ class VolumeEVM:
         """
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
-    def mesh(self):
+    def mesh(self, manifold=False):
         """The region's boundary mesh in physical mm (LPS), e.g. to show it in Blender.
+
+        Parameters
+        ----------
+        manifold : bool
+            Every edge with two faces and every vertex one fan, for 3D printing
+            (:meth:`EVM.mesh`): split copies move by 1e-3 voxel, i.e. 1e-3 times the spacing.
 
         Returns
         -------
@@ -619,7 +625,7 @@ class VolumeEVM:
         VolumeEVMError
             When the mesh would need more memory than is available.
         """
-        vertices, polygons = self.evm.mesh()
+        vertices, polygons = self.evm.mesh(manifold)
         return self.corner_positions(vertices), polygons
 
     def measure(self):
