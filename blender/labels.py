@@ -28,14 +28,14 @@ from .objects import volume_object
 from .volumes import _read_steps, _source_of
 
 
-def _label_steps(uid, path, options):
+def _label_steps(uid, path, options, manifold):
     volume = yield from _read_steps(uid, path, options)
     yield 0.2, "building every label"
     regions = VolumeEVM.from_labels(volume)  # refused, naming the file, unless integers >= 0
     meshes = []
     for number, (label, region) in enumerate(regions.items()):
         yield 0.3 + 0.6 * number / len(regions), f"meshing {regions.infos[label].name}"
-        co, faces, _ = surface_geometry(region)
+        co, faces, _ = surface_geometry(region, manifold=manifold)
         meshes.append((label, co, faces))
     return regions.infos, meshes
 
@@ -72,7 +72,7 @@ def _joined(meshes):
     return np.concatenate(co), faces, np.concatenate(labels)
 
 
-def label_meshes_job(context, obj, *, single_mesh=False):
+def label_meshes_job(context, obj, *, single_mesh=False, manifold=False):
     """The label-meshes job (see :func:`make_label_meshes`)."""
     vol_obj = volume_object(obj)
     name = vol_obj.name
@@ -121,11 +121,11 @@ def label_meshes_job(context, obj, *, single_mesh=False):
             collection.objects.link(child)
         return made
 
-    return jobs.Job(f"Label meshes of {name}", _label_steps(vol_obj.volumeevm.uid, path, options),
-                    commit)
+    return jobs.Job(f"Label meshes of {name}",
+                    _label_steps(vol_obj.volumeevm.uid, path, options, manifold), commit)
 
 
-def make_label_meshes(obj, *, single_mesh=False):
+def make_label_meshes(obj, *, single_mesh=False, manifold=False):
     """Make a named, coloured mesh object per label of a volume object's label map.
 
     Parameters
@@ -148,4 +148,4 @@ def make_label_meshes(obj, *, single_mesh=False):
         Not a volume object, a volume that is not a label map (names the file), a source file
         that is gone.
     """
-    return jobs.run(label_meshes_job(bpy.context, obj, single_mesh=single_mesh))
+    return jobs.run(label_meshes_job(bpy.context, obj, single_mesh=single_mesh, manifold=manifold))

@@ -21,12 +21,20 @@ class VOLUMEEVM_OT_make_label_meshes(jobs.JobOperator, bpy.types.Operator):
         default=False,
     )
 
+    manifold: bpy.props.BoolProperty(
+        name="Manifold (for 3D printing)",
+        description="Split the edges and points where voxels touch only there, so each label's "
+                    "mesh is 2-manifold (see Make Manifold Mesh)",
+        default=False,
+    )
+
     @classmethod
     def poll(cls, context):
         return poll_volume(cls, context, built=False) is not None
 
     def job(self, context):
-        return labels.label_meshes_job(context, active_volume(context), single_mesh=self.single_mesh)
+        return labels.label_meshes_job(context, active_volume(context), single_mesh=self.single_mesh,
+                                         manifold=self.manifold)
 
     def finished(self, context, made):
         faces = sum(len(obj.data.polygons) for obj in made)

@@ -78,3 +78,24 @@ def test_the_operator_makes_them_from_the_sidebar(api, segmentation):
     assert bpy.ops.volumeevm.make_label_meshes(single_mesh=True) == {"FINISHED"}
     made = bpy.data.objects["Segmentation.seg labels mesh"]
     assert "label" in made.data.attributes and len(made.data.materials) == 7
+
+
+def _non_manifold_edges(obj):
+    import bmesh
+
+    bm = bmesh.new()
+    bm.from_mesh(obj.data)
+    count = sum(not edge.is_manifold for edge in bm.edges)
+    bm.free()
+    return count
+
+
+def test_manifold_label_meshes_for_3d_printing(api, core, segmentation):
+    vol = api.import_volume(segmentation)
+    assert sum(_non_manifold_edges(obj) for obj in api.make_label_meshes(vol)) > 0  # plain
+    made = api.make_label_meshes(vol, manifold=True)
+    regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
+    for obj, region in zip(made, regions.values()):
+        vertices, polygons = region.mesh(manifold=True)
+        assert len(obj.data.vertices) == len(vertices) and len(obj.data.polygons) == len(polygons)
+        assert _non_manifold_edges(obj) == 0, obj.name
