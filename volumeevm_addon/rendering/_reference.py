@@ -297,7 +297,7 @@ def render_reference(densities, mask, grid_to_world, spacing, camera, tf, *, mod
     per_ray_breaks = 2 * int(sum(d.shape)) + 8
     max_rays = max(1, min(chunk_rays, _BREAK_BUDGET // per_ray_breaks))
     readable = m if boundary == "clamp" else _dilate(m)
-    lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g)
+    lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g, tf)
     sampler = _Sampler(d, m, readable, with_gradient=lighting is not None)
     start = 0
     while start < len(live):

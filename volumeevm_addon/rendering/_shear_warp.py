@@ -130,7 +130,7 @@ from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, flag, positive_integer
 from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode
-from ._shading import Shading, checked_shading
+from ._shading import Shading, checked_shading, fade_magnitudes
 from ._shear_warp_kernels import (NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
                                   box_runs, composite, flagged_runs, lit_colours, mask_runs,
                                   mixed_codes, ray_points, warp)
@@ -836,7 +836,7 @@ def _optics(vevm, view, layout, tf, compositing, sampling, delta):
     optics = Optics(MODE_CODES[mode], post, shading is not None,
                     np.float32(compositing.termination),
                     _depth.visible_threshold(1.0 if units is None else units, np.float32),
-                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading),
+                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading, tf),
                     np.float32(compositing.xray_offset),
                     np.float32(compositing.xray_scale * delta),
                     _depth.attenuation_threshold(delta, np.float32))
@@ -851,14 +851,17 @@ def _optics(vevm, view, layout, tf, compositing, sampling, delta):
                                                            optics), 4), optics
 
 
-def _light(view, shading):
-    """The view's headlight as the kernels take it (:data:`Light`; zeros without shading)."""
+def _light(view, shading, tf):
+    """The view's headlight with the transfer function ``tf`` as the kernels take it
+    (:data:`Light`; zeros without shading)."""
     if shading is None:
-        return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4)
+        return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4,
+                     0.0, 0.0)
     return Light(tuple(view.inv[:3, :3].astype(np.float32).ravel()),
                  tuple(view.light.astype(np.float32)),
                  *(np.float32(w) for w in (shading.ambient, shading.diffuse, shading.specular,
-                                           shading.shininess)))
+                                           shading.shininess)),
+                 *fade_magnitudes(shading, tf))
 
 
 def _lit_voxels(classes, gradients, optics):

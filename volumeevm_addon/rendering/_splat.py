@@ -382,7 +382,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     inv = np.linalg.inv(g)
     view, cam_i = _view(vevm, camera, inv)
     splat_view = _SplatView(camera, g, inv, camera_rays(camera, g, vevm.shape, depth_in), view,
-                            cam_i, Lighting.of_view(shading, g))
+                            cam_i, Lighting.of_view(shading, g, tf))
     kernel = _Kernel(sigma, radius, max_px, 1 if mode == "mip" else substeps)
     weights = _family_weights(view * np.asarray(vevm.spacing, dtype=np.float64), blend)
     out = None
@@ -762,16 +762,14 @@ def _optics(compositing, tf, lighting, axes):
         hi = hi if hi > lo else lo + 1.0
         lut = np.asarray(tf.straight_table(lo=lo, hi=hi, n=4096), dtype=np.float32)
         scale, unit_length = 4095.0 / (hi - lo), tf.unit_length_mm
-    normal, weights = np.zeros(0), (0.0, 0.0, 0.0, 0.0)
+    normal, weights = np.zeros(0), (0.0,) * 6
     if lighting is not None:
         normal = np.ascontiguousarray(lighting.inv_t[:, list(axes)], dtype=np.float64).ravel()
-        shading = lighting.shading
-        weights = tuple(float(x) for x in (shading.ambient, shading.diffuse, shading.specular,
-                                           shading.shininess))
+        weights = lighting.weights()
     optics = Optics(MODE_CODES[mode], termination, lut, np.float32(lo),
                     np.float32(0.0 if scale is None else scale), np.float32(unit_length),
                     np.float32(compositing.xray_scale), np.float32(compositing.xray_offset),
-                    normal, *weights)
+                    normal, weights)
     return optics, scale
 
 
