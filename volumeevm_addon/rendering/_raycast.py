@@ -13,8 +13,8 @@ with a fixed step, fast:
   shorter length. Opacity is corrected for the step, ``α' = 1 - (1 - α)^(Δ/Δ0)``.
 - **Reconstruction** (boundary policy "clamp"): the density at a sample's midpoint is the
   trilinear interpolation of its 8 neighbours that are in the region, with the weights of the
-  others dropped and the rest renormalised. Gradients (for shading) are per-voxel central
-  differences over region voxels (one-sided at the surface), interpolated the same way, as in
+  others dropped and the rest renormalised. Gradients (for shading) are per-voxel 3x3x3
+  Sobel estimates over region voxels (:mod:`._gradients`), interpolated the same way, as in
   the reference.
 - **Coverage**: as in the reference, only the parts of a ray inside region cells count. Each
   sample's segment is cut where it crosses cell boundaries (at most one per axis for steps up

@@ -57,7 +57,7 @@ Pipeline
    their own ``Δ``; the table is made for the central ray and each sample is corrected to its
    ray's ``Δ`` by ``α' = 1 - (1 - α)^(Δ/Δ_table)`` (colour scaled by ``α'/α``).
    With ``shading``, each visible voxel's colour is lit once per view before interpolation
-   (the reference's Blinn–Phong headlight on per-voxel central-difference gradients, which are
+   (the reference's Blinn–Phong headlight on per-voxel 3x3x3 Sobel gradients, which are
    computed once per principal axis and cached; the light is the view direction, for
    perspective the eye-to-region-centre direction).
    ``"mip"`` and ``"xray"`` interpolate densities instead (post-classification, as the
@@ -616,9 +616,9 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     shading : None, True, dict or Shading
         Gradient shading for ``"over"`` and ``"under"`` (:class:`._shading.Shading`:
         Blinn–Phong headlight; ignored by ``"xray"`` and ``"mip"``), applied per voxel before
-        interpolation (pre-classification): per-voxel gradients (reference's central
-        differences) are computed once per principal axis and cached; each view lights them
-        along one direction (perspective: eye to the region's centre).
+        interpolation (pre-classification): per-voxel gradients (the reference's 3x3x3
+        Sobel, :mod:`._gradients`) are computed once per principal axis and cached; each
+        view lights them along one direction (perspective: eye to the region's centre).
     slices_per_voxel : {1, 2, 3, 4, 8}
         Samples along each ray per voxel slice (module docstring, 4): 1 is VolPack's one sample
         per slice; more interpolate between slices (trilinear): each voxel slice is classified

@@ -50,8 +50,8 @@ reach can mix; with sub-slabs also their neighbours' in the adjacent slices) is 
 the transfer function (X-ray: does not attenuate) are not splatted either: the image is the
 same. Which voxels those are is per-transfer-function work, kept in the VolumeEVM's cache per
 axis for the last transfer function (frames of an animation share it). Shading (optional) splats
-per-voxel gradients (central differences over region voxels, from the neighbouring sheets) with
-the densities and lights the sheet's samples like the reference does.
+per-voxel gradients (the 3x3x3 Sobel over region voxels of :mod:`._gradients`, from the
+neighbouring sheets) with the densities and lights the sheet's samples like the reference does.
 
 Sub-slabs: with one sample per slab a ray samples each sheet where it crosses the sheet's
 centre plane, at a sub-voxel position (phase) that is the same for every pixel when the pixel
@@ -323,8 +323,9 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         window is all such pixels are skipped (error at most ``1 - termination``); 1 = off.
     shading : None, True, dict or Shading
         Gradient shading for over/under (:class:`._shading.Shading`, the reference's
-        Blinn–Phong headlight): per-voxel central differences over region voxels (from the
-        neighbouring sheets), splatted with the densities and normalised the same way.
+        Blinn–Phong headlight): per-voxel 3x3x3 Sobel gradients over region voxels (from the
+        neighbouring sheets, :mod:`._gradients`), splatted with the densities and normalised
+        the same way.
     kernel_sigma, kernel_radius : float
         Gaussian kernel's standard deviation and truncation radius, in voxels (defaults 0.4
         and 1.0: weights are normalised per pixel, so the cut costs little; the radius must
