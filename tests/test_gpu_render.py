@@ -206,7 +206,7 @@ def test_shaded_ct_head_within_the_ray_casters_bounds(gpu, data_dir):
     vevm, cam, tf, options = gpu_cases.case("head_persp_shaded", data_dir)
     ref, _ = reference("head_persp_shaded", data_dir)
     cpu, _ = render(vevm, cam, tf, method="raycast", **options)
-    assert rmse(rgba, ref) <= 1.2 * rmse(cpu, ref) + 1e-5
+    assert rmse(rgba, ref) <= 1.2 * rmse(cpu, ref) + 1e-5  # measured 4.4e-3 and 4.2e-3
 
 
 def test_shaded_region_boundary_policy(gpu, data_dir):
@@ -217,7 +217,7 @@ def test_shaded_region_boundary_policy(gpu, data_dir):
     plain, _ = gpu("irregular_over_ortho")
     assert np.abs(rgba - plain)[..., :3].mean() > 0.01
     ref, _ = reference("irregular_over_shaded_ortho", data_dir)
-    assert rmse(rgba, ref) < 2e-3
+    assert rmse(rgba, ref) < 2e-3  # measured 9.5e-4 (the CPU ray caster's 9.3e-4)
 
 
 def test_under_is_over(gpu):
