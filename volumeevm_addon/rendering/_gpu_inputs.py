@@ -321,10 +321,7 @@ def gpu_region(vevm):
     VolumeEVMError
         If ``vevm`` is not a VolumeEVM, or the array would not fit in the memory available.
     """
-    check_volumeevm(vevm)
-    nx, ny, nz = (int(n) for n in vevm.shape)
-    check_memory(8 * nx * ny * nz + nx * ny * nz, f"the GPU texture of {nx}x{ny}x{nz} voxels",
-                 source="vevm", advice="render a coarser level (level='auto' or an integer)")
+    nx, ny, nz = _checked_grid(vevm, 9, "texture")
     out = np.zeros((nz, ny, nx, 2), np.float32)
     _fill_region(vevm.evm.to_mask(vevm.shape), np.asarray(vevm.table(0), dtype=np.float32), out)
     return out
@@ -352,10 +349,7 @@ def gpu_gradients(vevm):
     VolumeEVMError
         If ``vevm`` is not a VolumeEVM, or the arrays would not fit in the memory available.
     """
-    check_volumeevm(vevm)
-    nx, ny, nz = (int(n) for n in vevm.shape)
-    check_memory(44 * nx * ny * nz, f"the GPU gradient texture of {nx}x{ny}x{nz} voxels",
-                 source="vevm", advice="render a coarser level (level='auto' or an integer)")
+    nx, ny, nz = _checked_grid(vevm, 44, "gradient texture")
     padded = np.pad(gpu_region(vevm), ((1, 1), (1, 1), (1, 1), (0, 0)))
     grads = np.zeros((3, nz, ny, nx), np.float32)  # along z, y, x
     region_gradients(padded[..., 0], padded[..., 1], grads)
@@ -364,6 +358,16 @@ def gpu_gradients(vevm):
     for c in range(3):
         out[..., c] = grads[2 - c]
     return out
+
+
+def _checked_grid(vevm, bytes_per_voxel, what):
+    """The grid's voxels along x, y, z, once ``vevm`` is checked and ``bytes_per_voxel`` of
+    its grid fit in the memory available (``what``: the GPU array they make)."""
+    check_volumeevm(vevm)
+    nx, ny, nz = (int(n) for n in vevm.shape)
+    check_memory(bytes_per_voxel * nx * ny * nz, f"the GPU {what} of {nx}x{ny}x{nz} voxels",
+                 source="vevm", advice="render a coarser level (level='auto' or an integer)")
+    return nx, ny, nz
 
 
 @kernel
