@@ -4,10 +4,11 @@ and frame times.
 Run once per version of the renderers, each from its own checkout (``_common`` imports the
 checkout the script is in), writing into one folder::
 
-    python bench/shading_pictures.py after bench/results [data folder]
-    python <checkout of eae6980>/bench/shading_pictures.py before bench/results [data folder]
+    python bench/shading_pictures.py after bench/results [--data FOLDER] [--parts ...]
+    python <checkout of eae6980>/bench/shading_pictures.py before bench/results [...]
 
-(the data folder defaults to ``../shared/data`` beside the checkout).
+(the data folder defaults to ``../shared/data`` beside the checkout; ``--parts`` picks some of
+``pictures errors timings``, the results of the others already in the JSON file are kept).
 
 Pictures: the CT head (bone preset, full resolution, the face) and the T1 MRI (``mri`` preset,
 the side), ray cast with shading (``Shading()`` defaults) at 320x320 → ``shading_<volume>_<label>.png``.
@@ -18,8 +19,8 @@ head per method with 1 and 2 kernel threads: the first on a fresh VolumeEVM (gra
 and a later one (the best of 3). Results: ``shading_<label>.json``.
 """
 
+import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from volumeevm_addon import (Camera, TransferFunction, VolumeEVM, grid_to_world,
                              set_kernel_threads, write_png)
 from volumeevm_addon.metrics import rmse
 
-DATA = Path(sys.argv[3]) if len(sys.argv) > 3 else REPO.parent / "shared" / "data"
+DATA = REPO.parent / "shared" / "data"
 METHODS = (("raycast", {}), ("raycast_navigate", {}), ("splat", {}), ("shear_warp", {}),
            ("shear_warp post", {"classification": "post"}))
 
@@ -93,7 +94,7 @@ def errors():
 def timings():
     """Each method's shaded frame times, first and later, with 1 and 2 threads."""
     small, meta = load("ct_head_invesalius", 4)
-    cam, _ = view(small, (16, 16))
+    cam, _ = view(small, (16, 16), (0.3, -1.0, 0.25))
     for label, options in METHODS:  # compile the kernels first
         render(small, cam, tf_of(meta), method=label.split()[0], shading=True, **options)
     found = {}
@@ -115,10 +116,25 @@ def timings():
 
 
 def main():
-    label, out = sys.argv[1], Path(sys.argv[2]).resolve()
-    pictures(label, out)
-    results = {"facts": run_facts(), "errors": errors(), "timings": timings()}
-    write_json(out / f"shading_{label}.json", results)
+    global DATA
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("label")
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--parts", nargs="+", default=["pictures", "errors", "timings"],
+                        choices=["pictures", "errors", "timings"])
+    args = parser.parse_args()
+    DATA = args.data
+    path = args.out.resolve() / f"shading_{args.label}.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    facts = run_facts()
+    results.setdefault("facts", {}).update({part: facts for part in args.parts})
+    if "pictures" in args.parts:
+        pictures(args.label, args.out.resolve())
+    for part, function in (("errors", errors), ("timings", timings)):
+        if part in args.parts:
+            results[part] = function()
+            write_json(path, results)
 
 
 if __name__ == "__main__":
