@@ -11,7 +11,8 @@ checkout the script is in), writing into one folder::
 ``pictures errors timings``, the results of the others already in the JSON file are kept).
 
 Pictures: the CT head (bone preset, full resolution, the face) and the T1 MRI (``mri`` preset,
-the side), ray cast with shading (``Shading()`` defaults) at 320x320 → ``shading_<volume>_<label>.png``.
+the side), ray cast with shading (``Shading()`` defaults) at 320x320 →
+``shading_<volume>_<label>.png``.
 Errors: each CPU method's shaded image of the CT head (every 2nd voxel, 120x100 pixels) against
 the reference renderer, whose gradients are the same estimator's: mean and 99th percentile of
 the per-pixel largest channel error, and RMSE. Timing: a shaded 256x256 frame of the full CT

@@ -26,9 +26,9 @@ them and draws one full-screen quad whose fragment shader marches the pixel's ra
   (the core's depth rule), ``1e10`` where nothing is visible.
 
 Textures are made lazily on the first draw and kept per VolumeEVM (the region, the gradients
-once a shaded frame needs them, and the empty-space blocks of its last few transfer functions and modes) and per transfer-function
-version (its table, the last few);
-the shader once per process. They are freed with the VolumeEVM, by :func:`free`, and on file
+once a shaded frame needs them, and the empty-space blocks of its last few transfer functions
+and modes) and per transfer-function version (its table, the last few); the shader once per
+process. They are freed with the VolumeEVM, by :func:`free`, and on file
 load. Drawing saves and restores the GPU state it changes. A VolumeEVM's region texture is
 uploaded whole: Blender's Python ``GPUTexture`` (4.5 and 5.x) cannot write into part of an
 existing texture, so a new tool-stack result is a new upload, not a re-upload of its changed box.

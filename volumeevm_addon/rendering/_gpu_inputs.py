@@ -65,8 +65,8 @@ from ._render import check_samples
 from ._shading import Lighting, checked_shading
 
 __all__ = ["GPU_BLOCK", "GPU_TABLE_ROWS", "GPU_UNIFORMS_GLSL", "GPUFrame", "gpu_frame",
-           "gpu_region", "gpu_gradients", "gpu_occupancy", "gpu_transfer_table", "camera_from_viewport",
-           "axial_from_window", "window_from_axial"]
+           "gpu_region", "gpu_gradients", "gpu_occupancy", "gpu_transfer_table",
+           "camera_from_viewport", "axial_from_window", "window_from_axial"]
 
 GPU_BLOCK = 8
 """Edge in voxels of the occupancy blocks (empty-space skipping)."""
