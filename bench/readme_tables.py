@@ -151,10 +151,38 @@ def dvr_targets(results):
     return lines
 
 
+def shading(results):
+    """Shading before and after the 3x3x3 Sobel and the fade (``shading_before.json``,
+    ``shading_after.json`` of ``bench/shading_pictures.py``): each method's error against the
+    reference with the same gradients, and its frame times."""
+    before, after = (json.loads((results / f"shading_{label}.json").read_text())
+                     for label in ("before", "after"))
+    lines = [f"Before: commit {before['facts']['errors']['commit'][:7]}. After: "
+             + _facts(after["facts"]["errors"], "errors"),
+             "", "| method | central differences: mean, p99, RMSE | 3×3×3 Sobel + fade |",
+             "|---" * 3 + "|"]
+    for method, old in before["errors"].items():
+        new = after["errors"][method]
+        lines.append(f"| {method} | " + " | ".join(
+            f"{e['mean']:.4f}, {e['p99']:.3f}, {e['rmse']:.4f}" for e in (old, new)) + " |")
+    facts = after["facts"]["timings"]
+    lines += ["", f"Frame times of a shaded 256×256 view of the full CT head on {facts['machine']}"
+              f" (shared; load {facts['load_average_at_start']} at the start), before → after:",
+              "", "| method, threads | first frame (gradients made) | a later frame (best of 3) |",
+              "|---" * 3 + "|"]
+    for key, old in before["timings"].items():
+        new = after["timings"][key]
+        lines.append(f"| {key.replace(' 1 threads', ' 1 thread')} | "
+                     f"{_ms(old['first_s'])} → {_ms(new['first_s'])} | "
+                     f"{_ms(old['later_s'])} → {_ms(new['later_s'])} |")
+    return lines
+
+
 def block(name, results):
     """The Markdown lines of the block ``name`` (the marker's name)."""
     kind, *args = name.split(":")
-    makers = {"evm_core": evm_core, "speed_accuracy": speed_accuracy, "dvr_targets": dvr_targets}
+    makers = {"evm_core": evm_core, "speed_accuracy": speed_accuracy, "dvr_targets": dvr_targets,
+              "shading": shading}
     if kind not in makers:
         raise SystemExit(f"README.md: unknown benchmark block <!-- bench:{name} -->")
     return makers[kind](results, *args)

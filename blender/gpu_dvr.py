@@ -1,9 +1,10 @@
 """Direct volume rendering on the GPU through Blender's own ``gpu`` module: textures, shader,
 one draw routine, and the offscreen render.
 
-The core computes everything but the drawing (``gpu_frame``, ``gpu_region``,
+The core computes everything but the drawing (``gpu_frame``, ``gpu_region``, ``gpu_gradients``,
 ``gpu_occupancy``, ``gpu_transfer_table``: checks, the pixel rays, the region's RG texture,
-the empty-space blocks, the transfer-function table, the std140 uniforms); this module uploads
+shading's gradients, the empty-space blocks, the transfer-function table, the std140
+uniforms); this module uploads
 them and draws one full-screen quad whose fragment shader marches the pixel's ray:
 
 - take the pixel's ray in index space from the two affine maps of the uniforms (its parameter
@@ -13,18 +14,21 @@ them and draws one full-screen quad whose fragment shader marches the pixel's ra
   reference does: a trilinear fetch of ``(density·inside, inside)`` renormalised (boundary
   policy "clamp"); each part counts only for its length in region cells (cut at cell
   boundaries, as the CPU ray caster cuts it), so the region's surface is placed exactly;
-- classify after interpolation through the 1-D transfer-function texture, correct the opacity
-  for the part's length, composite front to back with early termination (over), sum the
+- classify after interpolation through the 1-D transfer-function texture; with shading, light
+  the colour by the gradient interpolated the same way (the gradient texture's fetch over the
+  region's weight) with the CPU methods' headlight and fade (``_shading``: ``headlight``
+  below is the same formula); correct the opacity for the part's length, composite front to
+  back with early termination (over), sum the
   attenuation (X-ray) or keep the maximum (MIP);
 - leap over the empty blocks of ``8³`` voxels around the sample, as far as the empty-space
   texture says they reach (the same image);
 - write premultiplied RGBA and the axial depth of the front of the first visible part
   (the core's depth rule), ``1e10`` where nothing is visible.
 
-Textures are made lazily on the first draw and kept per VolumeEVM (the region, and the
-empty-space blocks of its last few transfer functions and modes) and per transfer-function
-version (its table, the last few);
-the shader once per process. They are freed with the VolumeEVM, by :func:`free`, and on file
+Textures are made lazily on the first draw and kept per VolumeEVM (the region, the gradients
+once a shaded frame needs them, and the empty-space blocks of its last few transfer functions
+and modes) and per transfer-function version (its table, the last few); the shader once per
+process. They are freed with the VolumeEVM, by :func:`free`, and on file
 load. Drawing saves and restores the GPU state it changes. A VolumeEVM's region texture is
 uploaded whole: Blender's Python ``GPUTexture`` (4.5 and 5.x) cannot write into part of an
 existing texture, so a new tool-stack result is a new upload, not a re-upload of its changed box.
@@ -50,7 +54,7 @@ import numpy as np
 from gpu_extras.batch import batch_for_shader
 
 from ..volumeevm_addon import (BACKGROUND_DEPTH, GPU_UNIFORMS_GLSL, VolumeEVMError, gpu_frame,
-                               gpu_occupancy, gpu_region, gpu_transfer_table)
+                               gpu_gradients, gpu_occupancy, gpu_region, gpu_transfer_table)
 
 #: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).
 METHOD = "gpu"
@@ -153,6 +157,22 @@ vec2 coverage(vec3 pf, vec3 pb)
   return vec2(part, start);
 }
 
+/* The straight colour rgb lit by the headlight for the index-space gradient g, the unit world
+ * direction towards the light (the ray's) and the fade: _shading.headlight's formula. */
+vec3 headlight(vec3 rgb, vec3 g, vec3 towards)
+{
+  vec3 n = (params.normal * vec4(g, 0.0)).xyz;
+  float norm = length(n);
+  float cosine = norm > 0.0 ? abs(dot(n, towards)) / norm : 0.0;
+  float m = length(g);
+  float t = m <= params.fade.x ? 0.0 : (m >= params.fade.y ? 1.0 :
+                                        smoothstep(params.fade.x, params.fade.y, m));
+  float shininess = params.shading.w;
+  float highlight = cosine > 0.0 ? pow(cosine, shininess) : (shininess == 0.0 ? 1.0 : 0.0);
+  float lit = params.shading.x + params.shading.y * (1.0 - t + t * cosine);
+  return min(rgb * lit + t * params.shading.z * highlight, vec3(1.0));
+}
+
 /* Straight colour and opacity per unit length of a density (linear in the table). */
 vec4 classify(float value)
 {
@@ -188,6 +208,8 @@ void main()
   int block = int(params.grid.w);
   ivec3 last_cell = ivec3(n) - 1;
   vec3 to_texture = 1.0 / n;
+  bool shaded = params.fade.z > 0.5;
+  vec3 towards = normalize((params.to_world * vec4(d, 0.0)).xyz);
 
   vec4 acc = vec4(0.0);
   float tau = 0.0;
@@ -259,6 +281,9 @@ void main()
     }
     else {
       vec4 c = classify(value);
+      if (shaded) {
+        c.rgb = headlight(c.rgb, texture(gradient, (p + 0.5) * to_texture).xyz / rg.y, towards);
+      }
       float alpha = 1.0 - pow(1.0 - c.a, units * cover.x);
       if (!seen && c.a > 0.0 && c.a >= VISIBLE_ALPHA) {
         seen = true;
@@ -316,11 +341,12 @@ _context = False
 
 
 class _VolumeTextures:
-    """One VolumeEVM's textures: the region, and its empty-space blocks per (transfer
-    function, mode, X-ray parameters)."""
+    """One VolumeEVM's textures: the region, its gradients (None until a shaded frame needs
+    them), and its empty-space blocks per (transfer function, mode, X-ray parameters)."""
 
     def __init__(self, vevm):
         self.region = _texture_3d(gpu_region(vevm), "RG32F")
+        self.gradients = None
         self.occupancy = {}
 
 
@@ -460,6 +486,7 @@ def _shader_and_batch():
         info.sampler(1, "FLOAT_3D", "occupancy")
         info.sampler(2, "FLOAT_1D", "tf_table")
         info.sampler(3, "FLOAT_2D", "depth_in")
+        info.sampler(4, "FLOAT_3D", "gradient")
         _shader = _full_screen_shader(info, "volumeevm_dvr", _FRAGMENT,
                                       (("VEC4", "out_color"), ("FLOAT", "out_depth")))
         _batch = batch_for_shader(_shader, "TRI_STRIP",
@@ -503,18 +530,23 @@ def _keep(textures, key, texture):
         textures.pop(next(iter(textures)))
 
 
-def _volume_textures(vevm):
-    """The textures of ``vevm``, made on first use; a VolumeEVM the GPU refused once is refused
-    again at once (a viewport does not rebuild its region array at each draw)."""
-    volume = _volumes.get(vevm)
-    if volume is None:
-        if vevm in _refused:
-            raise _Refused(_refused[vevm])
-        try:
+def _volume_textures(vevm, shaded):
+    """The textures of ``vevm`` (with its gradients when ``shaded``), made on first use; a
+    VolumeEVM the GPU refused once is refused again at once (a viewport does not rebuild its
+    region array at each draw)."""
+    refused = _refused.get(vevm, {})  # shaded -> why (False: the region itself)
+    why = refused.get(False) or refused.get(shaded)
+    if why:
+        raise _Refused(why)
+    try:
+        volume = _volumes.get(vevm)
+        if volume is None:
             volume = _volumes[vevm] = _VolumeTextures(vevm)
-        except _Refused as error:
-            _refused[vevm] = str(error)
-            raise
+        if shaded and volume.gradients is None:
+            volume.gradients = _texture_3d(gpu_gradients(vevm), "RGBA32F")
+    except _Refused as error:
+        _refused.setdefault(vevm, {})[shaded] = str(error)
+        raise
     return volume
 
 
@@ -532,7 +564,7 @@ def fitted_frame(vevm, camera, tf, **options):
     frame = gpu_frame(vevm, camera, tf, **options)
     while not frame.vevm.evm.is_empty():
         try:
-            _volume_textures(frame.vevm)
+            _volume_textures(frame.vevm, frame.shaded)
             break
         except _Refused:
             if 2 * frame.level > max(vevm.shape):
@@ -542,8 +574,10 @@ def fitted_frame(vevm, camera, tf, **options):
 
 
 def _textures(frame, tf, xray):
-    """The region and occupancy textures of the frame's VolumeEVM, made on first use."""
-    volume = _volume_textures(frame.vevm)
+    """The region, occupancy and gradient textures of the frame's VolumeEVM, made on first
+    use (the region texture stands for the gradients when the frame is not shaded: the shader
+    then does not read them)."""
+    volume = _volume_textures(frame.vevm, frame.shaded)
     key = (_tf_key(tf), frame.mode, xray)
     occupancy = volume.occupancy.get(key)
     if occupancy is None:
@@ -551,7 +585,7 @@ def _textures(frame, tf, xray):
                                xray_offset=xray[1])
         occupancy = _texture_3d(blocks, "R32F")
     _keep(volume.occupancy, key, occupancy)
-    return volume.region, occupancy
+    return volume.region, occupancy, volume.gradients if frame.shaded else volume.region
 
 
 def free():
@@ -598,7 +632,7 @@ def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
         computed), ``"ALPHA_PREMULT"`` over a viewport.
     """
     shader, batch = _shader_and_batch()
-    region, occupancy = _textures(frame, tf, tuple(xray))
+    region, occupancy, gradient = _textures(frame, tf, tuple(xray))
     depth = frame.depth_in  # where rays stop (axial), or none
     if depth is None:
         depth = np.full((1, 1), BACKGROUND_DEPTH, np.float32)
@@ -611,6 +645,7 @@ def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
         shader.uniform_sampler("occupancy", occupancy)
         shader.uniform_sampler("tf_table", _table_texture(tf))
         shader.uniform_sampler("depth_in", depth_texture)
+        shader.uniform_sampler("gradient", gradient)
         batch.draw(shader)
 
 
@@ -640,12 +675,12 @@ def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0)):
 
 def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None,
                level="full", step_mm=None, termination=0.99, skip_empty=True,
-               xray_scale=1.0, xray_offset=0.0):
+               xray_scale=1.0, xray_offset=0.0, shading=None):
     """Render ``vevm`` seen by ``camera`` on the GPU: the core's ``render`` for the GPU.
 
     Same arguments and outputs as the core's ``render(..., method="raycast")`` (and the level
     drawn) with the options the GPU method has (``step_mm``, ``termination``, ``skip_empty``,
-    X-ray's); the ray marcher samples as the reference does (module docstring).
+    X-ray's, ``shading``); the ray marcher samples as the reference does (module docstring).
 
     Returns
     -------
@@ -670,7 +705,7 @@ def render_gpu(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=Non
     frame = fitted_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
                          matrix_world=matrix_world, level=level, step_mm=step_mm,
                          termination=termination, skip_empty=skip_empty, xray_scale=xray_scale,
-                         xray_offset=xray_offset)
+                         xray_offset=xray_offset, shading=shading)
     h, w = camera.shape
     rgba = np.zeros((h, w, 4), np.float32)
     depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)

@@ -99,6 +99,8 @@ def case(name, data_dir):
             options["termination"] = 0.99
         if name.endswith("_depth"):
             options["depth_in"] = depth_plane(cam, v, g)
+        if name.endswith("_shaded"):
+            options["shading"] = True
         if "_xray" in name:
             return v, cam, None, {**options, "mode": "xray", "xray_scale": 3e-4,
                                   "xray_offset": 0.0}
@@ -111,6 +113,8 @@ def case(name, data_dir):
         cam = camera(kind, g, v, (0.02, -0.03, 0.015), 0.03, res=(40, 36))
         mode = name.split("_")[1]
         options = {"mode": mode, "step_mm": 0.2, "termination": 1.0}
+        if "_shaded" in name:
+            options["shading"] = True
         if mode == "xray":
             return v, cam, None, {**options, "xray_scale": 2e-3, "xray_offset": 0.0}
         return v, cam, ramp_tf(), options
@@ -119,6 +123,6 @@ def case(name, data_dir):
 
 CASES = ("box_ortho", "box_persp", "blobs_ortho", "blobs_persp", "head_ortho", "head_persp",
          "head_persp_noskip", "head_persp_term", "head_persp_depth", "head_persp_xray",
-         "head_persp_mip", "irregular_over_ortho", "irregular_under_ortho",
-         "irregular_xray_persp", "irregular_mip_persp")
+         "head_persp_mip", "head_persp_shaded", "irregular_over_ortho", "irregular_under_ortho",
+         "irregular_over_shaded_ortho", "irregular_xray_persp", "irregular_mip_persp")
 """Every case the runner renders."""

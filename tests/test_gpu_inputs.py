@@ -10,8 +10,8 @@ import pytest
 
 from volumeevm_addon import (BACKGROUND_DEPTH, EVM, GPU_UNIFORMS_GLSL, Camera, TransferFunction,
                              VolumeEVM, VolumeEVMError, axial_from_window, camera_from_viewport,
-                             gpu_frame, gpu_occupancy, gpu_region, gpu_transfer_table,
-                             grid_to_world, phantoms, window_from_axial)
+                             gpu_frame, gpu_gradients, gpu_occupancy, gpu_region,
+                             gpu_transfer_table, grid_to_world, phantoms, window_from_axial)
 from volumeevm_addon.rendering._gpu_inputs import _FIELDS, GPU_BLOCK, GPU_TABLE_ROWS
 from volumeevm_addon.rendering._rays import camera_rays
 from volumeevm_addon.rendering._reference import _Sampler
@@ -219,6 +219,24 @@ def test_region_texture_is_the_clamp_policy():
                                rtol=1e-5, atol=1e-3)
 
 
+def test_gradient_texture_is_the_reference_gradient():
+    """Layout ``[z, y, x]`` with x, y, z gradients in RGB: the filtered texture over the region
+    texture's weight is the reference's interpolated gradient (the 3x3x3 Sobel over region
+    voxels) wherever the sample's cell is in the region."""
+    v, _, dens, mask = scene()
+    tex = gpu_gradients(v)
+    assert tex.dtype == np.float32 and tex.flags.c_contiguous
+    assert tex.shape == v.shape[::-1] + (4,) and not tex[..., 3].any()
+    rng = np.random.default_rng(2)
+    p = rng.uniform(-0.5, np.array(v.shape) - 0.5, (4000, 3))
+    weight = trilinear_clamped(gpu_region(v).astype(np.float64), p)[:, 1]
+    fetched = trilinear_clamped(tex.astype(np.float64), p)[:, :3]
+    inside, _, grad = _Sampler(np.where(mask, dens, 0), mask, mask, True)(p)
+    assert inside.sum() > 1500
+    np.testing.assert_allclose(fetched[inside] / weight[inside, None], grad[inside],
+                               rtol=1e-5, atol=1e-3)
+
+
 def test_transfer_table_is_the_straight_table():
     tf = TransferFunction.preset("ct_bone")
     table, lo, hi = gpu_transfer_table(tf)
@@ -384,3 +402,25 @@ def test_frame_checks_its_settings():
         gpu_region("volume")
     with pytest.raises(VolumeEVMError, match="mode"):
         gpu_occupancy(v, tf, mode="sum")
+
+
+def test_shading_uniforms():
+    """Shaded over/under frames carry the view's normal matrix, the index-to-world map, the
+    Blinn-Phong weights and the fade's magnitudes; X-ray and MIP frames are not shaded."""
+    v, placement, _, _ = scene()
+    g = grid_to_world(v.spacing, v.origin, v.orientation, placement)
+    cam = camera("PERSP", g, v, (0.02, -0.03, 0.015), 0.0)
+    tf = TransferFunction([(-200, 0.1, 0.3, 0.9, 0.0), (800, 1.0, 0.6, 0.2, 0.5)])
+    frame = gpu_frame(v, cam, tf, matrix_world=placement,
+                      shading=dict(specular=0.5, fade_from=0.01, fade_to=0.05))
+    u = frame.uniforms
+    assert frame.shaded
+    matrix = field(u, "normal").reshape(4, 4).T  # column-major
+    np.testing.assert_allclose(matrix[:3, :3], np.linalg.inv(g)[:3, :3].T, rtol=1e-6)
+    matrix = field(u, "to_world").reshape(4, 4).T
+    np.testing.assert_allclose(matrix[:3, :3], g[:3, :3], rtol=1e-6)
+    np.testing.assert_allclose(field(u, "shading"), (0.3, 0.7, 0.5, 20.0))
+    np.testing.assert_allclose(field(u, "fade"), (10.0, 50.0, 1.0, 0.0), rtol=1e-6)
+    for mode, shading in (("over", None), ("mip", True)):
+        frame = gpu_frame(v, cam, tf, mode=mode, matrix_world=placement, shading=shading)
+        assert not frame.shaded and not field(frame.uniforms, "fade").any()

@@ -241,7 +241,8 @@ def test_shading_of_a_linear_ramp(kind):
            Camera.perspective(cam_m, 120.0, resolution_x=12, resolution_y=10, clip_start=1e-3))
     rgb = np.array([0.8, 0.5, 0.2])
     tf = constant_tf(alpha=0.3, rgb=tuple(rgb))
-    shade = Shading(ambient=0.2, diffuse=0.6, specular=0.25, shininess=8.0)
+    shade = Shading(ambient=0.2, diffuse=0.6, specular=0.25, shininess=8.0, fade_to=0.0,
+                    fade_from=0.0)  # no fade: every gradient lit fully
     rgba, _ = render_reference(dens, None, g, sp, cam, tf, step_mm=0.5, shading=shade)
     normal = rot @ (np.array([3.0, 0.0, -2.0]) / sp)
     normal /= np.linalg.norm(normal)

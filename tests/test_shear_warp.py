@@ -474,7 +474,7 @@ def composited_slice(rows, lut, f, g):
                         np.zeros(1, np.int32), np.zeros(1, bool))
     optics = kernels.Optics(MODE_CODES["over"], False, False, np.float32(1.0),
                             np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
-                            0.0, 0.0, 64.0, _shear_warp._light(None, None), np.float32(0.0),
+                            0.0, 0.0, 64.0, _shear_warp._light(None, None, None), np.float32(0.0),
                             np.float32(0.0), np.float32(0.0))
     size = (n + 4, m + 4)
     frame = kernels.Frame(origin[0], origin[1], np.zeros((0, 0), np.float32),

@@ -39,7 +39,8 @@ from .rendering._camera import BACKGROUND_DEPTH, Camera
 from .rendering._compositing import composite_over, output_depth
 from .rendering._depth import VISIBLE_ALPHA
 from .rendering._gpu_inputs import (GPU_UNIFORMS_GLSL, GPUFrame, axial_from_window,
-                                    camera_from_viewport, gpu_frame, gpu_occupancy, gpu_region,
+                                    camera_from_viewport, gpu_frame, gpu_gradients, gpu_occupancy,
+                                    gpu_region,
                                     gpu_transfer_table, window_from_axial)
 from .rendering._images import exr_channels, openexr_module, read_exr, write_exr, write_png
 from .rendering._modes import MODES
@@ -87,6 +88,7 @@ __all__ = [
     "density_histogram",
     "exr_channels",
     "gpu_frame",
+    "gpu_gradients",
     "gpu_occupancy",
     "gpu_region",
     "gpu_transfer_table",

@@ -24,6 +24,10 @@ only uploads arrays and draws:
 - **Region** (:func:`gpu_region`): the boundary policy "clamp" (:mod:`._reference`) in one RG
   texture, ``(density · inside, inside)`` per voxel: a trilinear fetch gives both weighted sums,
   and their ratio is the interpolation renormalised over region voxels.
+- **Gradients** (:func:`gpu_gradients`, for shading): the CPU methods' per-voxel gradients
+  (:mod:`._gradients`, outside the region 0) in an RGBA texture; a trilinear fetch divided by
+  the region texture's weight is the gradient interpolated as the CPU ray caster interpolates
+  it, and the shader lights each sample with the headlight and fade of :mod:`._shading`.
 - **Empty space** (:func:`gpu_occupancy`): one texel per block of ``8³`` voxels, 0 where a
   sample may contribute: the space-leaping blocks of the CPU ray caster (``_raycast._Blocks``:
   region voxels within one voxel, the transfer function not transparent on their density
@@ -56,11 +60,13 @@ from ._camera import BACKGROUND_DEPTH, Camera
 from ._checks import (RAY_STEPS_PER_VOXEL, check_camera, check_mode, check_transfer_function,
                       check_volumeevm, checked_affine, checked_step_mm, checked_view,
                       checked_xray, flag, positive_integer, positive_number)
+from ._gradients import region_gradients
 from ._render import check_samples
+from ._shading import Lighting, checked_shading
 
 __all__ = ["GPU_BLOCK", "GPU_TABLE_ROWS", "GPU_UNIFORMS_GLSL", "GPUFrame", "gpu_frame",
-           "gpu_region", "gpu_occupancy", "gpu_transfer_table", "camera_from_viewport",
-           "axial_from_window", "window_from_axial"]
+           "gpu_region", "gpu_gradients", "gpu_occupancy", "gpu_transfer_table",
+           "camera_from_viewport", "axial_from_window", "window_from_axial"]
 
 GPU_BLOCK = 8
 """Edge in voxels of the occupancy blocks (empty-space skipping)."""
@@ -81,6 +87,10 @@ _FIELDS = (
     ("compositing", "vec4", "mode code; termination; xray_scale, xray_offset"),
     ("table", "vec4", "table: first value, rows per data unit, rows; unit_length_mm"),
     ("image", "vec4", "width, height; 1 when depth_in is given; 1 to encode sRGB"),
+    ("normal", "mat4", "index-space gradient g to world normal (m * vec4(g, 0)).xyz"),
+    ("to_world", "mat4", "index-space direction d to world (m * vec4(d, 0)).xyz"),
+    ("shading", "vec4", "Blinn-Phong ambient, diffuse, specular, shininess"),
+    ("fade", "vec4", "gradient magnitudes where shading fades in, from, to; 1 when shaded; 0"),
 )
 _FLOATS = {"vec4": 4, "mat4": 16}
 
@@ -311,13 +321,53 @@ def gpu_region(vevm):
     VolumeEVMError
         If ``vevm`` is not a VolumeEVM, or the array would not fit in the memory available.
     """
-    check_volumeevm(vevm)
-    nx, ny, nz = (int(n) for n in vevm.shape)
-    check_memory(8 * nx * ny * nz + nx * ny * nz, f"the GPU texture of {nx}x{ny}x{nz} voxels",
-                 source="vevm", advice="render a coarser level (level='auto' or an integer)")
+    nx, ny, nz = _checked_grid(vevm, 9, "texture")
     out = np.zeros((nz, ny, nx, 2), np.float32)
     _fill_region(vevm.evm.to_mask(vevm.shape), np.asarray(vevm.table(0), dtype=np.float32), out)
     return out
+
+
+def gpu_gradients(vevm):
+    """Shading's per-voxel gradients as one RGBA texture: ``(gx, gy, gz, 0)`` per voxel, the
+    index-space gradient of :func:`._gradients.region_gradients` (0 outside the region).
+
+    A trilinear fetch of it divided by the weight of :func:`gpu_region`'s fetch at the same
+    point is the gradient interpolated over the region's voxels, as the CPU ray caster
+    interpolates it.
+
+    Parameters
+    ----------
+    vevm : VolumeEVM
+
+    Returns
+    -------
+    (Z, Y, X, 4) ndarray of np.float32
+        C-contiguous, x fastest (a texture of size ``(X, Y, Z)``).
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``vevm`` is not a VolumeEVM, or the arrays would not fit in the memory available.
+    """
+    nx, ny, nz = _checked_grid(vevm, 44, "gradient texture")
+    padded = np.pad(gpu_region(vevm), ((1, 1), (1, 1), (1, 1), (0, 0)))
+    grads = np.zeros((3, nz, ny, nx), np.float32)  # along z, y, x
+    region_gradients(padded[..., 0], padded[..., 1], grads)
+    del padded
+    out = np.zeros((nz, ny, nx, 4), np.float32)
+    for c in range(3):
+        out[..., c] = grads[2 - c]
+    return out
+
+
+def _checked_grid(vevm, bytes_per_voxel, what):
+    """The grid's voxels along x, y, z, once ``vevm`` is checked and ``bytes_per_voxel`` of
+    its grid fit in the memory available (``what``: the GPU array they make)."""
+    check_volumeevm(vevm)
+    nx, ny, nz = (int(n) for n in vevm.shape)
+    check_memory(bytes_per_voxel * nx * ny * nz, f"the GPU {what} of {nx}x{ny}x{nz} voxels",
+                 source="vevm", advice="render a coarser level (level='auto' or an integer)")
+    return nx, ny, nz
 
 
 @kernel
@@ -477,6 +527,8 @@ class GPUFrame:
         Axial depth where rays stop, bottom row first (an OpenGL texture), or None.
     mode : str
         The compositing mode asked for.
+    shaded : bool
+        Whether the shader lights the samples (it then reads :func:`gpu_gradients`).
     level : int
         The resolution level's factor: 1 for the full level, ``k`` for voxels ``k`` times
         coarser (level "auto" picks it per view).
@@ -489,12 +541,13 @@ class GPUFrame:
     uniforms: np.ndarray
     depth_in: object
     mode: str
+    shaded: bool
     level: int
 
 
 def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None, level="full",
               step_mm=None, termination=0.99, skip_empty=True, xray_scale=1.0,
-              xray_offset=0.0, srgb=False):
+              xray_offset=0.0, srgb=False, shading=None):
     """Check one GPU render's settings and compute its uniforms (what :func:`render` does before
     it renders, for the GPU).
 
@@ -503,8 +556,10 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
     into equal parts no longer than ``step_mm``, each sampled at its midpoint (trilinear,
     boundary policy "clamp", post-classified, opacity corrected for the length of the part
     that lies in region cells: cut at cell boundaries as the CPU ray caster cuts it, so the
-    region's surface is placed exactly), composited front to back with early termination; the
-    output depth is where the first visible part enters the region (:mod:`._depth`).
+    region's surface is placed exactly), lit with ``shading`` (the gradients of
+    :func:`gpu_gradients` interpolated the same way, the headlight and fade of
+    :mod:`._shading`), composited front to back with early termination; the output depth is
+    where the first visible part enters the region (:mod:`._depth`).
 
     Parameters
     ----------
@@ -534,6 +589,10 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
         Encode the colour for an sRGB display: the straight colour through the sRGB transfer
         function, premultiplied again (a 3D viewport draws add-ons after the scene's view
         transform). False (default): scene-linear, as every renderer returns it.
+    shading : None, True, dict or Shading, optional
+        Gradient shading for ``"over"`` and ``"under"`` (:class:`._shading.Shading`, as for
+        the CPU methods; ignored by ``"xray"`` and ``"mip"``): the shader then reads
+        :func:`gpu_gradients`' texture.
 
     Returns
     -------
@@ -543,10 +602,11 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
     ------
     VolumeEVMError
         For a bad VolumeEVM, camera, transfer function, mode, placement, level, step,
-        termination, flag, X-ray parameter or ``depth_in`` (naming it), or a step that would
-        take more than ``MAX_SAMPLES`` samples.
+        termination, flag, X-ray parameter, shading or ``depth_in`` (naming it), or a step
+        that would take more than ``MAX_SAMPLES`` samples.
     """
     check_camera(camera)
+    shading = checked_shading(shading)
     check_volumeevm(vevm)
     if step_mm is not None:
         step_mm = positive_number("step_mm", step_mm)
@@ -566,6 +626,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
     skip_empty = flag("skip_empty", skip_empty)
     srgb = flag("srgb", srgb)
     rays, axial_origin = _pixel_rays(camera, g, vevm.shape)
+    lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g, tf)
     lo, hi = _table_range(tf)
     n = np.asarray(vevm.shape, dtype=np.float64)
     h, w = camera.shape
@@ -582,11 +643,16 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
         "table": (lo, (GPU_TABLE_ROWS - 1) / (hi - lo), GPU_TABLE_ROWS,
                   1.0 if tf is None else tf.unit_length_mm),
         "image": (w, h, float(depth_in is not None), float(srgb)),
+        "normal": _mat4(np.zeros((3, 3)) if lighting is None else lighting.inv_t),
+        "to_world": _mat4(g[:3, :3]),
+        "shading": (0.0,) * 4 if lighting is None else lighting.weights()[:4],
+        "fade": (0.0, 0.0, 0.0, 0.0) if lighting is None else (*lighting.fade, 1.0, 0.0),
     })
     if depth_in is not None:
         depth_in = np.ascontiguousarray(np.flipud(np.minimum(depth_in, BACKGROUND_DEPTH)),
                                         dtype=np.float32)
-    return GPUFrame(vevm, g, rays, axial_origin, uniforms, depth_in, mode, factor)
+    return GPUFrame(vevm, g, rays, axial_origin, uniforms, depth_in, mode, lighting is not None,
+                    factor)
 
 
 def _pixel_rays(camera, grid_to_world, shape):

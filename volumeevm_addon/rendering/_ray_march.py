@@ -83,8 +83,7 @@ order "xyz" as float32, and ``relation`` (int64), the arrays :data:`RELATION_FIE
 ``relation_at[i] .. relation_at[i + 1]``."""
 
 Optics = namedtuple("Optics", "mode termination xray_scale xray_offset lut lut_lo lut_scale pre "
-                              "pre_lo pre_scale pre_n units visible shaded normal ambient "
-                              "diffuse specular shininess")
+                              "pre_lo pre_scale pre_n units visible shaded normal phong")
 Optics.__doc__ = """How samples become colour.
 
 ``mode``: :data:`._modes.MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this
@@ -94,7 +93,8 @@ float32 with ``pre_lo``, ``pre_scale``, ``pre_n``: the pre-integrated table (emp
 ``units`` (float32): the step in unit lengths of the transfer function, ``visible``: the
 opacity from which a whole step is visible (:func:`._depth.visible_threshold`); ``shaded``:
 gradient shading, ``normal`` (9,): the matrix taking an index-space gradient to a world normal,
-row by row, and the Blinn–Phong weights."""
+row by row, and ``phong`` (6,): the Blinn–Phong weights and the fade
+(:meth:`._shading.Lighting.weights`)."""
 
 RELATION_FIELDS = ("slab_lo", "slab_hi", "slab_base", "slab_area", "sub_keys", "sub_slab",
                    "sub_lo", "sub_hi", "sub_base", "line_length", "run_keys", "run_sub",
@@ -385,8 +385,9 @@ def _navigated_corners(densities, relation, at, base, shaded, hood, hood_in):
             hood_in[h] = idx >= 0
     gradients = (_ZEROS8, _ZEROS8, _ZEROS8)
     if shaded:
-        gradients = (_hood_gradients(hood, hood_in, 16), _hood_gradients(hood, hood_in, 4),
-                     _hood_gradients(hood, hood_in, 1))
+        gradients = (_hood_gradients(hood, hood_in, 16, 4, 1),
+                     _hood_gradients(hood, hood_in, 4, 16, 1),
+                     _hood_gradients(hood, hood_in, 1, 16, 4))
     return _inner(hood), _inner(hood_in), gradients
 
 
@@ -400,29 +401,54 @@ def _inner(hood):
 
 
 @kernel
-def _hood_gradients(hood, hood_in, step):
-    """One axis (``step`` in the flat 4x4x4 ``hood``) of the gradients at its 8 inner voxels."""
-    return (_hood_gradient(hood, hood_in, 21, step), _hood_gradient(hood, hood_in, 22, step),
-            _hood_gradient(hood, hood_in, 25, step), _hood_gradient(hood, hood_in, 26, step),
-            _hood_gradient(hood, hood_in, 37, step), _hood_gradient(hood, hood_in, 38, step),
-            _hood_gradient(hood, hood_in, 41, step), _hood_gradient(hood, hood_in, 42, step))
+def _hood_gradients(hood, hood_in, step, first, second):
+    """One axis (``step`` in the flat 4x4x4 ``hood``; ``first`` and ``second``: the steps of
+    the other two axes, the lower axis first) of the gradients at its 8 inner voxels."""
+    return (_hood_gradient(hood, hood_in, 21, step, first, second),
+            _hood_gradient(hood, hood_in, 22, step, first, second),
+            _hood_gradient(hood, hood_in, 25, step, first, second),
+            _hood_gradient(hood, hood_in, 26, step, first, second),
+            _hood_gradient(hood, hood_in, 37, step, first, second),
+            _hood_gradient(hood, hood_in, 38, step, first, second),
+            _hood_gradient(hood, hood_in, 41, step, first, second),
+            _hood_gradient(hood, hood_in, 42, step, first, second))
 
 
 @kernel
-def _hood_gradient(hood, hood_in, h, step):
-    """One axis of the gradient at voxel ``h`` of the flat 4x4x4 ``hood``
-    (:func:`._gradients.region_gradients`): the central difference between region neighbours,
-    one-sided towards the only one, 0 with none or outside the region."""
+def _hood_gradient(hood, hood_in, h, step, first, second):
+    """One axis of the gradient at voxel ``h`` of the flat 4x4x4 ``hood``: the estimator of
+    :func:`._gradients.region_gradients` with its arithmetic, in float32 (the 9 lines' differences
+    weighted ``1 2 1`` along ``first``, then along ``second``, over the weights used)."""
     if not hood_in[h]:
         return np.float32(0)
-    plus, minus = hood_in[h + step], hood_in[h - step]
+    two = np.float32(2)
+    total, used = np.float32(0), np.float32(0)
+    for j in range(3):
+        across = h + (j - 1) * second
+        d0, u0 = _hood_line(hood, hood_in, across - first, step)
+        d1, u1 = _hood_line(hood, hood_in, across, step)
+        d2, u2 = _hood_line(hood, hood_in, across + first, step)
+        weight = two if j == 1 else np.float32(1)
+        if j == 0:
+            total, used = (d0 + two * d1) + d2, (u0 + two * u1) + u2
+        else:
+            total = total + weight * ((d0 + two * d1) + d2)
+            used = used + weight * ((u0 + two * u1) + u2)
+    return total / max(used, np.float32(1))
+
+
+@kernel
+def _hood_line(hood, hood_in, h, step):
+    """The difference along ``step`` of the line through voxel ``h`` of the hood and 1, or 0
+    and 0 where it is missing (:mod:`._gradients`)."""
+    plus, middle, minus = hood_in[h + step], hood_in[h], hood_in[h - step]
     if plus and minus:
-        return np.float32(0.5) * (hood[h + step] - hood[h - step])
-    if plus:
-        return hood[h + step] - hood[h]
-    if minus:
-        return hood[h] - hood[h - step]
-    return np.float32(0)
+        return np.float32(0.5) * (hood[h + step] - hood[h - step]), np.float32(1)
+    if plus and middle:
+        return hood[h + step] - hood[h], np.float32(1)
+    if minus and middle:
+        return hood[h] - hood[h - step], np.float32(1)
+    return np.float32(0), np.float32(0)
 
 
 @kernel
@@ -619,7 +645,7 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                                           lattice.block)
     lut, pre = optics.lut, optics.pre
     mode, shaded, preintegrated = optics.mode, optics.shaded, len(optics.pre) > 0
-    phong = (optics.ambient, optics.diffuse, optics.specular, optics.shininess)
+    phong = optics.phong
     backward = mode == _UNDER
     step32 = np.float32(lattice.step_mm)
     hood = np.zeros(64, np.float32)  # navigation with shading: the 4x4x4 voxels around a cell

@@ -13,8 +13,8 @@ with a fixed step, fast:
   shorter length. Opacity is corrected for the step, ``α' = 1 - (1 - α)^(Δ/Δ0)``.
 - **Reconstruction** (boundary policy "clamp"): the density at a sample's midpoint is the
   trilinear interpolation of its 8 neighbours that are in the region, with the weights of the
-  others dropped and the rest renormalised. Gradients (for shading) are per-voxel central
-  differences over region voxels (one-sided at the surface), interpolated the same way, as in
+  others dropped and the rest renormalised. Gradients (for shading) are per-voxel 3x3x3
+  Sobel estimates over region voxels (:mod:`._gradients`), interpolated the same way, as in
   the reference.
 - **Coverage**: as in the reference, only the parts of a ray inside region cells count. Each
   sample's segment is cut where it crosses cell boundaries (at most one per axis for steps up
@@ -401,7 +401,7 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
         lattice = blocks.leaping(lattice, mode, tf, margin, compositing)
     records = (_view(camera, g, vevm.shape, spacing, depth_in), lattice,
                _volume(vevm, tables_keys),
-               _optics(compositing, tf, step_mm, lut, pre, Lighting.of_view(shading, g)))
+               _optics(compositing, tf, step_mm, lut, pre, Lighting.of_view(shading, g, tf)))
     vmax = np.full(h * w if mode == "mip" else 0, -np.inf, np.float32)
     side = max(1, math.isqrt(chunk_rays))  # square tiles of at most chunk_rays pixels
     samples = sum(parallel_map(march_rays, [
@@ -457,8 +457,7 @@ def _optics(compositing, tf, step_mm, lut, pre, lighting):
         0 if pre is None else int(pre[4]), units, float(visible_threshold(units, np.float64)),
         lighting is not None,
         _floats((np.zeros((3, 3)) if lighting is None else lighting.inv_t).ravel()),
-        *(0.0 if lighting is None else float(getattr(lighting.shading, name))
-          for name in ("ambient", "diffuse", "specular", "shininess")))
+        (0.0,) * 6 if lighting is None else lighting.weights())
 
 
 def _floats(values):

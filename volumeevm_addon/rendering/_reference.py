@@ -35,9 +35,10 @@ same solid the EVM describes.
     own densities table: 9 % of the VoI's voxels for the head above -300 HU, 66 % for bone
     above 150 HU) could. Interpolation in the VoI then equals the full dense render's. Same
     measurements: 0.0000 (above -300 HU) and 0.004 (above 150 HU).
-- Gradients (shading) are central differences per voxel over readable voxels, one-sided where
-  one neighbour along an axis is not readable, zero where neither is; they are interpolated
-  like the densities.
+- Gradients (shading) are per voxel the 3x3x3 Sobel over readable voxels (:mod:`._gradients`:
+  each of the 9 lines' central difference, one-sided where one end is not readable, lines
+  without one left out, zero where none has one); they are interpolated like the densities.
+  Shading fades out where they are small (:func:`._shading.fade`).
 
 Sampling
 --------
@@ -297,7 +298,7 @@ def render_reference(densities, mask, grid_to_world, spacing, camera, tf, *, mod
     per_ray_breaks = 2 * int(sum(d.shape)) + 8
     max_rays = max(1, min(chunk_rays, _BREAK_BUDGET // per_ray_breaks))
     readable = m if boundary == "clamp" else _dilate(m)
-    lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g)
+    lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g, tf)
     sampler = _Sampler(d, m, readable, with_gradient=lighting is not None)
     start = 0
     while start < len(live):

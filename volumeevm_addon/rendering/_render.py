@@ -174,7 +174,8 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Default ``None`` (shear_warp, splat, raycast, raycast_navigate, reference). Gradient
         shading for ``"over"`` and ``"under"`` (:class:`Shading`: a Blinn–Phong headlight;
         True for its defaults, a dict for its fields); ignored by ``"xray"`` and ``"mip"``.
-        Gradients are central differences over region voxels; shear-warp lights voxels before
+        Gradients are the 3x3x3 Sobel over region voxels, and shading fades out where they
+        are small (``Shading.fade_from``/``fade_to``); shear-warp lights voxels before
         interpolation, the others light each sample.
     xray_scale : float
         Default ``1.0`` (shear_warp, splat, raycast, raycast_navigate, reference). ``"xray"``:

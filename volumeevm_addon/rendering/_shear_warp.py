@@ -57,7 +57,7 @@ Pipeline
    their own ``Δ``; the table is made for the central ray and each sample is corrected to its
    ray's ``Δ`` by ``α' = 1 - (1 - α)^(Δ/Δ_table)`` (colour scaled by ``α'/α``).
    With ``shading``, each visible voxel's colour is lit once per view before interpolation
-   (the reference's Blinn–Phong headlight on per-voxel central-difference gradients, which are
+   (the reference's Blinn–Phong headlight on per-voxel 3x3x3 Sobel gradients, which are
    computed once per principal axis and cached; the light is the view direction, for
    perspective the eye-to-region-centre direction).
    ``"mip"`` and ``"xray"`` interpolate densities instead (post-classification, as the
@@ -130,7 +130,7 @@ from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, flag, positive_integer
 from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode
-from ._shading import Shading, checked_shading
+from ._shading import Shading, checked_shading, fade_magnitudes
 from ._shear_warp_kernels import (NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
                                   box_runs, composite, flagged_runs, lit_colours, mask_runs,
                                   mixed_codes, ray_points, warp)
@@ -616,9 +616,9 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
     shading : None, True, dict or Shading
         Gradient shading for ``"over"`` and ``"under"`` (:class:`._shading.Shading`:
         Blinn–Phong headlight; ignored by ``"xray"`` and ``"mip"``), applied per voxel before
-        interpolation (pre-classification): per-voxel gradients (reference's central
-        differences) are computed once per principal axis and cached; each view lights them
-        along one direction (perspective: eye to the region's centre).
+        interpolation (pre-classification): per-voxel gradients (the reference's 3x3x3
+        Sobel, :mod:`._gradients`) are computed once per principal axis and cached; each
+        view lights them along one direction (perspective: eye to the region's centre).
     slices_per_voxel : {1, 2, 3, 4, 8}
         Samples along each ray per voxel slice (module docstring, 4): 1 is VolPack's one sample
         per slice; more interpolate between slices (trilinear): each voxel slice is classified
@@ -836,7 +836,7 @@ def _optics(vevm, view, layout, tf, compositing, sampling, delta):
     optics = Optics(MODE_CODES[mode], post, shading is not None,
                     np.float32(compositing.termination),
                     _depth.visible_threshold(1.0 if units is None else units, np.float32),
-                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading),
+                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading, tf),
                     np.float32(compositing.xray_offset),
                     np.float32(compositing.xray_scale * delta),
                     _depth.attenuation_threshold(delta, np.float32))
@@ -851,14 +851,17 @@ def _optics(vevm, view, layout, tf, compositing, sampling, delta):
                                                            optics), 4), optics
 
 
-def _light(view, shading):
-    """The view's headlight as the kernels take it (:data:`Light`; zeros without shading)."""
+def _light(view, shading, tf):
+    """The view's headlight with the transfer function ``tf`` as the kernels take it
+    (:data:`Light`; zeros without shading)."""
     if shading is None:
-        return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4)
+        return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4,
+                     0.0, 0.0)
     return Light(tuple(view.inv[:3, :3].astype(np.float32).ravel()),
                  tuple(view.light.astype(np.float32)),
                  *(np.float32(w) for w in (shading.ambient, shading.diffuse, shading.specular,
-                                           shading.shininess)))
+                                           shading.shininess)),
+                 *fade_magnitudes(shading, tf))
 
 
 def _lit_voxels(classes, gradients, optics):

@@ -40,6 +40,7 @@ from collections import namedtuple
 import numpy as np
 
 from .._jit import kernel
+from ._shading import fade
 from ._modes import MODE_CODES, MODES
 
 __all__ = ["Runs", "Plan", "Voxels", "Light", "Optics", "Frame", "NEVER",
@@ -88,10 +89,11 @@ Voxels.__doc__ = """What a tap reads from a voxel of code ``c`` (weight 1; code 
 indexed by each voxel's row, or the view's lit colours of the visible voxels), or
 post-classification's density (and index-space gradient)."""
 
-Light = namedtuple("Light", "normal towards ambient diffuse specular shininess")
+Light = namedtuple("Light", "normal towards ambient diffuse specular shininess fade_lo fade_hi")
 Light.__doc__ = """A view's headlight, numbers only (float32): ``normal`` (9,), the matrix taking
 an index-space gradient to a world normal, row by row (``n = g @ normal``); ``towards`` (3,),
-the unit world direction of the light; the Blinn–Phong weights (:class:`._shading.Shading`)."""
+the unit world direction of the light; the Blinn–Phong weights (:class:`._shading.Shading`);
+the fade's gradient magnitudes (float64, :attr:`._shading.Lighting.fade`)."""
 
 Optics = namedtuple("Optics", "mode post shaded termination visible lut straight lut_lo "
                               "lut_scale lut_rows light xray_offset xray_factor xray_visible")
@@ -303,20 +305,20 @@ def mixed_codes(region, ids, slices, columns):
 def _headlight(gx, gy, gz, light):
     """The Blinn–Phong headlight (:mod:`._shading`) for an index-space gradient: the factor on
     the straight colour and the highlight added to it, float32 (as ``_shading.blinn_phong``
-    on ``cos = |N·L|``, 1 where the gradient is 0)."""
+    on ``cos = |N·L|`` and the fade ``t`` of :func:`._shading.fade`)."""
     m = light.normal
     nx = gx * m[0] + gy * m[3] + gz * m[6]
     ny = gx * m[1] + gy * m[4] + gz * m[7]
     nz = gx * m[2] + gy * m[5] + gz * m[8]
     norm = np.float32(math.sqrt(nx * nx + ny * ny + nz * nz))
+    cos = _ZERO
     if norm > 0:
         towards = light.towards
         cos = abs(nx * towards[0] + ny * towards[1] + nz * towards[2]) / norm
-        glint = light.specular * np.float32(cos ** light.shininess)
-    else:
-        cos = _ONE
-        glint = _ZERO
-    return light.ambient + light.diffuse * cos, glint
+    t = np.float32(fade(math.sqrt(np.float64(gx) ** 2 + np.float64(gy) ** 2
+                                  + np.float64(gz) ** 2), light.fade_lo, light.fade_hi))
+    glint = t * (light.specular * np.float32(cos ** light.shininess))
+    return light.ambient + light.diffuse * (_ONE - t + t * cos), glint
 
 
 @kernel

@@ -50,8 +50,8 @@ reach can mix; with sub-slabs also their neighbours' in the adjacent slices) is 
 the transfer function (X-ray: does not attenuate) are not splatted either: the image is the
 same. Which voxels those are is per-transfer-function work, kept in the VolumeEVM's cache per
 axis for the last transfer function (frames of an animation share it). Shading (optional) splats
-per-voxel gradients (central differences over region voxels, from the neighbouring sheets) with
-the densities and lights the sheet's samples like the reference does.
+per-voxel gradients (the 3x3x3 Sobel over region voxels of :mod:`._gradients`, from the
+neighbouring sheets) with the densities and lights the sheet's samples like the reference does.
 
 Sub-slabs: with one sample per slab a ray samples each sheet where it crosses the sheet's
 centre plane, at a sub-voxel position (phase) that is the same for every pixel when the pixel
@@ -323,8 +323,9 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         window is all such pixels are skipped (error at most ``1 - termination``); 1 = off.
     shading : None, True, dict or Shading
         Gradient shading for over/under (:class:`._shading.Shading`, the reference's
-        Blinn–Phong headlight): per-voxel central differences over region voxels (from the
-        neighbouring sheets), splatted with the densities and normalised the same way.
+        Blinn–Phong headlight): per-voxel 3x3x3 Sobel gradients over region voxels (from the
+        neighbouring sheets, :mod:`._gradients`), splatted with the densities and normalised
+        the same way.
     kernel_sigma, kernel_radius : float
         Gaussian kernel's standard deviation and truncation radius, in voxels (defaults 0.4
         and 1.0: weights are normalised per pixel, so the cut costs little; the radius must
@@ -382,7 +383,7 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     inv = np.linalg.inv(g)
     view, cam_i = _view(vevm, camera, inv)
     splat_view = _SplatView(camera, g, inv, camera_rays(camera, g, vevm.shape, depth_in), view,
-                            cam_i, Lighting.of_view(shading, g))
+                            cam_i, Lighting.of_view(shading, g, tf))
     kernel = _Kernel(sigma, radius, max_px, 1 if mode == "mip" else substeps)
     weights = _family_weights(view * np.asarray(vevm.spacing, dtype=np.float64), blend)
     out = None
@@ -762,16 +763,14 @@ def _optics(compositing, tf, lighting, axes):
         hi = hi if hi > lo else lo + 1.0
         lut = np.asarray(tf.straight_table(lo=lo, hi=hi, n=4096), dtype=np.float32)
         scale, unit_length = 4095.0 / (hi - lo), tf.unit_length_mm
-    normal, weights = np.zeros(0), (0.0, 0.0, 0.0, 0.0)
+    normal, weights = np.zeros(0), (0.0,) * 6
     if lighting is not None:
         normal = np.ascontiguousarray(lighting.inv_t[:, list(axes)], dtype=np.float64).ravel()
-        shading = lighting.shading
-        weights = tuple(float(x) for x in (shading.ambient, shading.diffuse, shading.specular,
-                                           shading.shininess))
+        weights = lighting.weights()
     optics = Optics(MODE_CODES[mode], termination, lut, np.float32(lo),
                     np.float32(0.0 if scale is None else scale), np.float32(unit_length),
                     np.float32(compositing.xray_scale), np.float32(compositing.xray_offset),
-                    normal, *weights)
+                    normal, weights)
     return optics, scale
 
 

@@ -83,14 +83,14 @@ the window's top left image pixel ``(r0, c0)`` and its pixels that take contribu
 ((rows, cols) bool)."""
 
 Optics = namedtuple("Optics", "mode termination lut lut_lo lut_scale unit_length xray_scale "
-                              "xray_offset normal ambient diffuse specular shininess")
+                              "xray_offset normal phong")
 Optics.__doc__ = """How samples become colour: ``mode`` (:data:`._modes.MODE_CODES`);
 ``termination`` (float32): "over" finishes a pixel at this opacity; post-classification through
 ``lut`` ((n, 4) float32 straight RGBA, interpolated at ``(d - lut_lo)·lut_scale``; empty for
 X-ray), opacity per ``unit_length`` mm (float32); X-ray's ``μ = xray_scale·max(d - xray_offset,
 0)`` (float32); shading (``normal`` (9,) float64, empty unshaded: the matrix taking the sheet's
-(A, B, C) gradient to a world normal, row by row) with the Blinn–Phong weights (float64) of
-:class:`._shading.Shading`."""
+(A, B, C) gradient to a world normal, row by row) with ``phong``, the Blinn–Phong weights and
+the fade (6 floats, :meth:`._shading.Lighting.weights`)."""
 
 Image = namedtuple("Image", "acc depth done vmax")
 Image.__doc__ = """What a sheet family composites into, flat per pixel: premultiplied RGBA
@@ -215,7 +215,7 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
     if optics.normal.shape[0] > 0:
         m = optics.normal
         normal = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
-    weights = (optics.ambient, optics.diffuse, optics.specular, optics.shininess)
+    weights = optics.phong
     for r in range(top, bottom):
         y = slab.r0 + r
         for col in range(cols):
