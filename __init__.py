@@ -3,7 +3,14 @@
 The core (``volumeevm_addon``) is NumPy only; ``blender`` holds the Blender-side machinery and
 the script API (``blender.api``); ``operators`` the operator classes; ``ui`` the property groups
 and the sidebar tab.
+
+A process that registers the extension and ends without ``unregister()`` (a script under
+``blender --background --python``, or the bpy module) gets it unregistered at interpreter exit:
+the bpy module (4.5) crashes at exit while the viewport's draw handler remains, and hangs while
+persistent handlers or the add-on's UI additions remain.
 """
+
+import atexit
 
 import bpy
 
@@ -32,9 +39,11 @@ def register():
     handlers.install(compositor.HANDLERS + sidecar.HANDLERS + tool_stack.HANDLERS
                      + gpu_viewport.HANDLERS)
     gpu_viewport.register()
+    atexit.register(unregister)
 
 
 def unregister():
+    atexit.unregister(unregister)
     gpu_viewport.unregister()
     handlers.uninstall()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)
