@@ -7,7 +7,8 @@ and the sidebar tab.
 A process that registers the extension and ends without ``unregister()`` (a script under
 ``blender --background --python``, or the bpy module) gets it unregistered at interpreter exit:
 the bpy module (4.5) crashes at exit while the viewport's draw handler remains, and hangs while
-persistent handlers or the add-on's UI additions remain.
+persistent handlers or the add-on's UI additions remain. ``unregister()`` does nothing when the
+extension is not registered: Blender disables enabled add-ons at exit after that hook has run.
 """
 
 import atexit
@@ -26,6 +27,9 @@ _POINTERS = (
 )
 
 
+_registered = []
+
+
 def register():
     kernels.register(__package__)
     for cls in ui.CLASSES:
@@ -40,10 +44,14 @@ def register():
                      + gpu_viewport.HANDLERS)
     gpu_viewport.register()
     atexit.register(unregister)
+    _registered.append(True)
 
 
 def unregister():
     atexit.unregister(unregister)
+    if not _registered:
+        return
+    _registered.clear()
     gpu_viewport.unregister()
     handlers.uninstall()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)

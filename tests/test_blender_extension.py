@@ -110,6 +110,25 @@ print("RESULT " + json.dumps(result), flush=True)
 '''
 
 
+# A second session after the install, as README shows it: a new Python imports the installed
+# extension's API, which enables the extension (not enabled: the bpy module saves no preferences).
+SECOND_SESSION = r'''
+import json, sys
+import bpy
+import addon_utils
+
+repo_dir, volume = sys.argv[1], sys.argv[2]
+bpy.context.preferences.extensions.repos.new(
+    name="vevm_test", module="vevm_test", custom_directory=repo_dir, source="USER")
+result = {"enabled_before": addon_utils.check("bl_ext.vevm_test.volumeevm")[1]}
+from bl_ext.vevm_test.volumeevm.blender import api
+result["enabled_after"] = addon_utils.check("bl_ext.vevm_test.volumeevm")[1]
+vol = api.import_volume(volume, name="second")
+result["volume"] = [vol.name, vol.volumeevm.role, list(vol.volumeevm.shape)]
+print("RESULT " + json.dumps(result), flush=True)
+'''
+
+
 def _blender_ext():
     """``blender_ext.py`` from the bpy wheel of the running venv."""
     bpy_dir = Path(importlib.util.find_spec("bpy").origin).parent
@@ -220,6 +239,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     volume = data_dir / "ct_skull_cgal.npy"
     _, installed = _bpy_process(tmp_path, INSTALL, env, archive, repo_dir)
     run, result = _bpy_process(tmp_path, RUN, env, repo_dir, volume, 2.9)
+    second_run, second = _bpy_process(tmp_path, SECOND_SESSION, env, repo_dir, volume)
 
     from volumeevm_addon import VolumeEVM, read_volume
 
@@ -248,3 +268,6 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     assert (folder / "blender_manifest.toml").is_file()
     assert list(folder.rglob("*.vevm")) == [] and list(folder.rglob("*.nbi")) == []
     assert "[volumeevm]  30% building EVM" in run.stdout
+    assert second == {"enabled_before": False, "enabled_after": True,
+                      "volume": ["second", "VOLUME", list(np.load(volume).shape)]}
+    assert "reloading" not in second_run.stdout, second_run.stdout
