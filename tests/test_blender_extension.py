@@ -31,7 +31,7 @@ from blender_helpers import REPO
 MANIFEST = tomllib.loads((REPO / "blender_manifest.toml").read_text())
 PLATFORM = "linux-x64"
 ZIP_NAME = f"{MANIFEST['id']}-{MANIFEST['version']}-{PLATFORM.replace('-', '_')}.zip"
-FIRST_USE = "preparing renderer (first use only)"
+FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"
 
 _spec = importlib.util.spec_from_file_location("fetch_wheels",
                                                REPO / "requirements" / "fetch_wheels.py")

@@ -169,3 +169,62 @@ def test_import_finds_and_hides_the_cube_that_encloses_the_volume(ext, data_dir)
     assert cube.hide_get() and cube.hide_render
     assert not small.hide_get() and not small.hide_render
     assert framing.enclosing_objects(vol) == []
+
+
+# ---------------------------------------------------------------------------- smaller things
+def test_a_blend_relative_file_in_an_unsaved_blend_is_refused(ext, data_dir, tmp_path,
+                                                              monkeypatch):
+    from volumeevm.volumeevm_addon import TransferFunction, VolumeEVMError
+
+    monkeypatch.chdir(tmp_path)
+    api = ext.blender.api
+    vol = api.import_volume(data_dir / SKULL_NPY)
+    api.build(vol, 2.9)
+    api.frame_volume(vol)
+    r = bpy.context.scene.render
+    r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage = "CYCLES", 48, 36, 100
+    bpy.context.scene.cycles.samples = 1
+    tf = TransferFunction.preset("mri", data_range=(0.0, 5.5))
+    for key in ("png_path", "exr_path"):
+        with pytest.raises(VolumeEVMError, match=f"{key}: '//out' is relative to the .blend "
+                                                 f"file, which is not saved yet"):
+            api.render_dvr(vol, tf, **{key: "//out"})
+    s = bpy.context.scene.volumeevm_render
+    s.volume, s.use_png = vol, True  # the default PNG file: //volumeevm.png
+    with pytest.raises(RuntimeError, match="png_path: '//volumeevm.png' is relative to the "):
+        bpy.ops.volumeevm.render_dvr()  # the operator reports the error
+    assert list(tmp_path.iterdir()) == []  # nothing written into the current directory
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "saved" / "scene.blend"))
+    result = api.render_dvr(vol, tf, png_path="//out.png")
+    assert result.png_path == str(tmp_path / "saved" / "out.png")
+    assert (tmp_path / "saved" / "out.png").is_file()
+
+
+def test_an_unknown_method_error_lists_every_method(ext, data_dir):
+    from volumeevm.volumeevm_addon import TransferFunction, VolumeEVMError
+
+    api, dvr = ext.blender.api, ext.blender.dvr
+    vol = api.import_volume(data_dir / SKULL_NPY)
+    api.frame_volume(vol)
+    with pytest.raises(VolumeEVMError) as error:
+        api.render_dvr(vol, TransferFunction.preset("ct_bone"), method="raytrace")
+    assert str(error.value) == f"method: one of {dvr.METHODS}, got 'raytrace'"
+    assert "gpu" in dvr.METHODS and "raycast" in dvr.METHODS
+
+
+def test_the_api_says_how_to_enable_the_extension(ext, data_dir):
+    from volumeevm.volumeevm_addon import VolumeEVMError
+
+    api = ext.blender.api
+    ext.unregister()
+    try:
+        message = ("the VolumeEVM extension is not enabled: call "
+                   "bpy.ops.preferences.addon_enable(module='volumeevm')")
+        with pytest.raises(VolumeEVMError) as error:
+            api.import_volume(data_dir / SKULL_NPY)
+        assert str(error.value) == message
+        with pytest.raises(VolumeEVMError) as error:
+            api.build(bpy.data.objects.new("x", None))
+        assert str(error.value) == message
+    finally:
+        ext.register()
