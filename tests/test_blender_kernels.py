@@ -4,9 +4,9 @@ While a job's steps run (the synchronous path of scripts and ``--background``, a
 of the UI), kernels use the scene's render threads setting (Fixed: its count; Auto-detect: all
 cores) and the count from before comes back afterwards; a kernel's first use in the session
 shows "compiling VolumeEVM's Numba kernels (first use only)" once in the job's progress (a
-progress line, or the progress text the UI draws). The source tree is no installed extension: registering it keeps the
-core's default cache folder. The installed extension (its cache in the extension's user folder,
-no Numba imported by enabling it) is tested in ``test_blender_extension``.
+progress line, or the progress text the UI draws). The source tree is no installed extension:
+registering it keeps the core's default cache folder. The installed extension (its cache in the
+extension's user folder, no Numba imported by enabling it) is tested in ``test_blender_extension``.
 """
 
 import bpy
