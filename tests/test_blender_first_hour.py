@@ -9,6 +9,7 @@ import bpy
 import numpy as np
 import pytest
 from blender_helpers import REPO, ct_crop_npy, ext, fresh  # noqa: F401 (fixtures)
+from test_blender_ui import texts
 
 # A user's script: register the extension, import a volume, show the viewport DVR, and end
 # without unregister().
@@ -51,6 +52,9 @@ def test_units_as_the_file_says_set_by_the_user_and_saved(ext, data_dir, ct_crop
     given = api.import_volume(data_dir / SKULL_NPY, name="given", units="HU")
     assert (given.volumeevm.units, given.volumeevm.file_units) == ("HU", "")
     assert panels.units_source(given.volumeevm) == "Units set by you (the file gives none)"
+    calls = volume_panel(ext)  # the active volume: given
+    assert "Units set by you (the file gives none)" in texts(calls)
+    assert ("prop", (given.volumeevm, "units")) in [c[:2] for c in calls]
     ct.volumeevm.units = "a.u."  # the Volume panel's field
     assert panels.units_source(ct.volumeevm) == "Units set by you (the file says HU)"
     # The volume's units are saved with it in the .blend.
@@ -117,6 +121,17 @@ def test_a_ct_preset_on_data_in_other_units_says_so(ext, data_dir):
 
 
 # ---------------------------------------------------------------------------- framing
+def volume_panel(ext):
+    """The calls the Volume panel makes to draw the active volume."""
+    from test_blender_ui import Recorder
+
+    calls = []
+    panel = type("P", (), {})()
+    panel.layout = Recorder(calls)
+    ext.ui.panels.VOLUMEEVM_PT_volume.draw(panel, bpy.context)
+    return calls
+
+
 @pytest.mark.parametrize("kind", ["PERSP", "ORTHO"])
 @pytest.mark.parametrize("resolution", [(640, 360), (300, 500)])
 def test_frame_volume_shows_the_whole_volume_from_every_side(ext, data_dir, kind, resolution):
@@ -160,6 +175,9 @@ def test_import_finds_and_hides_the_cube_that_encloses_the_volume(ext, data_dir)
     assert bpy.ops.volumeevm.import_volume(filepath=str(data_dir / SKULL_NPY)) == {"FINISHED"}
     vol = bpy.context.active_object
     assert framing.enclosing_objects(vol) == [cube]
+    calls = volume_panel(ext)  # the Volume panel offers to hide it
+    assert "Hidden inside Cube" in texts(calls)
+    assert ("operator", ("volumeevm.hide_enclosing",)) in [c[:2] for c in calls]
     vol.location = (2.0, 0.0, 0.0)  # moved out of the cube
     bpy.context.view_layer.update()
     assert framing.enclosing_objects(vol) == []
