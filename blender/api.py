@@ -5,11 +5,11 @@
     import bpy
     from bl_ext.user_default.volumeevm.blender import api   # installed extension
     vol = api.import_volume("/data/head.nrrd")
+    api.build(vol, threshold=300.0)                 # data units (HU for CT)
+    surface = api.make_mesh(vol)
 
 Importing the API of an installed extension that is not enabled (a new session of the bpy module,
 or a Blender whose preferences leave it off) enables it, as Preferences > Add-ons does.
-    api.build(vol, threshold=300.0)                 # data units (HU for CT)
-    surface = api.make_mesh(vol)
 
 CAD tools (a non-destructive stack per volume object, see :func:`add_tool`)::
 

@@ -1,11 +1,11 @@
-"""The extension as users get it: the Linux x64 zip (this machine's and CI's platform), built
-with ``--split-platforms`` as ``make extension`` builds each platform's, by the tool inside the
-bpy wheel (``bl_pkg/cli/blender_ext.py``, the code of ``blender --command extension
-build/validate``), validated, installed into a fresh bpy and enabled; then, in Blender started
-again, enabled (neither imports Numba), its operators and script API run, disabled. Building and
-meshing a VolumeEVM runs the EVM and mesh kernels: they compile with the bundled Numba and
-llvmlite (not the venv's), cached in the extension's user folder, and the job prints that it
-prepares them.
+"""The extension as users get it: the Linux x64 zip (this machine's and CI's platform), built with
+``--split-platforms`` as ``make extension`` builds each platform's, by the tool inside the bpy wheel
+(``bl_pkg/cli/blender_ext.py``, the code of ``blender --command extension build/validate``),
+validated, installed into a fresh bpy and enabled; then, in Blender started again, enabled (neither
+imports Numba), its operators and script API run, disabled; in a third session, importing the
+installed API enables the extension (README's second-session lines). Building and meshing a
+VolumeEVM runs the EVM and mesh kernels: they compile with the bundled Numba and llvmlite (not the
+venv's), cached in the extension's user folder, and the job prints that it compiles them.
 
 The fresh bpy is a child process of the running venv's Python (the same bpy version) with
 ``BLENDER_USER_RESOURCES`` in ``tmp_path``, so nothing is written to the user's Blender folders
@@ -270,4 +270,5 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     assert "[volumeevm]  30% building EVM" in run.stdout
     assert second == {"enabled_before": False, "enabled_after": True,
                       "volume": ["second", "VOLUME", list(np.load(volume).shape)]}
-    assert "reloading" not in second_run.stdout, second_run.stdout
+    assert "reloading" not in second_run.stdout, second_run.stdout  # no second import
+    assert "Exception" not in second_run.stdout + second_run.stderr  # nor at exit
