@@ -89,11 +89,11 @@ def load_preset(settings, name, vol_obj=None, *, stretch=None):
         (a, b), (c, d) = CT_RANGE, data_range
         points[:, 0] = c + (points[:, 0] - a) * (d - c) / (b - a)
         tf = TransferFunction(points, name=name)
-    set_transfer_function(settings, tf)
-    if settings.preset != name:
-        settings.preset = name
+    if settings.preset != name:  # the settings' update callbacks load it again: done first,
+        settings.preset = name  # so the ramp ends up this volume's
     if settings.preset_stretch != stretch:
         settings.preset_stretch = stretch
+    set_transfer_function(settings, tf)
 
 
 def value_range(vol_obj):
