@@ -3,7 +3,15 @@
 The core (``volumeevm_addon``) is NumPy only; ``blender`` holds the Blender-side machinery and
 the script API (``blender.api``); ``operators`` the operator classes; ``ui`` the property groups
 and the sidebar tab.
+
+A process that registers the extension and ends without ``unregister()`` (a script under
+``blender --background --python``, or the bpy module) gets it unregistered at interpreter exit:
+the bpy module (4.5) crashes at exit while the viewport's draw handler remains, and hangs while
+persistent handlers or the add-on's UI additions remain. ``unregister()`` does nothing when the
+extension is not registered: Blender disables enabled add-ons at exit after that hook has run.
 """
+
+import atexit
 
 import bpy
 
@@ -19,6 +27,9 @@ _POINTERS = (
 )
 
 
+_registered = []
+
+
 def register():
     kernels.register(__package__)
     for cls in ui.CLASSES:
@@ -32,9 +43,15 @@ def register():
     handlers.install(compositor.HANDLERS + sidecar.HANDLERS + tool_stack.HANDLERS
                      + gpu_viewport.HANDLERS)
     gpu_viewport.register()
+    atexit.register(unregister)
+    _registered.append(True)
 
 
 def unregister():
+    atexit.unregister(unregister)
+    if not _registered:
+        return
+    _registered.clear()
     gpu_viewport.unregister()
     handlers.uninstall()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)

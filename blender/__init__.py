@@ -16,6 +16,7 @@ imports the core, never the reverse. One module per concept:
   viewport (its draw handler).
 - ``scene.py``: the scene pass (colour and depth read back through a temporary EXR).
 - ``camera.py``: the core's camera record from a Blender camera.
+- ``framing.py``: a camera that frames a volume; the objects that enclose (hide) it.
 - ``images.py``: Image datablocks and image files written inside a job's transaction.
 - ``exr.py``: OpenEXR through the core, or through Blender's OpenImageIO.
 - ``transfer.py``: the transfer function as the Render settings' colour ramp.

@@ -9,12 +9,20 @@
     surface = api.make_mesh(vol)
     labels = api.make_label_meshes(api.import_volume("/data/seg.seg.nrrd"))  # one per label
 
+Importing the API of an installed extension that is not enabled (a new session of the bpy module,
+or a Blender whose preferences leave it off) enables it, as Preferences > Add-ons does.
+
 CAD tools (a non-destructive stack per volume object, see :func:`add_tool`)::
 
     api.add_tool(vol, drill, "cut")                 # any closed mesh object; also "keep", "add",
     api.add_tool(vol, None, "largest")              # "largest" (no tool), "clip" (tool's box)
     drill.location.x += 0.01; api.evaluate(vol)     # or any depsgraph update (handler)
     api.apply_stack(vol)                            # the result becomes the VolumeEVM
+
+A camera that shows the whole volume (the default cube, 2 m, hides a 0.26 m scan)::
+
+    api.hide_enclosing(vol)                         # hide objects that enclose the volume
+    api.frame_volume(vol, "FRONT")                  # or BACK, LEFT, RIGHT, TOP, BOTTOM
 
 Direct volume rendering into the scene::
 
@@ -26,13 +34,21 @@ Errors: bad input raises :class:`VolumeEVMError` (and ``OSError`` for unreadable
 the error, ``import_volume``, ``build``, ``make_mesh``, ``add_tool`` and ``render_dvr`` leave the
 scene as it was. Under ``blender --background`` progress lines ``[volumeevm] 42% building EVM``
 are printed. Each function is documented where it lives: :mod:`.volumes` (import, build, mesh),
-:mod:`.labels` (label maps), :mod:`.tool_stack` (CAD tools), :mod:`.dvr` (rendering), :mod:`.transfer` (the Render
-settings' transfer function), :mod:`.compositor` (F12).
+:mod:`.labels` (label maps), :mod:`.tool_stack` (CAD tools), :mod:`.framing` (camera),
+:mod:`.dvr` (rendering), :mod:`.transfer` (the Render settings' transfer function),
+:mod:`.compositor` (F12).
 """
 
+import os
+import sys
+
+import addon_utils
+import bpy
+
 from .compositor import setup_compositor
-from .labels import make_label_meshes
 from .dvr import DVRResult, render_dvr, render_dvr_animation
+from .framing import enclosing_objects, frame_volume, hide_enclosing
+from .labels import make_label_meshes
 from .objects import get_vevm, volume_object
 from .tool_stack import (
     add_tool,
@@ -46,7 +62,25 @@ from .tool_stack import (
 from .transfer import load_preset, set_transfer_function, transfer_function
 from .volumes import build, get_volume, import_volume, make_mesh
 
-__all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "volume_object", "get_vevm", "get_volume",
+__all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "volume_object", "get_vevm",
+           "get_volume",
            "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
            "stack_state", "render_dvr", "render_dvr_animation", "DVRResult",
-           "transfer_function", "set_transfer_function", "load_preset", "setup_compositor"]
+           "transfer_function", "set_transfer_function", "load_preset", "setup_compositor",
+           "frame_volume", "enclosing_objects", "hide_enclosing"]
+
+
+def _enable_installed():
+    """Enable the installed extension this API belongs to when it is not registered (a source
+    tree loaded by hand, not an extension, is left to its loader)."""
+    package = __package__.rpartition(".")[0]
+    if package.startswith("bl_ext.") and not hasattr(bpy.types.Object, "volumeevm"):
+        def fail(error):
+            raise error
+
+        module = sys.modules[package]  # imported already: addon_utils would reload it otherwise
+        module.__time__ = os.path.getmtime(module.__file__)
+        addon_utils.enable(package, default_set=True, handle_error=fail)
+
+
+_enable_installed()

@@ -9,11 +9,16 @@ Output node).
 Caveat: the compositor lays the DVR image as it was last rendered. Render it (Render VolumeEVM)
 with the same camera, frame and resolution before F12; the volume's rays stop at the depth of
 the scene as it was then (the scene cannot be rendered again from inside its own render, so F12
-alone cannot make a depth-correct DVR of a changed scene). A ``render_pre`` handler
-(:func:`check_view`) prints a warning when F12 starts with a DVR image rendered for another
-frame, camera or resolution. For animations, :func:`.dvr.render_dvr_animation` renders scene
-pass, DVR and composite frame by frame.
+alone cannot make a depth-correct DVR of a changed scene). A stale DVR (rendered for another
+frame, camera or resolution, :func:`stale_dvr`) is never laid over a render silently: the
+Render panel says so, and the ``render_pre`` handler :func:`check_view` mutes the Alpha Over node
+for that render (F12 gives the scene without the volume) and says why, as an error on stderr
+under ``--background``; once the DVR matches the view again the node is unmuted. The Render
+setting Allow Stale DVR (``allow_stale_dvr``) lays it anyway, with a warning. For animations,
+:func:`.dvr.render_dvr_animation` renders scene pass, DVR and composite frame by frame.
 """
+
+import sys
 
 import bpy
 
@@ -22,6 +27,8 @@ from .dvr import VIEW_KEY, view_signature
 #: Node names of the compositor set-up (found again, never duplicated).
 NODE_IMAGE = "VolumeEVM DVR"
 NODE_OVER = "VolumeEVM Over"
+#: Custom property of the Alpha Over node while :func:`check_view` keeps it muted.
+MUTED_KEY = "volumeevm_stale"
 
 
 def over_sockets(node):
@@ -97,28 +104,66 @@ def setup_compositor(scene, image):
     return tree
 
 
-def _compositor_image(scene):
-    """The image the scene's VolumeEVM compositor node shows, or None."""
+def _compositor_nodes(scene):
+    """The (Image, Alpha Over) nodes of the scene's VolumeEVM compositor set-up, or None."""
     tree = getattr(scene, "compositing_node_group", None)
     if tree is None and not hasattr(scene, "compositing_node_group"):
         tree = scene.node_tree if scene.use_nodes else None
-    node = tree.nodes.get(NODE_IMAGE) if tree is not None else None
-    if node is None or node.mute or node.image is None:
+    if tree is None:
         return None
-    return node.image
+    image_node, over = tree.nodes.get(NODE_IMAGE), tree.nodes.get(NODE_OVER)
+    if image_node is None or over is None or image_node.image is None or image_node.mute:
+        return None
+    if over.mute and not over.get(MUTED_KEY):  # muted by the user: the DVR is not used
+        return None
+    return image_node, over
+
+
+def stale_dvr(scene):
+    """What is wrong when F12 would lay a DVR image rendered for another view (frame, camera,
+    resolution: :func:`.dvr.view_signature`) over ``scene``'s render; "" when nothing is."""
+    nodes = _compositor_nodes(scene)
+    if nodes is None or not scene.render.use_compositing:
+        return ""
+    image = nodes[0].image
+    stored = image.get(VIEW_KEY)
+    now = view_signature(scene)
+    if stored == now:
+        return ""
+    if stored is None:
+        return f"{image.name!r} has not been rendered by Render VolumeEVM"
+    then, this = stored.split("; ")[0], now.split("; ")[0]
+    where = f" ({then}; this render: {this})" if then != this else ""
+    return f"{image.name!r} was rendered for another frame, camera or resolution{where}"
 
 
 @bpy.app.handlers.persistent
 def check_view(scene, *_args):
-    """render_pre: warn when the compositor's DVR image was rendered for another view."""
-    image = _compositor_image(scene)
-    if image is None or not scene.render.use_compositing:
+    """render_pre: mute the Alpha Over node while the DVR image is stale (:func:`stale_dvr`),
+    unless the Render settings allow a stale DVR; unmute it once the DVR matches again."""
+    nodes = _compositor_nodes(scene)
+    if nodes is None:
         return
-    stored = image.get(VIEW_KEY)
-    if stored != view_signature(scene):
-        print(f"[volumeevm] warning: {image.name!r} was rendered for another frame, camera or "
-              f"resolution than this render's; run Render VolumeEVM again (or Render VolumeEVM "
-              f"Animation)", flush=True)
+    over = nodes[1]
+    problem = stale_dvr(scene)
+    allowed = scene.volumeevm_render.allow_stale_dvr
+    if over.get(MUTED_KEY) and (allowed or not problem):
+        over.mute = False
+        del over[MUTED_KEY]
+    if not problem:
+        return
+    if allowed:
+        print(f"[volumeevm] warning: {problem}; laid over the render as it is (Allow Stale DVR)",
+              flush=True)
+        return
+    over.mute = True
+    over[MUTED_KEY] = True
+    message = (f"{problem}: this render leaves it out. Run Render VolumeEVM again (or Render "
+               f"VolumeEVM Animation), or turn on Allow Stale DVR")
+    if bpy.app.background:
+        print(f"[volumeevm] error: {message}", file=sys.stderr, flush=True)
+    else:
+        print(f"[volumeevm] warning: {message}", flush=True)
 
 
 HANDLERS = (("render_pre", check_view),)

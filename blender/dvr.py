@@ -125,8 +125,21 @@ def frame_path(path, frame):
     return f"{path[:start]}{frame:0{end - start + 1}d}{path[end + 1:]}"
 
 
-def _abspath(path):
-    return str(Path(bpy.path.abspath(path))) if path else ""
+def absolute_path(path, name):
+    """``path`` ("" = none) made absolute; ``//`` is the .blend's folder.
+
+    Raises
+    ------
+    VolumeEVMError
+        ``path`` starts with ``//`` while the .blend is not saved (it has no folder yet: Blender
+        would resolve it against the current directory).
+    """
+    if not path:
+        return ""
+    if path.startswith("//") and not bpy.data.filepath:
+        raise VolumeEVMError(f"{name}: {path!r} is relative to the .blend file, which is not "
+                             f"saved yet; save the .blend first or give a full path")
+    return str(Path(bpy.path.abspath(path)))
 
 
 def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", options=None,
@@ -135,10 +148,12 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     """The DVR job (see :func:`render_dvr`). The scene pass runs here, on the calling thread."""
     if not isinstance(tf, TransferFunction):
         raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
+    if method not in METHODS:
+        raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
     vol_obj = volume_object(volume_obj)
     render_layer(scene).update()  # placements changed since the last update (scripts)
     camera = camera_from_blender(scene, camera_object)
-    exr_path, png_path = _abspath(exr_path), _abspath(png_path)
+    exr_path, png_path = absolute_path(exr_path, "exr_path"), absolute_path(png_path, "png_path")
     for path in (exr_path, png_path):
         if path:
             atomic_target(path, overwrite=overwrite)  # fail before the slow part
@@ -275,7 +290,7 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     image_name : str
         The composite's Image datablock; the volume alone goes to ``image_name + " DVR"``.
     exr_path, png_path : str
-        Files to write ("" = none; ``//`` = beside the .blend).
+        Files to write ("" = none; ``//`` = beside the .blend, refused while it is not saved).
     overwrite : bool
         Replace existing files (default: refuse).
     hide_surface : bool
@@ -290,8 +305,9 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     Raises
     ------
     VolumeEVMError
-        No camera, a bad tf, no VolumeEVM, a file that exists (before the scene pass); a bad
-        method, mode or option (the core's ``render``, after it).
+        No camera, a bad tf or method, no VolumeEVM, a file that exists, a ``//`` path in an
+        unsaved .blend (before the scene pass); a bad mode or option (the core's ``render``,
+        after it).
     """
     scene = bpy.context.scene if scene is None else scene
     return jobs.run(render_dvr_job(

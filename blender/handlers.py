@@ -1,11 +1,9 @@
 """The add-on's Blender app handlers, installed and removed in one place.
 
 Each module lists its handlers as ``HANDLERS = (("save_pre", function), ...)``; ``install`` adds
-them to ``bpy.app.handlers`` once, ``uninstall`` removes them. They are also removed at
-interpreter exit: the bpy module (4.5) hangs at exit while persistent handlers remain.
+them to ``bpy.app.handlers`` once, ``uninstall`` removes them (the extension's ``unregister``,
+also at interpreter exit).
 """
-
-import atexit
 
 import bpy
 
@@ -14,8 +12,6 @@ _installed = []
 
 def install(handlers):
     """Add ``(event name, function)`` pairs to ``bpy.app.handlers`` (each once)."""
-    if not _installed:
-        atexit.register(uninstall)
     for event, function in handlers:
         functions = getattr(bpy.app.handlers, event)
         if function not in functions:

@@ -28,7 +28,7 @@ import bpy
 from ..volumeevm_addon import set_kernel_cache_dir, set_kernel_compile_hook, set_kernel_threads
 
 #: The progress text while kernels are loaded or compiled for the first time in a session.
-FIRST_USE = "preparing renderer (first use only)"
+FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"
 
 def register(package):
     """Keep compiled kernels in the user folder of the extension ``package`` (its

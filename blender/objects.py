@@ -14,14 +14,24 @@ from ..volumeevm_addon import VolumeEVMError
 from . import jobs, sidecar
 
 
+def require_enabled():
+    """Raise a :class:`VolumeEVMError` saying how to enable the extension when it is not
+    registered (its properties are missing: a script imported the API of a disabled one)."""
+    if not hasattr(bpy.types.Object, "volumeevm"):
+        package = __package__.rpartition(".")[0]
+        raise VolumeEVMError(f"the VolumeEVM extension is not enabled: call "
+                             f"bpy.ops.preferences.addon_enable(module={package!r})")
+
+
 def volume_object(obj):
     """The volume object of ``obj`` (itself, or the volume a surface was made from).
 
     Raises
     ------
     VolumeEVMError
-        If ``obj`` is not a VolumeEVM volume or surface object.
+        If ``obj`` is not a VolumeEVM volume or surface object, or the extension is not enabled.
     """
+    require_enabled()
     if obj is None:
         raise VolumeEVMError("no object given; select a volume made by Import Volume")
     settings = obj.volumeevm

@@ -13,7 +13,8 @@ import numpy as np
 from ..volumeevm_addon import PRESETS, TransferFunction, VolumeEVMError
 from .objects import render_volume
 
-#: The Hounsfield range the CT presets are written for; mapped onto non-HU data's range.
+#: The Hounsfield range the CT presets are written for; stretched onto a volume's value range
+#: only when the user asks (``preset_stretch``).
 CT_RANGE = (-1024.0, 3071.0)
 RAMP_NAME = "VolumeEVM Transfer Function"
 
@@ -64,12 +65,14 @@ def transfer_function(settings):
     return TransferFunction(points, unit_length_mm=settings.unit_length_mm, name=settings.preset)
 
 
-def load_preset(settings, name, vol_obj=None):
+def load_preset(settings, name, vol_obj=None, *, stretch=None):
     """Write preset ``name`` into the settings' ramp and value range.
 
-    CT presets are in Hounsfield units; for a volume whose units are not HU they are stretched
-    from :data:`CT_RANGE` onto the volume's value range. ``mri`` and ``microscopy`` take the
-    volume's value range (0 .. 1 without a volume).
+    A preset means what ``TransferFunction.preset(name)`` means in a script: the CT presets are
+    in Hounsfield units, whatever the volume's units; ``mri`` and ``microscopy`` take the
+    volume's value range (0 .. 1 without a volume). Only when asked (``stretch``, default the
+    settings' ``preset_stretch``) is a CT preset stretched from :data:`CT_RANGE` onto the
+    volume's value range (CT data stored in other units).
 
     Raises
     ------
@@ -78,21 +81,43 @@ def load_preset(settings, name, vol_obj=None):
     """
     if name not in PRESETS:
         raise VolumeEVMError(f"preset must be one of {PRESETS}, got {name!r}")
-    data_range = (0.0, 1.0)
-    units = ""
-    if vol_obj is not None:
-        s = vol_obj.volumeevm
-        units = s.units
-        if s.value_max > s.value_min:
-            data_range = (float(s.value_min), float(s.value_max))
+    stretch = settings.preset_stretch if stretch is None else stretch
+    data_range = value_range(vol_obj)
     tf = TransferFunction.preset(name, data_range=data_range)
-    points = np.array(tf.points, np.float64)
-    if name.startswith("ct_") and vol_obj is not None and units != "HU":
+    if stretch and name.startswith("ct_"):
+        points = np.array(tf.points, np.float64)
         (a, b), (c, d) = CT_RANGE, data_range
         points[:, 0] = c + (points[:, 0] - a) * (d - c) / (b - a)
-    set_transfer_function(settings, TransferFunction(points, name=name))
-    if settings.preset != name:
-        settings.preset = name
+        tf = TransferFunction(points, name=name)
+    if settings.preset != name:  # the settings' update callbacks load it again: done first,
+        settings.preset = name  # so the ramp ends up this volume's
+    if settings.preset_stretch != stretch:
+        settings.preset_stretch = stretch
+    set_transfer_function(settings, tf)
+
+
+def value_range(vol_obj):
+    """A volume object's value range (0 .. 1 for None or a constant volume)."""
+    if vol_obj is not None:
+        s = vol_obj.volumeevm
+        if s.value_max > s.value_min:
+            return float(s.value_min), float(s.value_max)
+    return 0.0, 1.0
+
+
+def preset_note(settings, vol_obj):
+    """What the sidebar says about the loaded preset on ``vol_obj``: a CT preset stretched onto
+    the volume's range, or in HU on a volume whose units say otherwise; "" otherwise."""
+    if not settings.preset.startswith("ct_"):
+        return ""
+    if settings.preset_stretch:
+        lo, hi = value_range(vol_obj)
+        a, b = CT_RANGE
+        return f"CT preset stretched from {a:g} .. {b:g} HU onto {lo:g} .. {hi:g}"
+    units = vol_obj.volumeevm.units if vol_obj is not None else ""
+    if units not in ("", "HU"):
+        return f"CT preset in HU on data in {units}: stretch it, or set the volume's units"
+    return ""
 
 
 def set_transfer_function(settings, tf):

@@ -15,6 +15,7 @@ button give the same objects.
 Whatever the error, they leave the scene as it was.
 """
 
+import dataclasses
 import functools
 import json
 from pathlib import Path
@@ -33,7 +34,7 @@ from ..volumeevm_addon import (
 )
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
-from .objects import attach_surface, link, volume_object
+from .objects import attach_surface, link, require_enabled, volume_object
 from .tool_stack import refresh_quietly
 
 _COMPOUND_ENDINGS = (".nii.gz",)
@@ -87,17 +88,21 @@ def _read_steps(uid, path, options):
     return vol
 
 
-def _import_steps(path, options):
+def _import_steps(path, options, units):
     yield 0.0, f"reading {default_name(path)}"
     vol = read_volume(path, **options)
+    file_units = vol.units
+    if units is not None:
+        vol = dataclasses.replace(vol, units=str(units))
     yield 0.7, "histogram"
     counts, lo, hi = density_histogram(vol.array, bins=HISTOGRAM_BINS)
     threshold = otsu_threshold(vol.array)
-    return vol, counts, lo, hi, threshold
+    return vol, file_units, counts, lo, hi, threshold
 
 
-def import_job(context, path, *, name=None, **reader_options):
+def import_job(context, path, *, name=None, units=None, **reader_options):
     """The import job: read ``path`` and make a volume object (see :func:`import_volume`)."""
+    require_enabled()
     if isinstance(path, (str, Path)):
         source = str(Path(path))
     else:
@@ -109,7 +114,7 @@ def import_job(context, path, *, name=None, **reader_options):
     name = name or default_name(path)
 
     def commit(result):
-        vol, counts, lo, hi, threshold = result
+        vol, file_units, counts, lo, hi, threshold = result
         mesh = bpy.data.meshes.new(name)
         wire_mesh(mesh, *_grid_box(vol.shape, vol.spacing, vol.origin, vol.orientation))
         obj = bpy.data.objects.new(name, mesh)
@@ -127,6 +132,7 @@ def import_job(context, path, *, name=None, **reader_options):
         s.spacing_known = vol.spacing_known
         s.label_count = len(vol.labels) if vol.is_label_map else 0
         s.units = vol.units
+        s.file_units = file_units
         s.dtype = str(vol.array.dtype)
         s.value_min, s.value_max = lo, hi
         s.histogram = counts.tolist()
@@ -137,10 +143,10 @@ def import_job(context, path, *, name=None, **reader_options):
         runtime.forget_except({o.volumeevm.uid for o in bpy.data.objects})
         return obj
 
-    return jobs.Job(f"Import {name}", _import_steps(path, reader_options), commit)
+    return jobs.Job(f"Import {name}", _import_steps(path, reader_options, units), commit)
 
 
-def import_volume(path, *, name=None, **reader_options):
+def import_volume(path, *, name=None, units=None, **reader_options):
     """Read a volume file (or DICOM folder / list of files) and make a volume object.
 
     Parameters
@@ -149,6 +155,10 @@ def import_volume(path, *, name=None, **reader_options):
         A file with a supported extension, a DICOM folder, or the files of one DICOM series.
     name : str, optional
         Object name (default: the file's stem).
+    units : str, optional
+        The data's units (e.g. ``"HU"``) when the file does not say them, or says them wrongly
+        (default: as the file says). Stored as ``obj.volumeevm.units`` beside what the file
+        said (``file_units``); the Volume panel shows and edits them.
     **reader_options
         Passed to :func:`volumeevm_addon.read_volume` (raw: ``shape``, ``dtype``, ...).
 
@@ -160,10 +170,10 @@ def import_volume(path, *, name=None, **reader_options):
     Raises
     ------
     VolumeEVMError
-        An unsupported or unreadable volume, bad reader options (``OSError`` for a file that
-        cannot be read at all).
+        An unsupported or unreadable volume, bad reader options, the extension not enabled
+        (``OSError`` for a file that cannot be read at all).
     """
-    return jobs.run(import_job(bpy.context, path, name=name, **reader_options))
+    return jobs.run(import_job(bpy.context, path, name=name, units=units, **reader_options))
 
 
 # ---------------------------------------------------------------------------- build

@@ -6,10 +6,11 @@ Each operator reads its properties and Blender state, calls one function of the 
 in order.
 """
 
-from . import build, import_volume, labels, mesh, render, tools
+from . import build, framing, import_volume, labels, mesh, render, tools
 
 CLASSES = [
     *import_volume.CLASSES,
+    *framing.CLASSES,
     *build.CLASSES,
     *mesh.CLASSES,
     *labels.CLASSES,

@@ -13,7 +13,7 @@ from bpy.props import (
 )
 from bpy_extras.io_utils import ImportHelper
 
-from ..blender import jobs, volumes
+from ..blender import framing, jobs, volumes
 from ..volumeevm_addon import SUPPORTED_EXTENSIONS
 
 _RAW_ENDINGS = (".raw", ".bin")
@@ -40,6 +40,8 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
     files: CollectionProperty(type=bpy.types.OperatorFileListElement,
                               options={"HIDDEN", "SKIP_SAVE"})
     name: StringProperty(name="Name", description="Object name (default: the file's name)")
+    units: StringProperty(name="Units", description="The data's units, e.g. HU (empty: as the "
+                                                    "file says)")
     raw_shape: IntVectorProperty(
         name="Raw Size", size=3, min=0, default=(0, 0, 0),
         description="Raw files: voxels along x, y, z (x fastest in the file)")
@@ -62,6 +64,7 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
         layout = self.layout
         layout.use_property_split = True
         layout.prop(self, "name")
+        layout.prop(self, "units")
         header, body = layout.panel("VOLUMEEVM_import_raw", default_closed=True)
         header.label(text="Raw Files")
         if body:
@@ -92,12 +95,16 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
         if not source:
             raise OSError("no file or folder chosen")
         return volumes.import_job(context, source, name=self.name or None,
-                                  **self._options(source))
+                                  units=self.units or None, **self._options(source))
 
     def finished(self, context, obj):
         s = obj.volumeevm
         self.report({"INFO"}, f"Imported {obj.name}: {tuple(s.shape)} voxels, "
                               f"values {s.value_min:g} .. {s.value_max:g} {s.units}")
+        enclosing = framing.enclosing_objects(obj, context.scene)
+        if enclosing:
+            self.report({"WARNING"}, f"{', '.join(o.name for o in enclosing)} enclose(s) the "
+                                     f"volume and hide it: Hide Enclosing Objects (Volume panel)")
 
     def invoke(self, context, event):
         if bpy.app.background:

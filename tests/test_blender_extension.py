@@ -1,11 +1,11 @@
-"""The extension as users get it: the Linux x64 zip (this machine's and CI's platform), built
-with ``--split-platforms`` as ``make extension`` builds each platform's, by the tool inside the
-bpy wheel (``bl_pkg/cli/blender_ext.py``, the code of ``blender --command extension
-build/validate``), validated, installed into a fresh bpy and enabled; then, in Blender started
-again, enabled (neither imports Numba), its operators and script API run, disabled. Building and
-meshing a VolumeEVM runs the EVM and mesh kernels: they compile with the bundled Numba and
-llvmlite (not the venv's), cached in the extension's user folder, and the job prints that it
-prepares them.
+"""The extension as users get it: the Linux x64 zip (this machine's and CI's platform), built with
+``--split-platforms`` as ``make extension`` builds each platform's, by the tool inside the bpy wheel
+(``bl_pkg/cli/blender_ext.py``, the code of ``blender --command extension build/validate``),
+validated, installed into a fresh bpy and enabled; then, in Blender started again, enabled (neither
+imports Numba), its operators and script API run, disabled; in a third session, importing the
+installed API enables the extension (README's second-session lines). Building and meshing a
+VolumeEVM runs the EVM and mesh kernels: they compile with the bundled Numba and llvmlite (not the
+venv's), cached in the extension's user folder, and the job prints that it compiles them.
 
 The fresh bpy is a child process of the running venv's Python (the same bpy version) with
 ``BLENDER_USER_RESOURCES`` in ``tmp_path``, so nothing is written to the user's Blender folders
@@ -31,7 +31,7 @@ from blender_helpers import REPO
 MANIFEST = tomllib.loads((REPO / "blender_manifest.toml").read_text())
 PLATFORM = "linux-x64"
 ZIP_NAME = f"{MANIFEST['id']}-{MANIFEST['version']}-{PLATFORM.replace('-', '_')}.zip"
-FIRST_USE = "preparing renderer (first use only)"
+FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"
 
 _spec = importlib.util.spec_from_file_location("fetch_wheels",
                                                REPO / "requirements" / "fetch_wheels.py")
@@ -106,6 +106,25 @@ surface = api.make_mesh(vol)
 result["api"] = [vol.name, vevm.voxel_count, len(surface.data.polygons)]
 addon_utils.disable(package, default_set=True)
 result["unregistered"] = not hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
+print("RESULT " + json.dumps(result), flush=True)
+'''
+
+
+# A second session after the install, as README shows it: a new Python imports the installed
+# extension's API, which enables the extension (not enabled: the bpy module saves no preferences).
+SECOND_SESSION = r'''
+import json, sys
+import bpy
+import addon_utils
+
+repo_dir, volume = sys.argv[1], sys.argv[2]
+bpy.context.preferences.extensions.repos.new(
+    name="vevm_test", module="vevm_test", custom_directory=repo_dir, source="USER")
+result = {"enabled_before": addon_utils.check("bl_ext.vevm_test.volumeevm")[1]}
+from bl_ext.vevm_test.volumeevm.blender import api
+result["enabled_after"] = addon_utils.check("bl_ext.vevm_test.volumeevm")[1]
+vol = api.import_volume(volume, name="second")
+result["volume"] = [vol.name, vol.volumeevm.role, list(vol.volumeevm.shape)]
 print("RESULT " + json.dumps(result), flush=True)
 '''
 
@@ -220,6 +239,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     volume = data_dir / "ct_skull_cgal.npy"
     _, installed = _bpy_process(tmp_path, INSTALL, env, archive, repo_dir)
     run, result = _bpy_process(tmp_path, RUN, env, repo_dir, volume, 2.9)
+    second_run, second = _bpy_process(tmp_path, SECOND_SESSION, env, repo_dir, volume)
 
     from volumeevm_addon import VolumeEVM, read_volume
 
@@ -248,3 +268,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     assert (folder / "blender_manifest.toml").is_file()
     assert list(folder.rglob("*.vevm")) == [] and list(folder.rglob("*.nbi")) == []
     assert "[volumeevm]  30% building EVM" in run.stdout
+    assert second == {"enabled_before": False, "enabled_after": True,
+                      "volume": ["second", "VOLUME", list(np.load(volume).shape)]}
+    assert "reloading" not in second_run.stdout, second_run.stdout  # no second import
+    assert "Exception" not in second_run.stdout + second_run.stderr  # nor at exit

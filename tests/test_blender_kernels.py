@@ -3,10 +3,10 @@
 While a job's steps run (the synchronous path of scripts and ``--background``, and the modal path
 of the UI), kernels use the scene's render threads setting (Fixed: its count; Auto-detect: all
 cores) and the count from before comes back afterwards; a kernel's first use in the session
-shows "preparing renderer (first use only)" once in the job's progress (a progress line, or the
-progress text the UI draws). The source tree is no installed extension: registering it keeps the
-core's default cache folder. The installed extension (its cache in the extension's user folder,
-no Numba imported by enabling it) is tested in ``test_blender_extension``.
+shows "compiling VolumeEVM's Numba kernels (first use only)" once in the job's progress (a
+progress line, or the progress text the UI draws). The source tree is no installed extension:
+registering it keeps the core's default cache folder. The installed extension (its cache in the
+extension's user folder, no Numba imported by enabling it) is tested in ``test_blender_extension``.
 """
 
 import bpy
@@ -15,7 +15,7 @@ import pytest
 from blender_helpers import ext, fresh  # noqa: F401 (fixtures)
 from test_blender_ui import _Context, _driver, _ticks
 
-FIRST_USE = "preparing renderer (first use only)"
+FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"
 
 
 def _sum_of(values):  # a kernel of this module: each test makes a new one, never called before

@@ -205,7 +205,8 @@ def settings_for(scene, vol, tmp_path, **extra):
     s = scene.volumeevm_render
     s.volume = vol
     s.method = "raycast"
-    s.preset = "ct_bone"  # CT preset stretched onto the skull's 0 .. 5.4 (no HU units)
+    s.preset_stretch = True  # the CT preset stretched onto the skull's 0 .. 5.4 (not HU)
+    s.preset = "ct_bone"
     for key, value in extra.items():
         setattr(s, key, value)
     return s
@@ -368,6 +369,85 @@ def test_compositor_setup_and_f12_include_the_dvr(ext, dvr, skull, tmp_path):
     np.testing.assert_allclose(got, np.clip(srgb, 0, 1), atol=2.5 / 255)
 
 
+def f12_exr(scene, path):
+    """F12 to a float EXR at ``path``: its RGBA (H, W, 4), row 0 at the top."""
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = {k.split(".")[-1]: v.pixels for p in f.parts for k, v in p.channels.items()}
+    return np.stack([ch[c] for c in "RGBA"], -1)
+
+
+def image_rgba(name):
+    """An Image datablock's pixels (H, W, 4), row 0 at the top."""
+    image = bpy.data.images[name]
+    w, h = image.size
+    return np.flipud(np.array(image.pixels[:], np.float32).reshape(h, w, 4))
+
+
+def test_f12_leaves_a_stale_dvr_out_and_says_so(ext, dvr, skull, tmp_path, capfd):
+    compositor = ext.blender.compositor
+    scene = bpy.context.scene
+    cam = add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
+    cycles(scene, (40, 32))
+    scene.render.film_transparent = False
+    scene.render.compositor_device = "CPU"
+    plane(scene, (0.124, 0.4, 0.115), 2.0, (0.3, 0.5, 0.2), rotation=(math.pi / 2, 0.0, 0.0))
+    cam.keyframe_insert("location", frame=1)
+    cam.location.x += 0.06
+    cam.keyframe_insert("location", frame=2)
+    scene.frame_set(1)
+    settings_for(scene, skull, tmp_path)
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
+    assert compositor.stale_dvr(scene) == ""
+    np.testing.assert_allclose(f12_exr(scene, tmp_path / "f1.exr"),
+                               image_rgba(dvr.DEFAULT_IMAGE), atol=2e-3)
+    # Frame 2: the DVR of frame 1 is stale. The panel says so before F12...
+    scene.frame_set(2)
+    stale = compositor.stale_dvr(scene)
+    assert stale == (f"'{dvr.DEFAULT_IMAGE} DVR' was rendered for another frame, camera or "
+                     f"resolution (frame 1; this render: frame 2)")
+    from test_blender_ui import Recorder, texts
+
+    calls = []
+    panel = type("P", (), {})()
+    panel.layout = Recorder(calls)
+    ext.ui.render_panel.VOLUMEEVM_PT_render.draw(panel, bpy.context)
+    assert "F12 leaves the DVR out:" in texts(calls)
+    # ... and F12 saves the scene without it (as with compositing off), with an error.
+    capfd.readouterr()
+    f12 = f12_exr(scene, tmp_path / "f2_stale.exr")
+    err = capfd.readouterr().err
+    assert f"[volumeevm] error: {stale}: this render leaves it out" in err
+    over = scene.compositing_node_group.nodes[compositor.NODE_OVER] if hasattr(
+        scene, "compositing_node_group") else scene.node_tree.nodes[compositor.NODE_OVER]
+    assert over.mute
+    scene.render.use_compositing = False
+    plain = f12_exr(scene, tmp_path / "f2_plain.exr")
+    scene.render.use_compositing = True
+    np.testing.assert_array_equal(f12, plain)
+    assert not np.allclose(f12, image_rgba(dvr.DEFAULT_IMAGE), atol=0.05)  # frame 1's composite
+    # Rendered again for frame 2: F12 lays it over again.
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    assert compositor.stale_dvr(scene) == ""
+    f12 = f12_exr(scene, tmp_path / "f2.exr")
+    assert not over.mute
+    np.testing.assert_allclose(f12, image_rgba(dvr.DEFAULT_IMAGE), atol=2e-3)
+    assert not np.allclose(f12, plain, atol=0.05)
+    # Allowed: the stale DVR is laid over, with a warning.
+    scene.volumeevm_render.allow_stale_dvr = True
+    scene.frame_set(1)
+    capfd.readouterr()
+    f12_exr(scene, tmp_path / "f1_allowed.exr")
+    out = capfd.readouterr().out
+    assert "[volumeevm] warning: " in out and "(Allow Stale DVR)" in out
+    assert not over.mute
+
+
 # ---------------------------------------------------------------------------- UI
 def test_render_panel_draws_and_the_job_runs_from_the_modal_driver(ext, dvr, skull, tmp_path):
     from test_blender_ui import Recorder, _Context, _driver, _ticks, texts
@@ -404,7 +484,7 @@ def test_render_panel_draws_and_the_job_runs_from_the_modal_driver(ext, dvr, sku
 
 
 # ---------------------------------------------------------------------------- frames
-def test_animation_renders_every_frame_and_f12_warns_of_a_stale_dvr(ext, dvr, skull, tmp_path,
+def test_animation_renders_every_frame_and_f12_says_the_dvr_is_stale(ext, dvr, skull, tmp_path,
                                                                      capfd):
     scene = bpy.context.scene
     cam = add_camera(scene, (0.124, -0.6, 0.115), ortho=True)
@@ -430,16 +510,17 @@ def test_animation_renders_every_frame_and_f12_warns_of_a_stale_dvr(ext, dvr, sk
     single = dvr.render_dvr(skull, ext.blender.transfer.transfer_function(scene.volumeevm_render),
                             method="raycast", image_name="single")
     np.testing.assert_allclose(frames[1], single.rgba[..., 3], atol=1e-6)
-    # F12 with the compositor: quiet when the DVR matches the view, a warning when it does not.
+    # F12 with the compositor: quiet when the DVR matches the view, an error when it does not
+    # (test_f12_leaves_a_stale_dvr_out_and_says_so).
     assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
     scene.volumeevm_render.image_name = "single"
     assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
     capfd.readouterr()
     bpy.ops.render.render()
-    assert "[volumeevm] warning" not in capfd.readouterr().out
+    assert "[volumeevm]" not in "".join(capfd.readouterr())
     scene.frame_set(1)
     bpy.ops.render.render()
-    assert "rendered for another frame, camera or resolution" in capfd.readouterr().out
+    assert "rendered for another frame, camera or resolution" in capfd.readouterr().err
     assert dvr.frame_path("/x/a.png", 7) == "/x/a_0007.png"
     assert dvr.frame_path("/x/a_###_b.exr", 12) == "/x/a_012_b.exr"
 

@@ -7,7 +7,7 @@ import math
 import bpy
 import numpy as np
 
-from ..blender import jobs, runtime, tool_stack
+from ..blender import framing, jobs, runtime, tool_stack
 from ..blender.objects import active_volume
 
 #: Histogram rows drawn in the Histogram panel (the stored bins are summed in groups).
@@ -62,11 +62,11 @@ class VOLUMEEVM_PT_main(_Sidebar, bpy.types.Panel):
         if problem:
             box = layout.box()
             box.label(text="VolumeEVM problem:", icon="ERROR")
-            for line in _wrap(problem, 40):
+            for line in wrap(problem, 40):
                 box.label(text=line)
 
 
-def _wrap(text, width):
+def wrap(text, width):
     words, lines, line = text.split(), [], ""
     for word in words:
         if line and len(line) + 1 + len(word) > width:
@@ -102,10 +102,28 @@ class VOLUMEEVM_PT_volume(_VolumeSubpanel, bpy.types.Panel):
             col.label(text="Spacing unknown: 1 mm assumed", icon="ERROR")
         units = f" {s.units}" if s.units else ""
         col.label(text=f"Values: {_fmt(s.value_min)} .. {_fmt(s.value_max)}{units}")
+        col.prop(s, "units")
+        col.label(text=units_source(s), icon="INFO")
         col.label(text=f"Type: {s.dtype}, dense {human_bytes(s.dense_bytes or _dense(s))}")
         if runtime.volume(s.uid) is None:
             col.label(text="Not in memory: Build re-reads the source", icon="FILE_REFRESH")
         col.prop(s, "source_path", text="")
+        layout = self.layout
+        layout.operator_menu_enum("volumeevm.frame_volume", "side", text="Frame Volume",
+                                  icon="VIEW_CAMERA")
+        enclosing = framing.enclosing_objects(active_volume(context), context.scene)
+        if enclosing:
+            box = layout.box()
+            box.label(text=f"Hidden inside {', '.join(o.name for o in enclosing)}", icon="ERROR")
+            box.operator("volumeevm.hide_enclosing", icon="HIDE_ON")
+
+
+def units_source(s):
+    """Which units apply to a volume (``s`` is its ``volumeevm``) and where they come from."""
+    said = f"the file says {s.file_units}" if s.file_units else "the file gives none"
+    if s.units == s.file_units:
+        return f"Units: {said}" if s.units else "Units unknown: CT presets mean HU"
+    return f"Units set by you ({said})"
 
 
 def _dense(s):
@@ -303,7 +321,7 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
         if state.problem:
             box = layout.box()
             box.label(text="Tool stack problem:", icon="ERROR")
-            for line in _wrap(state.problem, 40):
+            for line in wrap(state.problem, 40):
                 box.label(text=line)
 
 

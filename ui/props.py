@@ -140,7 +140,12 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
                                      description="Index axis directions in LPS (3x3, row-major)")
     spacing_known: BoolProperty(name="Spacing Known", default=True)
     label_count: IntProperty(name="Labels", description="A label map's labels (0: not a label map)")
-    units: StringProperty(name="Units", description="The data's own units (e.g. HU)")
+    units: StringProperty(
+        name="Units",
+        description="The data's units (e.g. HU), as the file said unless you set them; CT "
+                    "presets are in HU, stretched onto the data's range only when asked")
+    file_units: StringProperty(name="File Units",
+                               description="The units the file said ('' = none)")
     dtype: StringProperty(name="Data Type")
     value_min: FloatProperty(name="Minimum", description="Smallest density (data units)")
     value_max: FloatProperty(name="Maximum", description="Largest density (data units)")
@@ -311,6 +316,11 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
     preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="ct_bone",
                          update=_preset_changed,
                          description="Load a preset into the colour ramp and value range")
+    preset_stretch: BoolProperty(
+        name="Stretch to Data Range", default=False, update=_preset_changed,
+        description="CT presets: map their Hounsfield range -1024 .. 3071 onto the volume's "
+                    "value range (CT data not stored in HU); off: the presets mean HU, as "
+                    "TransferFunction.preset does in a script")
     ramp: PointerProperty(name="Transfer Function", type=bpy.types.Texture,
                           description="Blend texture whose colour ramp is the transfer function")
     value_lo: FloatProperty(name="Low", default=-1024.0, precision=3,
@@ -336,6 +346,10 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
                              options={"PATH_SUPPORTS_BLEND_RELATIVE"})
     overwrite: BoolProperty(name="Overwrite", default=False,
                             description="Replace existing files (off: refuse)")
+    allow_stale_dvr: BoolProperty(
+        name="Allow Stale DVR", default=False,
+        description="F12 lays the DVR image over the render even when it was rendered for "
+                    "another frame, camera or resolution (off: F12 leaves it out and says so)")
 
 
 CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMObjectSettings,

@@ -4,9 +4,11 @@ transfer function's colour ramp with the volume's histogram beside it, the rende
 import bpy
 
 from ..blender import gpu_viewport, jobs
+from ..blender.compositor import stale_dvr
 from ..blender.dvr import options_of
 from ..blender.objects import render_volume
-from .panels import draw_histogram
+from ..blender.transfer import preset_note
+from .panels import draw_histogram, wrap
 
 #: Histogram rows drawn beside the ramp.
 HISTOGRAM_ROWS = 8
@@ -61,6 +63,10 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         row = box.row(align=True)
         row.prop(settings, "preset", text="")
         row.operator("volumeevm.load_tf_preset", text="", icon="FILE_REFRESH")
+        box.prop(settings, "preset_stretch")
+        note = preset_note(settings, vol)
+        if note:
+            box.label(text=note, icon="ERROR" if not settings.preset_stretch else "INFO")
         if settings.ramp is not None and settings.ramp.color_ramp is not None:
             box.template_color_ramp(settings.ramp, "color_ramp", expand=True)
         else:
@@ -92,6 +98,14 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         layout.operator("volumeevm.render_dvr", icon="RENDER_STILL")
         layout.operator("volumeevm.render_dvr_animation", icon="RENDER_ANIMATION")
         layout.operator("volumeevm.setup_compositor", icon="NODE_COMPOSITING")
+        layout.prop(settings, "allow_stale_dvr")
+        stale = stale_dvr(context.scene)
+        if stale:
+            box = layout.box()
+            box.label(text="F12 leaves the DVR out:", icon="ERROR")
+            for line in wrap(stale, 40):
+                box.label(text=line)
+            box.label(text="Render VolumeEVM again for this view")
         if context.scene.camera is None:
             layout.label(text="The scene has no camera", icon="ERROR")
 

@@ -35,8 +35,8 @@ may not be entered from two threads at once) out of the way.
 
 The first call of a kernel in a session either loads it from the disk cache (milliseconds) or
 compiles it (seconds, once per machine and version). :func:`set_kernel_compile_hook` installs a
-function called just before that happens, for a progress message such as "preparing kernels
-(first use only)".
+function called just before that happens, for a progress message such as "compiling
+VolumeEVM's Numba kernels (first use only)".
 """
 
 import functools
@@ -120,8 +120,8 @@ def set_kernel_compile_hook(hook):
     """Call ``hook(name)`` just before a kernel is first loaded or compiled in this session.
 
     It runs on the thread calling the kernel (a worker of :func:`parallel_map`, maybe several
-    at once), before the wait: a hook should only set a progress message such as "preparing
-    renderer (first use only)".
+    at once), before the wait: a hook should only set a progress message such as "compiling
+    VolumeEVM's Numba kernels (first use only)".
 
     Parameters
     ----------
