@@ -81,20 +81,8 @@ def measure(vevm):
 
 
 def measure_labels(regions):
-    """:func:`measure` for every region of a label set, with the areas they share.
-
-    Parameters
-    ----------
-    regions : dict
-        ``label -> VolumeEVM``, disjoint regions of one grid (as
-        :meth:`VolumeEVM.from_labels` makes them).
-
-    Returns
-    -------
-    dict
-        ``label -> measurements``: :func:`measure`'s dict plus ``shared_area_mm2``, ``{other
-        label: mm²}`` for each label it touches (faces both bound).
-    """
+    """:func:`measure` for every region of ``regions`` (``label -> VolumeEVM``, disjoint regions
+    of one grid), each with ``shared_area_mm2``: :func:`shared_areas`' row for it."""
     shared = shared_areas(regions)
     return {label: {**measure(vevm), "shared_area_mm2": shared[label]}
             for label, vevm in regions.items()}
@@ -133,28 +121,10 @@ def _touching(a, b):
 
 
 def write_measurements_csv(path, rows, *, overwrite=False):
-    """Write measurement rows as CSV: one row per region, the columns of :data:`COLUMNS`.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The ``.csv`` file; written atomically.
-    rows : iterable of dict
-        :meth:`VolumeEVM.measure`'s dicts (or :func:`measure_labels`' values), each with
-        ``label`` and ``name`` added where known. Points are written as ``x y z`` in mm.
-    overwrite : bool, optional
-        Replace an existing file (default False: an existing file is an error).
-
-    Returns
-    -------
-    Path
-        The file written.
-
-    Raises
-    ------
-    VolumeEVMError
-        If the file exists and ``overwrite`` is False, or cannot be written.
-    """
+    """Write measurement rows as CSV, atomically: one row per region, the columns of
+    :data:`COLUMNS` (``label`` and ``name`` as the rows give them, points as ``x y z`` in mm);
+    an existing file is replaced only with ``overwrite`` (see :meth:`LabelSet.write_measurements`).
+    Returns the path written."""
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(COLUMNS)
