@@ -25,11 +25,11 @@ from ..volumeevm_addon import Polygons, VolumeEVM, VolumeEVMError
 from . import jobs
 from .meshes import Faces, fill_mesh, surface_geometry
 from .objects import volume_object
-from .volumes import _read_steps, _source_of
+from .volumes import read_steps, source_of
 
 
 def _label_steps(uid, path, options, manifold):
-    volume = yield from _read_steps(uid, path, options)
+    volume = yield from read_steps(uid, path, options)
     yield 0.2, "building every label"
     regions = VolumeEVM.from_labels(volume)  # refused, naming the file, unless integers >= 0
     meshes = []
@@ -48,6 +48,17 @@ def _material(name, color):
         material.use_nodes = True  # always on (and deprecated) from 5.0
     material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (*color, 1.0)
     return material
+
+
+def _remove_replaced(collection):
+    """Remove a replaced collection, its objects, and their meshes and materials that nothing
+    else uses."""
+    objects = list(collection.objects)
+    data = {o.data for o in objects if o.data is not None}
+    materials = {m for mesh in data for m in mesh.materials if m is not None}
+    bpy.data.batch_remove(objects + [collection])
+    bpy.data.batch_remove([mesh for mesh in data if mesh.users == 0])
+    bpy.data.batch_remove([material for material in materials if material.users == 0])
 
 
 def _joined(meshes):
@@ -76,7 +87,7 @@ def label_meshes_job(context, obj, *, single_mesh=False, manifold=False):
     """The label-meshes job (see :func:`make_label_meshes`)."""
     vol_obj = volume_object(obj)
     name = vol_obj.name
-    path, options = _source_of(vol_obj)
+    path, options = source_of(vol_obj)
 
     def commit(result):
         infos, meshes = result
@@ -86,8 +97,7 @@ def label_meshes_job(context, obj, *, single_mesh=False, manifold=False):
         collection_name = f"{name} labels"
         old = bpy.data.collections.get(collection_name)
         if old is not None:  # made again: the new objects replace the old ones
-            stale = [o for o in old.objects]
-            jobs.on_success(lambda: bpy.data.batch_remove(stale + [old]))
+            jobs.on_success(lambda: _remove_replaced(old))
             old.name = f"{collection_name} (replaced)"
             jobs.on_undo(lambda: setattr(old, "name", collection_name))
         collection = bpy.data.collections.new(collection_name)

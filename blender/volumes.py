@@ -58,10 +58,10 @@ def default_name(path):
 def get_volume(obj):
     """The dense volume of a volume object (runtime cache, else re-read from its source)."""
     obj = volume_object(obj)
-    return jobs.drain(_read_steps(obj.volumeevm.uid, *_source_of(obj)), verbose=False)
+    return jobs.drain(read_steps(obj.volumeevm.uid, *source_of(obj)), verbose=False)
 
 
-def _source_of(obj):
+def source_of(obj):
     settings = obj.volumeevm
     return settings.source_path, json.loads(settings.reader_options or "{}")
 
@@ -77,7 +77,7 @@ def _grid_box(shape, spacing, origin, orientation):
 
 
 # ---------------------------------------------------------------------------- import
-def _read_steps(uid, path, options):
+def read_steps(uid, path, options):
     """Steps: the cached volume of ``uid`` or a fresh read of ``path``."""
     vol = runtime.volume(uid)
     if vol is None:
@@ -178,7 +178,7 @@ def import_volume(path, *, name=None, units=None, **reader_options):
 
 # ---------------------------------------------------------------------------- build
 def _build_steps(uid, path, options, threshold, upper):
-    vol = yield from _read_steps(uid, path, options)
+    vol = yield from read_steps(uid, path, options)
     yield 0.3, "building EVM"
     vevm = VolumeEVM.from_volume(vol, threshold, upper)
     yield 0.9, "saving VolumeEVM"
@@ -197,7 +197,7 @@ def build_job(obj, threshold=None, upper=None):
     if upper is not None and upper < threshold:
         raise VolumeEVMError(f"{obj.name}: upper bound {upper} is below the threshold {threshold}")
     name, uid = obj.name, s.uid
-    path, options = _source_of(obj)
+    path, options = source_of(obj)
 
     def commit(result):
         vol, vevm = result

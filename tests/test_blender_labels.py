@@ -40,6 +40,7 @@ def test_a_segmentation_becomes_one_named_coloured_object_per_segment(api, core,
     assert len(again) == len(regions)
     assert len(bpy.data.collections) == 1
     assert sum(1 for o in bpy.data.objects if "volumeevm_label" in o) == len(regions)
+    assert len(bpy.data.materials) == len(bpy.data.meshes) - 1 == len(regions)  # and the box
 
 
 def test_one_mesh_with_a_material_and_a_label_per_face(api, core, segmentation):
