@@ -92,11 +92,6 @@ def put_stack_state(uid, name, state):
     _stacks[(uid, name)] = state
 
 
-def stack_states():
-    """All tool stack states, ``{(uid, name): StackState}`` (a copy)."""
-    return dict(_stacks)
-
-
 def forget_stacks_except(keys):
     """Drop the tool stacks of volume objects not in ``keys`` ({(uid, name)})."""
     for key in [k for k in _stacks if k not in keys]:

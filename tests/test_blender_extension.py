@@ -106,6 +106,10 @@ surface = api.make_mesh(vol)
 result["api"] = [vol.name, vevm.voxel_count, len(surface.data.polygons)]
 addon_utils.disable(package, default_set=True)
 result["unregistered"] = not hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
+# Disabling gave the kernel cache folder back (the core's default): set_kernel_cache_dir
+# returns the folder it replaces.
+core = sys.modules[package + ".volumeevm_addon"]
+result["cache_dir_after_disable"] = core.set_kernel_cache_dir(None)
 print("RESULT " + json.dumps(result), flush=True)
 '''
 
@@ -263,6 +267,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     assert result["polygons"] == len(polys) and result["vertices"] == len(np.asarray(verts))
     assert result["api"] == ["by_api", expected.voxel_count, len(polys)]
     assert result["unregistered"]
+    assert result["cache_dir_after_disable"] is None
     # The installed add-on's folder got nothing written into it.
     folder = repo_dir / MANIFEST["id"]
     assert (folder / "blender_manifest.toml").is_file()
