@@ -27,7 +27,6 @@ from ._voxelize import (MeshCheck, box_evm, check_closed_mesh, tool_to_grid, vox
 from .model._cache import DerivedCache
 from .model._evm import EVM
 from .model._histogram import density_histogram, otsu_threshold
-from .model._levels import LEVELS
 from .model._label_set import LabelSet
 from .model._label_table import LabelInfo
 from .model._mesh import BoundaryMesh, Polygons
@@ -43,6 +42,7 @@ from .rendering._gpu_inputs import (GPU_UNIFORMS_GLSL, GPUFrame, axial_from_wind
                                     gpu_region,
                                     gpu_transfer_table, window_from_axial)
 from .rendering._images import exr_channels, openexr_module, read_exr, write_exr, write_png
+from .rendering._levels import LEVELS
 from .rendering._modes import MODES
 from .rendering._quality import method_options
 from .rendering._render import MAX_SAMPLES, METHODS, render, render_options

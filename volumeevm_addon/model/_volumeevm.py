@@ -29,6 +29,7 @@ from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
 from ._labels import label_regions
+from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
 from ._volume import Volume, checked_densities, checked_geometry, index_to_physical, transform
@@ -399,10 +400,15 @@ class VolumeEVM:
             For a factor that is not such an integer, or when the level would need more
             memory than is available.
         """
-        from ._levels import checked_factor, coarsen
-
         factor = checked_factor(factor, self.shape)
-        return self.cache.get(("level", factor), lambda: coarsen(self, factor))
+        return self.cache.get(("level", factor), lambda: self._coarse(factor))
+
+    def _coarse(self, factor):
+        """The VolumeEVM of :func:`._levels.coarsen`'s arrays (not cached)."""
+        evm, table, shape, spacing, origin = coarsen(self, factor)
+        return VolumeEVM(evm, table, shape=shape, spacing=spacing, origin=origin,
+                         orientation=self.orientation, units=self.units,
+                         threshold=self.threshold, upper=self.upper)
 
     def to_dense(self, background=0):
         """The full grid: the region's densities, ``background`` everywhere else.

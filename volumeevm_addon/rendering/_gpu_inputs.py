@@ -53,7 +53,7 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import kernel
 from .._memory import check_memory
-from ..model._levels import level_factor
+from ._levels import level_factor
 from ..model._volume import grid_to_world
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera

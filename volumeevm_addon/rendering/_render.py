@@ -30,7 +30,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ..model._levels import level_factor
+from ._levels import level_factor
 from ..model._volume import grid_to_world
 from ._camera import Camera
 from ._checks import (RAY_STEPS_PER_VOXEL, REFERENCE_STEPS_PER_VOXEL, check_mode,
@@ -137,7 +137,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Resolution level: ``"full"`` (default) renders ``vevm`` itself; an integer ``f >= 2``
         renders ``vevm.level(f)``, ``f`` times coarser voxels; ``"auto"`` picks the coarsest
         power of two whose voxels are still no wider than a pixel where the volume is nearest
-        the camera (:func:`volumeevm_addon.model._levels.auto_factor`). A coarser level scales a
+        the camera (:func:`volumeevm_addon.rendering._levels.auto_factor`). A coarser level scales a
         given ``step_mm`` by the factor (the ray casters keep their samples per voxel). The
         reference method ignores it: it is the full-resolution oracle.
     **options
