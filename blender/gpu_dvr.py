@@ -23,7 +23,9 @@ them and draws one full-screen quad whose fragment shader marches the pixel's ra
 - leap over the empty blocks of ``8³`` voxels around the sample, as far as the empty-space
   texture says they reach (the same image);
 - write premultiplied RGBA and the axial depth of the front of the first visible part
-  (the core's depth rule), ``1e10`` where nothing is visible.
+  (the core's depth rule), ``1e10`` where nothing is visible; for a viewport, the colour
+  through the scene's display table first (:mod:`.display_lut`, a 3-D texture kept while
+  the table is the same).
 
 Textures are made lazily on the first draw and kept per VolumeEVM (the region, the gradients
 once a shaded frame needs them, and the empty-space blocks of its last few transfer functions
@@ -55,6 +57,7 @@ from gpu_extras.batch import batch_for_shader
 
 from ..volumeevm_addon import (BACKGROUND_DEPTH, GPU_UNIFORMS_GLSL, VolumeEVMError, gpu_frame,
                                gpu_gradients, gpu_occupancy, gpu_region, gpu_transfer_table)
+from . import display_lut
 
 #: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).
 METHOD = "gpu"
@@ -308,10 +311,14 @@ void main()
       }
     }
   }
-  if (params.image.w > 0.5 && acc.a > 0.0) { /* sRGB display: encode the straight colour */
-    vec3 c = clamp(acc.rgb / acc.a, 0.0, 1.0);
-    c = mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
-    acc.rgb = c * acc.a;
+  if (params.image.w > 0.5 && acc.a > 0.0) {
+    /* A viewport's display (display_lut.py): the straight colour through the scene's colour
+     * management (the table's lattice is cube-root shaped), then into the display-linear space
+     * (display value ^ 2.2) where Blender merges the viewport's overlay, premultiplied. */
+    vec3 u = pow(clamp(acc.rgb / acc.a, 0.0, 1.0), vec3(1.0 / DISPLAY_SHAPER));
+    float n = float(textureSize(display_lut, 0).x);
+    vec3 shown = max(texture(display_lut, (u * (n - 1.0) + 0.5) / n).rgb, 0.0);
+    acc.rgb = pow(shown, vec3(2.2)) * acc.a;
   }
   out_color = acc;
   if (seen) {
@@ -335,6 +342,7 @@ _stretch = None
 _volumes = weakref.WeakKeyDictionary()  # VolumeEVM -> _VolumeTextures
 _refused = weakref.WeakKeyDictionary()  # VolumeEVM -> why the GPU refused its region texture
 _tables = {}  # transfer-function version -> 1-D texture
+_display = []  # the display table drawn last and its 3-D texture
 _KEPT = 8
 """Transfer-function tables kept, and empty-space textures per VolumeEVM (the latest used)."""
 _context = False
@@ -487,7 +495,9 @@ def _shader_and_batch():
         info.sampler(2, "FLOAT_1D", "tf_table")
         info.sampler(3, "FLOAT_2D", "depth_in")
         info.sampler(4, "FLOAT_3D", "gradient")
-        _shader = _full_screen_shader(info, "volumeevm_dvr", _FRAGMENT,
+        info.sampler(5, "FLOAT_3D", "display_lut")
+        fragment = _FRAGMENT.replace("DISPLAY_SHAPER", f"{display_lut.SHAPER:.6f}")
+        _shader = _full_screen_shader(info, "volumeevm_dvr", fragment,
                                       (("VEC4", "out_color"), ("FLOAT", "out_depth")))
         _batch = batch_for_shader(_shader, "TRI_STRIP",
                                   {"pos": ((-1, -1), (1, -1), (-1, 1), (1, 1))})
@@ -519,6 +529,15 @@ def _table_texture(tf):
         texture = _texture(len(table), "RGBA32F", "tf", table)
     _keep(_tables, key, texture)
     return texture
+
+
+def _display_texture(table):
+    """The 3-D texture of a display table (:mod:`.display_lut`), remade when the table is
+    another array."""
+    if not _display or _display[0] is not table:
+        rgba = np.concatenate([table, np.ones(table.shape[:3] + (1,), np.float32)], axis=-1)
+        _display[:] = [table, _texture_3d(rgba, "RGBA32F")]
+    return _display[1]
 
 
 def _keep(textures, key, texture):
@@ -594,6 +613,7 @@ def free():
     _volumes.clear()
     _refused.clear()
     _tables.clear()
+    _display.clear()
     _shader = _batch = _stretch = None
 
 
@@ -614,7 +634,7 @@ def restored_state(blend="NONE"):
         gpu.state.depth_mask_set(saved[2])
 
 
-def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
+def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE", display=None):
     """Draw the volume of ``frame`` (the core's ``gpu_frame``) into the bound framebuffer: one
     full-screen quad, RGBA (premultiplied) to colour slot 0 and axial depth to slot 1.
 
@@ -630,6 +650,8 @@ def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
     blend : str
         ``gpu.state.blend_set`` mode for the draw: ``"NONE"`` offscreen (the values as
         computed), ``"ALPHA_PREMULT"`` over a viewport.
+    display : (N, N, N, 3) ndarray, optional
+        The display table (:mod:`.display_lut`) of a frame made with ``display=True``.
     """
     shader, batch = _shader_and_batch()
     region, occupancy, gradient = _textures(frame, tf, tuple(xray))
@@ -646,10 +668,12 @@ def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
         shader.uniform_sampler("tf_table", _table_texture(tf))
         shader.uniform_sampler("depth_in", depth_texture)
         shader.uniform_sampler("gradient", gradient)
+        shader.uniform_sampler("display_lut",
+                               region if display is None else _display_texture(display))
         batch.draw(shader)
 
 
-def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0)):
+def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0), display=None):
     """Draw ``frame`` at its own, coarser image ``size`` (width, height) into textures of that
     size, then stretch its colour over the whole bound framebuffer, premultiplied over what is
     there: the viewport's coarser frame while the view moves (a ray per block of pixels)."""
@@ -662,7 +686,7 @@ def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0)):
         gpu.state.viewport_set(0, 0, width, height)
         try:
             framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0))
-            draw(frame, tf, xray=xray)
+            draw(frame, tf, xray=xray, display=display)
         finally:
             gpu.state.viewport_set(*viewport)
     shader = _stretch_shader()

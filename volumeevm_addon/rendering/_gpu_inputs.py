@@ -86,7 +86,7 @@ _FIELDS = (
     ("clip", "vec4", "t of clip_start and of clip_end; axial depth at t = 0; 0"),
     ("compositing", "vec4", "mode code; termination; xray_scale, xray_offset"),
     ("table", "vec4", "table: first value, rows per data unit, rows; unit_length_mm"),
-    ("image", "vec4", "width, height; 1 when depth_in is given; 1 to encode sRGB"),
+    ("image", "vec4", "width, height; 1 when depth_in is given; 1 for a display"),
     ("normal", "mat4", "index-space gradient g to world normal (m * vec4(g, 0)).xyz"),
     ("to_world", "mat4", "index-space direction d to world (m * vec4(d, 0)).xyz"),
     ("shading", "vec4", "Blinn-Phong ambient, diffuse, specular, shininess"),
@@ -547,7 +547,7 @@ class GPUFrame:
 
 def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None, level="full",
               step_mm=None, termination=0.99, skip_empty=True, xray_scale=1.0,
-              xray_offset=0.0, srgb=False, shading=None):
+              xray_offset=0.0, display=False, shading=None):
     """Check one GPU render's settings and compute its uniforms (what :func:`render` does before
     it renders, for the GPU).
 
@@ -585,10 +585,11 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
         Skip blocks where nothing can be seen (the same image, faster).
     xray_scale, xray_offset : float, optional
         X-ray's attenuation per mm per data unit and density of zero attenuation.
-    srgb : bool, optional
-        Encode the colour for an sRGB display: the straight colour through the sRGB transfer
-        function, premultiplied again (a 3D viewport draws add-ons after the scene's view
-        transform). False (default): scene-linear, as every renderer returns it.
+    display : bool, optional
+        Draw for a 3D viewport's display: the shader maps the straight colour through the
+        display table it is given (the scene's colour management: a 3D viewport draws add-ons
+        after the scene's view transform) and premultiplies it again. False (default):
+        scene-linear, as every renderer returns it.
     shading : None, True, dict or Shading, optional
         Gradient shading for ``"over"`` and ``"under"`` (:class:`._shading.Shading`, as for
         the CPU methods; ignored by ``"xray"`` and ``"mip"``): the shader then reads
@@ -624,7 +625,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
     step = checked_step_mm(step_mm, spacing, RAY_STEPS_PER_VOXEL)
     check_samples("raycast", vevm, camera, g, {"step_mm": step})
     skip_empty = flag("skip_empty", skip_empty)
-    srgb = flag("srgb", srgb)
+    display = flag("display", display)
     rays, axial_origin = _pixel_rays(camera, g, vevm.shape)
     lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g, tf)
     lo, hi = _table_range(tf)
@@ -642,7 +643,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
                         compositing.xray_scale, compositing.xray_offset),
         "table": (lo, (GPU_TABLE_ROWS - 1) / (hi - lo), GPU_TABLE_ROWS,
                   1.0 if tf is None else tf.unit_length_mm),
-        "image": (w, h, float(depth_in is not None), float(srgb)),
+        "image": (w, h, float(depth_in is not None), float(display)),
         "normal": _mat4(np.zeros((3, 3)) if lighting is None else lighting.inv_t),
         "to_world": _mat4(g[:3, :3]),
         "shading": (0.0,) * 4 if lighting is None else lighting.weights()[:4],
