@@ -199,7 +199,7 @@ def test_bad_axes_and_units_refused(small_store, version):
     attrs = store / (".zattrs" if version == 2 else "zarr.json")
 
     def scales(meta):
-        return meta["multiscales"][0] if version == 2 else meta["attributes"]["ome"]["multiscales"][0]
+        return (meta if version == 2 else meta["attributes"]["ome"])["multiscales"][0]
 
     _edit(attrs, lambda m: scales(m)["axes"].reverse())
     with raises(store, "axes x, y, z are not supported", "zyx, czyx, tczyx"):

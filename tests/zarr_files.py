@@ -46,7 +46,8 @@ def write_store(path, arrays, *, version=2, chunks=(64, 64, 64), codec="blosc",
         scale = [1.0] * (len(names) - 3) + level_scale
         translation = [0.0] * (len(names) - 3) + list(translation_zyx)
         datasets.append({"path": str(k), "coordinateTransformations": [
-            {"type": "scale", "scale": scale}, {"type": "translation", "translation": translation}]})
+            {"type": "scale", "scale": scale},
+            {"type": "translation", "translation": translation}]})
         _write_array(path / str(k), array, version, (1,) * (len(names) - 3) + tuple(chunks),
                      codec, separator, fill_value, {c for lv, c in skip if lv == k})
     multiscales = [{"version": "0.4" if version == 2 else "0.5", "axes": axis_list,

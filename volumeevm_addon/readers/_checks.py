@@ -24,7 +24,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ..model._volume import Volume
+from ..model._volume import Volume, is_lazy
 
 #: Bytes read per call when filling a buffer, so a decompressing stream never holds a second
 #: full-size copy of the data.
@@ -288,16 +288,20 @@ def check_ndim(shape, path):
 def checked_array(array, path):
     """Check that ``array`` is a usable density grid and return it in the core's layout.
 
+    A lazy Dask array (:func:`~volumeevm_addon.model._volume.is_lazy`) is checked by its
+    dtype and shape only and stays lazy (native byte order as a lazy conversion): its
+    densities are checked for NaN and Inf when a build computes its chunks.
+
     Parameters
     ----------
-    array : ndarray
+    array : ndarray or dask array
         Decoded densities, already indexed ``[x, y, z]``.
     path : str
         The file the array came from, for the message.
 
     Returns
     -------
-    (X, Y, Z) ndarray
+    (X, Y, Z) ndarray or dask array
         The same values, C-contiguous and in native byte order (a copy only if needed).
 
     Raises
@@ -306,7 +310,9 @@ def checked_array(array, path):
         If the array is not 3-D, is empty, has a dtype other than integer or real floating
         point, or (float data) holds NaN or Inf.
     """
-    array = np.asarray(array)
+    lazy = is_lazy(array)
+    if not lazy:
+        array = np.asarray(array)
     if array.dtype.kind not in "uif":
         raise VolumeEVMError(
             f"{path}: unsupported data type {array.dtype}; densities must be integers or real "
@@ -315,6 +321,9 @@ def checked_array(array, path):
     check_ndim(array.shape, path)
     if array.size == 0:
         raise VolumeEVMError(f"{path}: the volume is empty (shape {array.shape})")
+    if lazy:
+        native = array.dtype.newbyteorder("=")
+        return array if array.dtype == native else array.astype(native)
     if array.dtype.kind == "f":
         finite = np.isfinite(array)
         if not finite.all():
@@ -334,8 +343,8 @@ def checked_volume(
 
     Parameters
     ----------
-    array : ndarray
-        Decoded densities indexed ``[x, y, z]``.
+    array : ndarray or dask array
+        Decoded densities indexed ``[x, y, z]`` (lazy ones as :func:`checked_array` says).
     path : str
         The file or folder read, stored as ``Volume.source`` and named in messages.
     spacing : sequence of 3 float, optional

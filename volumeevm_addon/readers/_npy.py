@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import check_read_memory, checked_volume, data_units, open_file, read_payload
+from ._checks import (check_ndim, check_read_memory, checked_volume, data_units,
+                      import_reader_package, open_file, read_payload)
 
 #: ``numpy.lib.format`` header readers by format version (3.0 only adds UTF-8 field names,
 #: which a volume's plain dtype never needs).
@@ -31,13 +32,22 @@ _HEADER_READERS = {
     (2, 0): np.lib.format.read_array_header_2_0,
 }
 
-def read_npy(path):
+#: Bytes per chunk of a lazy ``.npy`` volume (whole y-z planes, as many as fit).
+LAZY_CHUNK_BYTES = 64 << 20
+
+
+def read_npy(path, lazy=False):
     """Read a ``.npy`` volume indexed ``[x, y, z]`` and its optional JSON sidecar.
 
     Parameters
     ----------
     path : str or Path
         The ``.npy`` file.
+    lazy : bool
+        Map the file into memory read-only and return its array as a lazy Dask array
+        (:data:`LAZY_CHUNK_BYTES` per chunk, whole y-z planes): nothing is read until a chunk
+        is computed, so a file larger than memory opens (for :meth:`VolumeEVM.from_volume`,
+        which builds chunk by chunk). Checked as the eager read: header and file length.
 
     Returns
     -------
@@ -74,10 +84,43 @@ def read_npy(path):
                 f"announces {start} + {count * dtype.itemsize} for shape {shape} of {dtype}); "
                 f"the file is truncated or corrupt"
             )
+        if lazy:
+            return _lazy(path, start, shape, fortran_order, dtype)
         reordered = fortran_order or not dtype.isnative
         check_read_memory(path, shape, dtype, copies=2 if reordered else 1)
         buffer = read_payload(f, count * dtype.itemsize, path, "array data")
     array = np.frombuffer(buffer, dtype=dtype).reshape(shape, order="F" if fortran_order else "C")
+    spacing, units = _read_sidecar(path.with_suffix(".json"), array)
+    return checked_volume(array, path, spacing=spacing, units=units)
+
+
+class MappedChunks:
+    """A memory-mapped array as Dask reads it: each chunk a copy of its part of the map.
+
+    Handing Dask the ``np.memmap`` itself would not do: ``dask.array.from_array`` copies a
+    NumPy array (a memmap is one) into memory whole.
+    """
+
+    def __init__(self, mapped):
+        self.mapped = mapped
+        self.shape, self.dtype, self.ndim = mapped.shape, mapped.dtype, mapped.ndim
+
+    def __getitem__(self, slices):
+        return np.array(self.mapped[slices])
+
+
+def _lazy(path, start, shape, fortran_order, dtype):
+    """The ``.npy`` file's array as a Dask array over a read-only memory map."""
+    check_ndim(shape, path)
+    if math.prod(shape) == 0:
+        raise VolumeEVMError(f"{path}: the volume is empty (shape {shape})")
+    da = import_reader_package("dask.array", "dask", path)
+    mapped = np.memmap(path, dtype=dtype, mode="r", offset=start, shape=shape,
+                       order="F" if fortran_order else "C")
+    planes = max(1, min(shape[0], LAZY_CHUNK_BYTES // mapped[0].nbytes))
+    name = f"npy-{path.resolve()}-{os.stat(path).st_mtime_ns}"
+    array = da.from_array(MappedChunks(mapped), chunks=(planes, -1, -1), name=name,
+                          asarray=False, fancy=False, meta=np.empty((0, 0, 0), dtype))
     spacing, units = _read_sidecar(path.with_suffix(".json"), array)
     return checked_volume(array, path, spacing=spacing, units=units)
 

@@ -246,7 +246,8 @@ def volume_levels(path):
 
 def _choice(value, name, count, store):
     """``value`` checked as an index below ``count``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= value < count:
+    integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+    if not integer or not 0 <= value < count:
         raise VolumeEVMError(f"{store}: {name}={value!r} is not one of 0 .. {count - 1}")
     return int(value)
 
@@ -262,7 +263,8 @@ def _json(path, store):
     try:
         value = json.loads(text)
     except ValueError as exc:
-        raise VolumeEVMError(f"{store}: {path.relative_to(store)} is not valid JSON ({exc})") from exc
+        raise VolumeEVMError(
+            f"{store}: {path.relative_to(store)} is not valid JSON ({exc})") from exc
     if not isinstance(value, dict):
         raise VolumeEVMError(f"{store}: {path.relative_to(store)} is not a JSON object")
     return value
@@ -293,7 +295,8 @@ def _levels(store):
     datasets = scales.get("datasets")
     if not isinstance(datasets, list) or not datasets:
         raise VolumeEVMError(f"{store}: multiscales has no datasets (levels)")
-    outer = _transforms(scales.get("coordinateTransformations", []), len(axes), store, "multiscales")
+    outer = _transforms(scales.get("coordinateTransformations", []), len(axes), store,
+                        "multiscales")
     levels = []
     for index, dataset in enumerate(datasets):
         if not isinstance(dataset, dict) or not isinstance(dataset.get("path"), str):
@@ -361,7 +364,8 @@ def _transforms(transforms, ndim, store, where, required=False):
         if (not isinstance(values, list) or len(values) != ndim
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
                 or not all(math.isfinite(v) for v in values)):
-            raise VolumeEVMError(f"{store}: {where}: {kind} {values!r} is not {ndim} finite numbers")
+            raise VolumeEVMError(
+                f"{store}: {where}: {kind} {values!r} is not {ndim} finite numbers")
         if kind == "scale":
             if min(values) <= 0:
                 raise VolumeEVMError(f"{store}: {where}: scale {values} must be positive")
