@@ -139,6 +139,21 @@ def test_lazy_npy_builds_identically(tmp_path, data_dir):
         read_volume(tmp_path / "short.npy", lazy=True)
 
 
+def test_lazy_raw_builds_identically(tmp_path, data_dir):
+    array = np.load(data_dir / "ct_head_invesalius.npy")
+    path = tmp_path / "head.raw"
+    path.write_bytes(b"H" * 100 + array.astype(">i2").tobytes(order="F"))
+    layout = {"shape": array.shape, "dtype": "int16", "byte_order": "big", "header_bytes": 100,
+              "spacing": (0.957, 0.957, 1.5)}
+    volume = read_volume(path, lazy=True, **layout)
+    assert volume.array.chunks[:2] == ((256,), (256,))  # whole z planes: contiguous reads
+    assert np.array_equal(volume.array.compute(), array)
+    assert_identical(VolumeEVM.from_volume(volume, 300),
+                     VolumeEVM.from_volume(read_volume(path, **layout), 300))
+    with pytest.raises(VolumeEVMError, match="head.raw: file has .* needs exactly"):
+        read_volume(path, lazy=True, **{**layout, "header_bytes": 98})
+
+
 @pytest.mark.parametrize("version", [2, 3])
 def test_ome_zarr_levels_build_identically(tmp_path, data_dir, version):
     ct = np.load(data_dir / "ct_head_invesalius.npy")
@@ -167,7 +182,7 @@ def test_memory_checked_before_and_during_the_build(data_dir, monkeypatch):
                                                  r"needs about"):
             VolumeEVM.from_volume(volume, -2000)
         monkeypatch.delenv("VOLUMEEVM_MEMORY_LIMIT")
-        monkeypatch.setattr("volumeevm_addon.readers._npy.LAZY_CHUNK_BYTES", 16 * 256 * 108 * 2)
+        monkeypatch.setattr("volumeevm_addon.readers._checks.LAZY_CHUNK_BYTES", 16 * 256 * 108 * 2)
         mapped = read_volume(data_dir / "ct_head_invesalius.npy", lazy=True)
         assert mapped.array.chunks[0] == (16,) * 16
         VolumeEVM.from_volume(mapped, 2000)  # Dask's and the kernels' one-time allocations

@@ -86,6 +86,9 @@ def read_volume(path, *, units=None, labels=None, **options):
         - raw (``.raw``, ``.bin``): ``shape=(X, Y, Z)`` and ``dtype`` (required),
           ``byte_order="little"`` or ``"big"``, ``header_bytes=0``, ``spacing=(sx, sy, sz)``
           in mm;
+        - ``.npy`` and raw: ``lazy=True`` maps the file read-only and returns a lazy Dask
+          array (a file larger than memory opens; :meth:`VolumeEVM.from_volume` builds it
+          chunk by chunk);
         - DICOM (folder, list, ``.dcm``): ``series_uid=`` to pick one series of several;
         - OME-Zarr (a ``.zarr`` / ``.ome.zarr`` folder, NGFF 0.4 or 0.5): ``level=0`` (the
           pyramid level, :func:`volume_levels` lists them), ``channel=0`` and ``time=0``; the

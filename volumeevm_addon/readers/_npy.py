@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import (check_ndim, check_read_memory, checked_volume, data_units,
-                      import_reader_package, open_file, read_payload)
+from ._checks import (check_ndim, check_read_memory, checked_volume, data_units, lazy_mapped,
+                      open_file, read_payload)
 
 #: ``numpy.lib.format`` header readers by format version (3.0 only adds UTF-8 field names,
 #: which a volume's plain dtype never needs).
@@ -31,10 +31,6 @@ _HEADER_READERS = {
     (1, 0): np.lib.format.read_array_header_1_0,
     (2, 0): np.lib.format.read_array_header_2_0,
 }
-
-#: Bytes per chunk of a lazy ``.npy`` volume (whole y-z planes, as many as fit).
-LAZY_CHUNK_BYTES = 64 << 20
-
 
 def read_npy(path, lazy=False):
     """Read a ``.npy`` volume indexed ``[x, y, z]`` and its optional JSON sidecar.
@@ -45,9 +41,9 @@ def read_npy(path, lazy=False):
         The ``.npy`` file.
     lazy : bool
         Map the file into memory read-only and return its array as a lazy Dask array
-        (:data:`LAZY_CHUNK_BYTES` per chunk, whole y-z planes): nothing is read until a chunk
-        is computed, so a file larger than memory opens (for :meth:`VolumeEVM.from_volume`,
-        which builds chunk by chunk). Checked as the eager read: header and file length.
+        (:func:`._checks.lazy_mapped`): nothing is read until a chunk is computed, so a file
+        larger than memory opens (for :meth:`VolumeEVM.from_volume`, which builds chunk by
+        chunk). Checked as the eager read: header and file length.
 
     Returns
     -------
@@ -94,33 +90,12 @@ def read_npy(path, lazy=False):
     return checked_volume(array, path, spacing=spacing, units=units)
 
 
-class MappedChunks:
-    """A memory-mapped array as Dask reads it: each chunk a copy of its part of the map.
-
-    Handing Dask the ``np.memmap`` itself would not do: ``dask.array.from_array`` copies a
-    NumPy array (a memmap is one) into memory whole.
-    """
-
-    def __init__(self, mapped):
-        self.mapped = mapped
-        self.shape, self.dtype, self.ndim = mapped.shape, mapped.dtype, mapped.ndim
-
-    def __getitem__(self, slices):
-        return np.array(self.mapped[slices])
-
-
 def _lazy(path, start, shape, fortran_order, dtype):
-    """The ``.npy`` file's array as a Dask array over a read-only memory map."""
+    """The ``.npy`` file's volume over a read-only memory map (:func:`lazy_mapped`)."""
     check_ndim(shape, path)
     if math.prod(shape) == 0:
         raise VolumeEVMError(f"{path}: the volume is empty (shape {shape})")
-    da = import_reader_package("dask.array", "dask", path)
-    mapped = np.memmap(path, dtype=dtype, mode="r", offset=start, shape=shape,
-                       order="F" if fortran_order else "C")
-    planes = max(1, min(shape[0], LAZY_CHUNK_BYTES // mapped[0].nbytes))
-    name = f"npy-{path.resolve()}-{os.stat(path).st_mtime_ns}"
-    array = da.from_array(MappedChunks(mapped), chunks=(planes, -1, -1), name=name,
-                          asarray=False, fancy=False, meta=np.empty((0, 0, 0), dtype))
+    array = lazy_mapped(path, start, shape, dtype, fortran_order=fortran_order)
     spacing, units = _read_sidecar(path.with_suffix(".json"), array)
     return checked_volume(array, path, spacing=spacing, units=units)
 
