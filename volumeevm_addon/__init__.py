@@ -33,7 +33,7 @@ from .model._mesh import BoundaryMesh, Polygons
 from .model._stack import EditStack, ToolOperation
 from .model._volume import BLENDER_UNITS_PER_MM, Volume, grid_to_world, index_to_physical
 from .model._volumeevm import VolumeEVM
-from .readers import SUPPORTED_EXTENSIONS, read_volume
+from .readers import SUPPORTED_EXTENSIONS, read_volume, volume_levels
 from .rendering._camera import BACKGROUND_DEPTH, Camera
 from .rendering._compositing import composite_over, output_depth
 from .rendering._depth import VISIBLE_ALPHA
@@ -108,6 +108,7 @@ __all__ = [
     "set_kernel_threads",
     "tool_to_grid",
     "voxelize_mesh",
+    "volume_levels",
     "voxelize_mesh_evm",
     "window_from_axial",
     "write_atomically",

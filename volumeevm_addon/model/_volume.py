@@ -93,6 +93,22 @@ class Volume:
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
 
+def is_lazy(array):
+    """True when ``array`` is a lazy Dask array (a store's or a memory-mapped file's), whose
+    chunks are read only when computed; found without importing Dask.
+
+    Parameters
+    ----------
+    array : object
+        A volume's ``array``.
+
+    Returns
+    -------
+    bool
+    """
+    return type(array).__module__.split(".")[0] == "dask"
+
+
 def index_to_physical(spacing, origin, orientation=None):
     """4x4 matrix from voxel-centre index space to physical mm (LPS).
 

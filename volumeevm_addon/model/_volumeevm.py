@@ -25,6 +25,7 @@ from .._errors import VolumeEVMError
 from .._files import write_atomically
 from .._memory import available_memory, check_memory
 from ._cache import DerivedCache, default_budget
+from ._chunked import build_chunked
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
@@ -32,7 +33,8 @@ from ._labels import label_regions
 from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
-from ._volume import Volume, checked_densities, checked_geometry, index_to_physical, transform
+from ._volume import (Volume, checked_densities, checked_geometry, index_to_physical, is_lazy,
+                      transform)
 
 
 class VolumeEVM:
@@ -214,6 +216,12 @@ class VolumeEVM:
     def from_volume(cls, volume, threshold, upper=None):
         """Build from a :class:`Volume` (a reader's result), keeping its geometry and units.
 
+        A lazy volume (its ``array`` a Dask array: an OME-Zarr store, ``read_volume(path,
+        lazy=True)``) is built chunk by chunk (:mod:`._chunked`) on Dask's scheduler: threads
+        by default, a ``dask.distributed`` cluster when a ``Client`` exists. The result is
+        identical to :meth:`from_array` on the same data in memory, for any chunk shape, and
+        memory follows the chunks in flight and the result, not the grid.
+
         Parameters
         ----------
         volume : Volume
@@ -230,7 +238,9 @@ class VolumeEVM:
         ------
         VolumeEVMError
             If ``volume`` is not a :class:`Volume`; otherwise as :meth:`from_array`, the
-            messages naming the volume's source file.
+            messages naming the volume's source file (for a lazy volume, a chunk with NaN or
+            infinite densities names the chunk, and memory is checked before the first chunk
+            and after every batch of chunks).
 
         Examples
         --------
@@ -242,9 +252,35 @@ class VolumeEVM:
         """
         if not isinstance(volume, Volume):
             raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got {type(volume).__name__}")
+        if is_lazy(volume.array):
+            return cls._from_lazy(volume, threshold, upper)
         return cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
                               origin=volume.origin, orientation=volume.orientation,
                               units=volume.units, source=volume.source or "volume")
+
+    @classmethod
+    def _from_lazy(cls, volume, threshold, upper):
+        """:meth:`from_volume` of a lazy volume, checked as :meth:`from_array` checks."""
+        source = volume.source or "volume"
+        array = volume.array
+        if array.ndim != 3 or array.dtype.kind not in "uif" or 0 in array.shape:
+            raise VolumeEVMError(f"{source}: expected a non-empty 3-D array of integers or real "
+                                 f"numbers indexed [x, y, z], got shape {array.shape} and dtype "
+                                 f"{array.dtype}")
+        shape = _grid_shape(array.shape, f"{source}: ")
+        spacing, origin, orientation = checked_geometry(volume.spacing, volume.origin,
+                                                        volume.orientation, source=source)
+        threshold, upper = _density_interval(threshold, upper, f"{source}: ")
+        if not isinstance(volume.units, str):
+            raise VolumeEVMError(
+                f"{source}: units must be a string (such as 'HU'), got {volume.units!r}")
+        keys, table, low, high = build_chunked(array, threshold, upper, source)
+        if len(table) == 0:
+            band = f">= {threshold}" if upper is None else f"in [{threshold}, {upper}]"
+            raise VolumeEVMError(f"{source}: the region is empty: no density is {band} "
+                                 f"(data range {low} .. {high})")
+        return cls(EVM._from_keys(keys), table, shape=shape, spacing=spacing, origin=origin,
+                   orientation=orientation, units=volume.units, threshold=threshold, upper=upper)
 
     @classmethod
     def from_labels(cls, labels_map, labels=None, *, spacing=None, origin=None, orientation=None,
