@@ -100,3 +100,66 @@ def test_manifold_label_meshes_for_3d_printing(api, core, segmentation):
         vertices, polygons = region.mesh(manifold=True)
         assert len(obj.data.vertices) == len(vertices) and len(obj.data.polygons) == len(polygons)
         assert _non_manifold_edges(obj) == 0, obj.name
+
+
+def test_a_segmentation_in_layers_becomes_one_object_per_segment(api, core, data_dir):
+    path = data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd"
+    vol = api.import_volume(path)
+    assert vol.volumeevm.label_count == 8
+    made = api.make_label_meshes(vol)
+    regions = core.VolumeEVM.from_labels(core.read_volume(path))
+    assert [o.name for o in made][-2:] == ["tissue", "overlapping sphere"]
+    for obj, region in zip(made, regions.values()):
+        assert_surface_is(obj, region)  # every segment its exact solid, overlaps and all
+    assert made[-1]["volumeevm_label"] == 8
+
+
+def test_measurements_listed_sorted_picked_and_exported(ext, api, core, segmentation, tmp_path):
+    from test_blender_ui import draw_all, texts
+
+    vol = api.import_volume(segmentation)
+    made = {o["volumeevm_label"]: o for o in api.make_label_meshes(vol)}
+    bpy.context.view_layer.objects.active = vol
+    assert "Not measured yet" in texts(draw_all(ext, bpy.context))
+    assert bpy.ops.volumeevm.measure_labels() == {"FINISHED"}
+    regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
+    rows = vol.volumeevm.label_measurements
+    assert [row.label for row in rows] == list(regions)
+    for row, (label, region) in zip(rows, regions.items()):
+        exact = region.measure()
+        assert row.name == regions.infos[label].name
+        assert row.voxels == exact["voxels"] and row.components == exact["components"]
+        assert row.volume_ml == pytest.approx(exact["volume_ml"], rel=1e-6)  # float32 property
+        assert row.area_mm2 == pytest.approx(exact["area_mm2"], rel=1e-6)
+    calls = draw_all(ext, bpy.context)
+    assert any(name == "template_list" and args[0] == "VOLUMEEVM_UL_labels" for name, args, _ in calls)
+    shown = " ".join(texts(calls))
+    assert "Exact for the voxel model" in shown and "1.5 on average (a sphere)" in shown
+    # Sorting: by volume, largest first; by name; the list's own order is the label order.
+    ul = ext.ui.panels.VOLUMEEVM_UL_labels
+    listed = type("Listed", (), {"filter_name": "", "bitflag_filter_item": 1 << 30})()
+    for sort_by, key in [("VOLUME", lambda r: -r.volume_ml), ("NAME", lambda r: r.name.lower()),
+                         ("LABEL", lambda r: r.label)]:
+        listed.sort_by = sort_by
+        flags, order = ul.filter_items(listed, bpy.context, vol.volumeevm, "label_measurements")
+        shown_order = sorted(range(len(rows)), key=lambda i: order[i])
+        assert [rows[i].label for i in shown_order] == [r.label for r in sorted(rows, key=key)]
+    assert shown_order == list(range(len(rows)))
+    # Picking a row selects the label's object; the sidebar still shows the volume.
+    vol.volumeevm.label_measurement_index = 4
+    assert bpy.context.view_layer.objects.active == made[rows[4].label]
+    assert [o.name for o in bpy.context.selected_objects] == [made[rows[4].label].name]
+    assert ext.blender.objects.active_volume(bpy.context) == vol
+    # CSV: the core's writer; an existing file is never replaced without Overwrite.
+    csv = tmp_path / "labels.csv"
+    assert bpy.ops.volumeevm.export_label_measurements(filepath=str(csv)) == {"FINISHED"}
+    reference = tmp_path / "reference.csv"
+    regions.write_measurements(reference)
+    assert csv.read_bytes() == reference.read_bytes()
+    csv.write_text("mine")
+    with pytest.raises(RuntimeError, match="labels.csv: exists; choose another name"):
+        bpy.ops.volumeevm.export_label_measurements(filepath=str(csv))
+    assert csv.read_text() == "mine"
+    assert bpy.ops.volumeevm.export_label_measurements(filepath=str(csv), overwrite=True) == {"FINISHED"}
+    assert csv.read_bytes() == reference.read_bytes()
+    assert api.export_label_measurements(vol, tmp_path / "api.csv").read_bytes() == reference.read_bytes()
