@@ -167,6 +167,19 @@ def test_a_ball_measures_its_voxel_count_and_a_turned_grid_turns_the_centroid():
     assert m["components"] == 1
 
 
+@pytest.mark.parametrize("radius, spacing", [(40, (1.0, 1.0, 1.0)), (80, (0.5, 0.5, 0.5))])
+def test_a_voxel_sphere_has_one_and_a_half_times_the_smooth_area(radius, spacing):
+    # The faces' area is the smooth area times |n_x| + |n_y| + |n_z|, whose mean over a sphere
+    # is 3 * 1/2: what the sidebar's note says. The volume matches the smooth sphere's.
+    n = 2 * radius + 2
+    grid = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1)
+    array = (np.linalg.norm(grid - (n - 1) / 2, axis=-1) <= radius).astype(np.uint8)
+    m = VolumeEVM.from_array(array, 1, spacing=spacing).measure()
+    r_mm = radius * spacing[0]
+    assert m["area_mm2"] / (4 * math.pi * r_mm ** 2) == pytest.approx(1.5, abs=1e-3)
+    assert m["volume_mm3"] / (4 / 3 * math.pi * r_mm ** 3) == pytest.approx(1.0, abs=1e-3)
+
+
 def test_parts_and_an_emptied_region():
     array = np.zeros((9, 9, 9), np.uint8)
     array[0:2, 0:2, 0:2] = array[5:9, 5:9, 5:9] = array[0, 8, 8] = 1
