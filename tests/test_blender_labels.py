@@ -132,7 +132,8 @@ def test_measurements_listed_sorted_picked_and_exported(ext, api, core, segmenta
         assert row.volume_ml == pytest.approx(exact["volume_ml"], rel=1e-6)  # float32 property
         assert row.area_mm2 == pytest.approx(exact["area_mm2"], rel=1e-6)
     calls = draw_all(ext, bpy.context)
-    assert any(name == "template_list" and args[0] == "VOLUMEEVM_UL_labels" for name, args, _ in calls)
+    assert any(name == "template_list" and args[0] == "VOLUMEEVM_UL_labels"
+               for name, args, _ in calls)
     shown = " ".join(texts(calls))
     assert "Exact for the voxel model" in shown and "1.5 on average (a sphere)" in shown
     # Sorting: by volume, largest first; by name; the list's own order is the label order.
@@ -160,6 +161,64 @@ def test_measurements_listed_sorted_picked_and_exported(ext, api, core, segmenta
     with pytest.raises(RuntimeError, match="labels.csv: exists; choose another name"):
         bpy.ops.volumeevm.export_label_measurements(filepath=str(csv))
     assert csv.read_text() == "mine"
-    assert bpy.ops.volumeevm.export_label_measurements(filepath=str(csv), overwrite=True) == {"FINISHED"}
+    done = bpy.ops.volumeevm.export_label_measurements(filepath=str(csv), overwrite=True)
+    assert done == {"FINISHED"}
     assert csv.read_bytes() == reference.read_bytes()
-    assert api.export_label_measurements(vol, tmp_path / "api.csv").read_bytes() == reference.read_bytes()
+    written = api.export_label_measurements(vol, tmp_path / "api.csv")
+    assert written.read_bytes() == reference.read_bytes()
+
+
+def test_tools_cut_keep_and_add_on_every_label_live(ext, api, core, data_dir, segmentation):
+    from test_blender_tools import expected_tool, tool_object, world_of_voxel
+
+    vol = api.import_volume(segmentation)
+    made = {o["volumeevm_label"]: o for o in api.make_label_meshes(vol)}
+    regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
+    grid = regions[1]
+    nut = tool_object(data_dir, "mesh_tool_nut", 90.0,
+                      at=world_of_voxel(core, grid, (64, 70, 17), vol))
+
+    def assert_objects_show(expected):
+        for label, obj in made.items():
+            if label in expected:
+                assert_surface_is(obj, expected[label])
+            else:
+                assert len(obj.data.polygons) == len(obj.data.vertices) == 0, obj.name
+
+    # No VolumeEVM built: the label objects are what the stack edits (the operator too).
+    bpy.context.view_layer.objects.active = vol
+    vol.volumeevm.tool_object = nut
+    assert bpy.ops.volumeevm.tool_cut() == {"FINISHED"}
+    tool = expected_tool(core, grid, vol, nut)[0]
+    cut = regions.cut(tool)
+    touched = [label for label in regions
+               if cut.get(label) is None or cut[label].evm != regions[label].evm]
+    assert len(touched) >= 3  # the nut cuts several structures at once
+    assert_objects_show(cut)
+    # Live: moving the tool re-cuts every label object.
+    nut.location.x += 0.03
+    bpy.context.view_layer.update()
+    moved = regions.cut(expected_tool(core, grid, vol, nut)[0])
+    assert any(moved[label].evm != cut[label].evm for label in moved if label in cut)
+    assert_objects_show(moved)
+    assert api.remove_tool(vol, 0) == ""
+    assert_objects_show(regions)
+    # Keep Inside keeps every label inside the tool.
+    tool = expected_tool(core, grid, vol, nut)[0]
+    result = api.add_tool(vol, nut, "keep")
+    assert list(result) == list(regions.keep(tool)) and len(result) >= 3
+    assert_objects_show(regions.keep(tool))
+    api.remove_tool(vol, 0)
+    # Add gives the tool's voxels to one label, taking them from the others.
+    with pytest.raises(core.VolumeEVMError, match="needs the label that gets the material"):
+        api.add_tool(vol, nut, "add")
+    assert len(vol.volumeevm.tools) == 0
+    added = regions.add(tool, 5)
+    result = api.add_tool(vol, nut, "add", label=5)
+    assert result[5].evm == added[5].evm and vol.volumeevm.tools[0].label == 5
+    assert_objects_show(added)
+    with pytest.raises(core.VolumeEVMError,
+                       match=r"label 99 is not one of the label objects' labels \[1, 2, 3, 4, 5, 6"):
+        api.add_tool(vol, nut, "add", label=99)
+    with pytest.raises(core.VolumeEVMError, match="not for label maps"):
+        api.apply_stack(vol)

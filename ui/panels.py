@@ -267,8 +267,8 @@ class VOLUMEEVM_UL_labels(bpy.types.UIList):
 
     def filter_items(self, context, data, propname):
         rows = getattr(data, propname)
-        flags = bpy.types.UI_UL_list.filter_items_by_name(self.filter_name, self.bitflag_filter_item,
-                                                          rows, "name")
+        flags = bpy.types.UI_UL_list.filter_items_by_name(self.filter_name,
+                                                          self.bitflag_filter_item, rows, "name")
         keys = {"LABEL": lambda row: row.label, "NAME": lambda row: row.name.lower(),
                 "VOLUME": lambda row: -row.volume_ml}[self.sort_by]
         ranked = sorted(range(len(rows)), key=lambda i: (keys(rows[i]), rows[i].label))
@@ -318,7 +318,9 @@ class VOLUMEEVM_UL_tools(bpy.types.UIList):
         sub.label(text=kind.label, icon=kind.icon)
         if item.operation != "LARGEST":
             sub.prop(item, "tool", text="")
-        if item.operation == "ADD":
+        if item.operation == "ADD" and tool_stack.label_objects(data.id_data):
+            sub.prop(item, "label", text="Label")
+        elif item.operation == "ADD":
             sub.prop(item, "use_density", text="", icon="DRIVER_DISTANCE")
             if item.use_density:
                 sub.prop(item, "density", text="")
@@ -342,9 +344,12 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
         layout = self.layout
         obj = active_volume(context)
         s = obj.volumeevm
-        if not s.vevm_path:
-            layout.label(text="Build the VolumeEVM first", icon="INFO")
+        labelled = bool(tool_stack.label_objects(obj))
+        if not (s.vevm_path or labelled):
+            layout.label(text="Build the VolumeEVM first (or Make Label Meshes)", icon="INFO")
             return
+        if labelled:
+            layout.label(text="Tools edit every label object", icon="GROUP_VERTEX")
         layout.prop(s, "tool_object", text="Tool")
         if s.tool_object is not None:
             problem = tool_stack.tool_problem(obj, s.tool_object)
@@ -357,10 +362,13 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
         add = tool_stack.KINDS["ADD"]
         row = layout.row(align=True)
         row.operator(f"volumeevm.tool_{add.name}", icon=add.icon)  # uses the settings below
-        row.prop(s, "tool_use_density", text="", icon="DRIVER_DISTANCE")
-        sub = row.row(align=True)
-        sub.active = s.tool_use_density
-        sub.prop(s, "tool_density", text="")
+        if labelled:
+            row.prop(s, "tool_label", text="Label")
+        else:
+            row.prop(s, "tool_use_density", text="", icon="DRIVER_DISTANCE")
+            sub = row.row(align=True)
+            sub.active = s.tool_use_density
+            sub.prop(s, "tool_density", text="")
 
         row = layout.row()
         row.template_list("VOLUMEEVM_UL_tools", "", s, "tools", s, "tool_index", rows=3)

@@ -94,6 +94,9 @@ class VolumeEVMToolEntry(bpy.types.PropertyGroup):
     )
     density: FloatProperty(name="Density", precision=3, update=_entry_changed,
                            description="Density of added voxels, in data units")
+    label: IntProperty(name="Label", min=0, update=_entry_changed,
+                       description="Add on a label map's label objects: the label that gets "
+                                   "the material (0: none)")
 
 
 def _label_row_picked(settings, context):
@@ -227,6 +230,9 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     )
     tool_density: FloatProperty(name="Density", precision=3,
                                 description="Density of added material, in data units")
+    tool_label: IntProperty(name="Label", min=0,
+                            description="Add on a label map's label objects: the label that "
+                                        "gets the material")
     # --- links between a volume and its surface
     surface: PointerProperty(name="Surface", type=bpy.types.Object,
                              description="The mesh made from this volume's VolumeEVM")
