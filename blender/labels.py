@@ -22,7 +22,7 @@ import bpy
 import numpy as np
 
 from ..volumeevm_addon import Polygons, VolumeEVM, VolumeEVMError
-from . import jobs
+from . import jobs, tool_stack
 from .meshes import Faces, fill_mesh, surface_geometry
 from .objects import volume_object
 from .volumes import read_steps, source_of
@@ -269,18 +269,10 @@ def export_label_measurements(obj, csv_path, *, overwrite=False):
     return jobs.run(export_measurements_job(bpy.context, obj, csv_path, overwrite=overwrite))
 
 
-def label_object(vol_obj, label):
-    """The object Make Label Meshes made for ``label`` of ``vol_obj``, or None."""
-    collection = bpy.data.collections.get(f"{vol_obj.name} labels")
-    if collection is None:
-        return None
-    return next((o for o in collection.objects if o.get("volumeevm_label") == label), None)
-
-
 def select_label(context, vol_obj, label):
     """Select the label's object alone and make it active (nothing when it has none); the
     sidebar keeps showing its volume (:func:`.objects.active_volume`)."""
-    obj = label_object(vol_obj, label)
+    obj = tool_stack.label_objects(vol_obj).get(label)
     if obj is None or obj.name not in context.view_layer.objects:
         return None
     for other in context.view_layer.objects.selected:
