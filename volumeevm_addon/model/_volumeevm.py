@@ -29,7 +29,7 @@ from ._chunked import build_chunked
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
-from ._labels import label_regions
+from ._labels import layered_regions
 from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
@@ -295,7 +295,9 @@ class VolumeEVM:
         ----------
         labels_map : Volume or (X, Y, Z) ndarray of int
             The label map: non-negative integers. A :class:`Volume` brings its geometry, units
-            and source; for an array, pass them here.
+            and source; for an array, pass them here. A Volume with ``layers`` (a segmentation
+            whose segments overlap) builds each label from its layer: labels of different
+            layers may then share voxels.
         labels : int or iterable of int, optional
             The labels to build (default every label present but 0).
         spacing, origin, orientation, units, source
@@ -335,15 +337,18 @@ class VolumeEVM:
             geometry = {"spacing": labels_map.spacing, "origin": labels_map.origin,
                         "orientation": labels_map.orientation}
             units, source = labels_map.units, labels_map.source or "volume"
-            infos, labels_map = labels_map.labels, labels_map.array
+            infos, maps = labels_map.labels, labels_map.layers or (labels_map.array,)
+            labels_map = maps[0]
+        else:
+            maps = (labels_map,)
         geometry = dict(zip(geometry, checked_geometry(
             (1.0, 1.0, 1.0) if geometry["spacing"] is None else geometry["spacing"],
             (0.0, 0.0, 0.0) if geometry["origin"] is None else geometry["origin"],
             geometry["orientation"], source=source)))
         if not isinstance(units, str):
             raise VolumeEVMError(f"{source}: units must be a string, got {units!r}")
-        regions = label_regions(labels_map, labels, source=source)
-        shape = _grid_shape(labels_map.shape, f"{source}: ")
+        regions = layered_regions(maps, labels, source=source)
+        shape = _grid_shape(np.shape(labels_map), f"{source}: ")
         check_memory(sum(count for _, count in regions.values()) * labels_map.dtype.itemsize,
                      "the label tables", source=source, advice="pick fewer labels with labels=")
         return LabelSet({label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
