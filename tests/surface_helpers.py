@@ -82,8 +82,10 @@ def distance_to_boundary(mask, points):
                     behind[:, axis] -= 1
                     inside = padded[cell[:, 0], cell[:, 1], cell[:, 2]]
                     face = inside != padded[behind[:, 0], behind[:, 1], behind[:, 2]]
-                    gap_b = np.maximum(np.maximum(cell[:, b] - q[:, b], q[:, b] - cell[:, b] - 1), 0)
-                    gap_c = np.maximum(np.maximum(cell[:, c] - q[:, c], q[:, c] - cell[:, c] - 1), 0)
+                    gap_b = np.maximum(np.maximum(cell[:, b] - q[:, b],
+                                                  q[:, b] - cell[:, b] - 1), 0)
+                    gap_c = np.maximum(np.maximum(cell[:, c] - q[:, c],
+                                                  q[:, c] - cell[:, c] - 1), 0)
                     d = np.sqrt((q[:, axis] - cell[:, axis]) ** 2 + gap_b**2 + gap_c**2)
                     best = np.where(face, np.minimum(best, d), best)
     return best
@@ -164,8 +166,9 @@ def _closest_on_triangles(p, a, b, c):
 
 def distance_to_triangles(points, vertices, faces, spacing=0.25, radius=1.5, seed=0):
     """Exact distance from each point to the nearest of the triangles that have a sample (at
-    ``spacing``, inside them and along their edges) within ``radius`` of it: an upper bound of the distance to the mesh, equal to it
-    when the nearest triangle is among those (``inf`` when none is)."""
+    ``spacing``, inside them and along their edges) within ``radius`` of it: an upper bound of
+    the distance to the mesh, equal to it when the nearest triangle is among those (``inf``
+    when none is)."""
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(seed)
