@@ -232,6 +232,8 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
         s = active_volume(context).volumeevm
         layout.operator("volumeevm.make_mesh", icon="MESH_DATA")
         layout.operator("volumeevm.make_mesh", text="Make Manifold Mesh (3D print)").manifold = True
+        layout.operator("volumeevm.make_mesh", text="Make Smooth Mesh (display)",
+                        icon="MOD_SMOOTH").smooth = True
         if s.label_count:  # a label map: every label its own object
             row = layout.row(align=True)
             row.operator("volumeevm.make_label_meshes", icon="GROUP_VERTEX").single_mesh = False

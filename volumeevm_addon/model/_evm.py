@@ -858,7 +858,7 @@ class EVM:
         box = np.array([lo, hi], np.int64) + _sweep.OFFSET
         return EVM._from_keys(_clip_keys(self.keys(), box[0], box[1]))
 
-    def mesh(self, manifold=False):
+    def mesh(self, manifold=False, smooth=False):
         """Boundary as a closed, outward polygon mesh in lattice units; see :mod:`._mesh`.
 
         Parameters
@@ -867,11 +867,17 @@ class EVM:
             Split the edges and vertices where voxels touch only along an edge or at a point,
             so that every edge has two faces and every vertex one fan (for 3D printing); the
             copies move off the lattice by ``1e-3`` voxel. See :mod:`._manifold`.
+        smooth : bool
+            A smooth display surface: the same mesh (the manifold one with ``manifold``) with
+            its vertices relaxed, each within half a voxel along each axis of its exact
+            position, and its faces that are no longer planar cut into triangles. For display
+            only: measurements use the exact mesh. See :mod:`._smooth`.
 
         Returns
         -------
         vertices : (n, 3) ndarray of np.float64
-            Lattice points (voxel corners), and with ``manifold`` the split copies.
+            Lattice points (voxel corners), and with ``manifold`` the split copies; with
+            ``smooth`` those moved, then the centres added to faces cut into fans.
         polygons : Polygons
             Faces merged per plane, counter-clockwise seen from outside.
 
@@ -883,10 +889,16 @@ class EVM:
         if manifold:
             from ._manifold import manifold_mesh
 
-            return manifold_mesh(self)
-        from ._mesh import boundary_mesh
+            vertices, polygons = manifold_mesh(self)
+        else:
+            from ._mesh import boundary_mesh
 
-        return boundary_mesh(self)
+            vertices, polygons = boundary_mesh(self)
+        if smooth:
+            from ._smooth import smooth_mesh
+
+            return smooth_mesh(vertices, polygons)
+        return vertices, polygons
 
     def components(self):
         """Face-connected components, one EVM each, largest first; see :mod:`._components`.

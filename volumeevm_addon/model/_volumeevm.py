@@ -651,7 +651,7 @@ class VolumeEVM:
         """
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
-    def mesh(self, manifold=False):
+    def mesh(self, manifold=False, smooth=False):
         """The region's boundary mesh in physical mm (LPS), e.g. to show it in Blender.
 
         Parameters
@@ -659,11 +659,15 @@ class VolumeEVM:
         manifold : bool
             Every edge with two faces and every vertex one fan, for 3D printing
             (:meth:`EVM.mesh`): split copies move by 1e-3 voxel, i.e. 1e-3 times the spacing.
+        smooth : bool
+            A smooth display surface (:meth:`EVM.mesh`): every vertex within half a voxel of
+            its exact position along each grid axis (half the spacing); faces no longer planar
+            cut into triangles. Measurements (:meth:`measure`) use the exact mesh.
 
         Returns
         -------
         vertices : (n, 3) ndarray of np.float64
-            Voxel corners in physical mm.
+            Voxel corners in physical mm (moved ones with ``smooth``).
         polygons : Polygons
             Faces merged per plane, counter-clockwise seen from outside (:meth:`EVM.mesh`).
 
@@ -672,7 +676,7 @@ class VolumeEVM:
         VolumeEVMError
             When the mesh would need more memory than is available.
         """
-        vertices, polygons = self.evm.mesh(manifold)
+        vertices, polygons = self.evm.mesh(manifold, smooth)
         return self.corner_positions(vertices), polygons
 
     def measure(self):
