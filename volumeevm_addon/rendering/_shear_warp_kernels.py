@@ -414,7 +414,7 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
     index, values, channels = voxels.index, voxels.values, voxels.channels
     direct = index.size == 0
     lut, straight, light = optics.lut, optics.straight, optics.light
-    mode, post, nearest = optics.mode, optics.post, optics.nearest
+    mode, post, snap = optics.mode, optics.post, optics.nearest
     skip = mode == _OVER and optics.termination < 1.0
     slices, others, keeps, blends = plan.slice, plan.other, plan.keep, plan.blend
     alphas, betas_a, betas_b = plan.alpha, plan.beta_a, plan.beta_b
@@ -452,12 +452,12 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
             translated = alpha == 1.0
             keep, blend, test, rank = keeps[n], blends[n], tests[n], sample_ranks[n]
             slots = 2 if s2 < 0 else 4
-            g = tap(0, alpha, beta_b, nearest)[1]  # (a translated slice's fraction, every pixel)
+            g = tap(0, alpha, beta_b, snap)[1]  # (a translated slice's fraction, every pixel)
             for x in range(wi):  # the columns' taps, the same on every scanline
-                column_tap[x], column_fraction[x] = tap(x + origin_q, alpha, beta_b, nearest)
+                column_tap[x], column_fraction[x] = tap(x + origin_q, alpha, beta_b, snap)
             p0, p1 = span(a0, a1, alpha, beta_a, origin_p, r0, r1)
             for p in range(p0, p1):
-                i, f = tap(p + origin_p, alpha, beta_a, nearest)
+                i, f = tap(p + origin_p, alpha, beta_a, snap)
                 busy = False
                 for k in range(slots):
                     row = i + (k & 1)
