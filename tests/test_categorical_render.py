@@ -166,7 +166,6 @@ def test_reference_integrates_each_labels_exact_chord():
     ("splat", {}, "method"), ("raycast", {"mode": "mip"}, "mode"),
     ("raycast", {"shading": True}, "shading"), ("raycast", {"preintegrate": True}, "preintegrate"),
     ("shear_warp", {"slices_per_voxel": 2}, "slices_per_voxel"),
-    ("shear_warp", {"classification": "post"}, "classification"),
     ("raycast", {"level": 2}, "level")])
 def test_what_would_interpolate_labels_is_refused(method, options, word):
     vevm = two_labels()
@@ -174,6 +173,20 @@ def test_what_would_interpolate_labels_is_refused(method, options, word):
     with pytest.raises(VolumeEVMError, match=word):
         render(vevm, cam, TransferFunction.categorical(RED_GREEN_BLUE), method=method,
                **options)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_shear_warp_post_classification_is_pre_classification(kind):
+    """With all the weight on the nearest voxel, classifying the sample's label is classifying
+    the voxel: the same image."""
+    vevm = two_labels()
+    cam = view(vevm, kind, 0.02)
+    tf = TransferFunction.categorical(RED_GREEN_BLUE)
+    pre, pre_depth = render(vevm, cam, tf, method="shear_warp", classification="pre")
+    post, post_depth = render(vevm, cam, tf, method="shear_warp", classification="post")
+    assert pre[..., 3].max() > 0.5
+    np.testing.assert_array_equal(post, pre)
+    np.testing.assert_array_equal(post_depth, pre_depth)
 
 
 def test_auto_level_renders_the_full_level():

@@ -165,7 +165,7 @@ def checked_categorical_level(tf, method, mode, level, options):
         raise VolumeEVMError(f"mode: a categorical transfer function (labels) renders with "
                              f"'over' or 'under', got {mode!r}")
     for name, allowed in (("shading", (None, False)), ("preintegrate", (False,)),
-                          ("slices_per_voxel", (1,)), ("classification", ("pre",))):
+                          ("slices_per_voxel", (1,))):
         if name in options and options[name] not in allowed:
             raise VolumeEVMError(f"{name}: a categorical transfer function (labels) samples the "
                                  f"nearest voxel's label; it takes {name}={allowed[0]!r}, got "

@@ -121,7 +121,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         categorical one (:meth:`TransferFunction.categorical`, label maps) is sampled at the
         nearest voxel, never interpolated: with ray casting, shear-warp and the reference,
         ``"over"``/``"under"``, no shading, no pre-integration, shear-warp's one slice per
-        voxel and pre-classification, and the full level (``"auto"`` renders the full level).
+        voxel, and the full level (``"auto"`` renders the full level).
     method : {"shear_warp", "splat", "raycast", "raycast_navigate", "reference"}
         ``"shear_warp"`` (default): shear-warp factorisation (Lacroute & Levoy), the fastest
         on the CPU. ``"splat"``: sheet-buffer splatting (Westover), post-classified.
