@@ -176,11 +176,25 @@ vec3 headlight(vec3 rgb, vec3 g, vec3 towards)
   return min(rgb * lit + t * params.shading.z * highlight, vec3(1.0));
 }
 
-/* Straight colour and opacity per unit length of a density (linear in the table). */
+/* Straight colour and opacity per unit length of a density (linear in the table; a label of a
+ * categorical function: its own row). */
 vec4 classify(float value)
 {
   float x = clamp((value - params.table.x) * params.table.y, 0.0, params.table.z - 1.0);
+  if (params.labels.x > 0.5) {
+    return texelFetch(tf_table, int(x + 0.5), 0);
+  }
   return texture(tf_table, (x + 0.5) / params.table.z);
+}
+
+/* (density, weight) at p: trilinear over the region's voxels, or (categorical function) the
+ * nearest voxel's label and whether that voxel is in the region. */
+vec2 sample_region(vec3 p, ivec3 cell, vec3 to_texture)
+{
+  if (params.labels.x > 0.5) {
+    return texelFetch(region, cell, 0).rg;
+  }
+  return texture(region, (p + 0.5) * to_texture).rg;
 }
 
 void main()
@@ -247,11 +261,12 @@ void main()
     /* (density, weight) summed over the region's voxels among the 8 neighbours: no weight,
      * no part of the sample's part lies in a region cell (those cells are neighbours with
      * weight); all the weight, all of it does (an outside cell would miss its >= 1/8). */
-    vec2 rg = texture(region, (p + 0.5) * to_texture).rg;
+    vec2 rg = sample_region(p, cell, to_texture);
     if (rg.y <= 0.0) {
       continue;
     }
-    vec2 cover = rg.y > 0.99999 ? vec2(1.0, 0.0) : coverage(p - 0.5 * dt * d, p + 0.5 * dt * d);
+    bool whole = rg.y > 0.99999 && params.labels.x < 0.5;
+    vec2 cover = whole ? vec2(1.0, 0.0) : coverage(p - 0.5 * dt * d, p + 0.5 * dt * d);
     if (cover.x <= 0.0) {
       continue;
     }
@@ -516,8 +531,10 @@ def _stretch_shader():
 
 
 def _tf_key(tf):
-    """A transfer function's version: its control points and unit length (None for X-ray)."""
-    return None if tf is None else (tf.points.tobytes(), tf.unit_length_mm)
+    """A transfer function's version: its control points, unit length and whether it is
+    categorical (None for X-ray)."""
+    return None if tf is None else (tf.points.tobytes(), tf.unit_length_mm,
+                                    getattr(tf, "is_categorical", False))
 
 
 def _table_texture(tf):
