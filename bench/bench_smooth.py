@@ -20,10 +20,9 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
 from bench._common import best_time, run_facts, write_json  # noqa: E402
-from surface_helpers import marching_cubes, roughness, triangles  # noqa: E402
+from surface_helpers import enclosed_volume, marching_cubes, roughness, triangles  # noqa: E402
 
 from volumeevm_addon import EVM  # noqa: E402
-from volumeevm_addon.model._mesh import mesh_volume_area  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
@@ -52,7 +51,7 @@ def main():
             "roughness_exact": roughness(lattice, triangles(lattice, polygons)),
             "roughness_smooth": roughness(moved, triangles(moved, cut)),
             "roughness_marching_cubes": roughness(*marching_cubes(mask)),
-            "volume_smooth_over_voxels": mesh_volume_area(moved, cut)[0] / mask.sum(),
+            "volume_smooth_over_voxels": enclosed_volume(moved, triangles(moved, cut)) / mask.sum(),
             "max_vertex_offset": float(np.abs(moved[:len(lattice)] - lattice).max()),
         }
         results["cases"][name] = case

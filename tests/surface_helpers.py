@@ -200,3 +200,9 @@ def distance_to_triangles(points, vertices, faces, spacing=0.25, radius=1.5, see
                                                                        t[:, 1], t[:, 2]), axis=1)
         np.minimum.at(best, chunk[:, 0], d)
     return best
+
+
+def enclosed_volume(vertices, tris):
+    """The volume a closed, outward triangle mesh encloses (divergence theorem)."""
+    p0, p1, p2 = (vertices[tris[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->", p0, np.cross(p1, p2)) / 6.0)

@@ -26,6 +26,10 @@ from .._errors import VolumeEVMError
 from .._jit import kernel, parallel_map
 from .._memory import check_memory
 from . import _sweep
+from ._components import face_components
+from ._manifold import manifold_mesh
+from ._mesh import boundary_mesh
+from ._smooth import smooth_mesh
 
 ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six lexicographic axis orders "ABC": A slowest."""
@@ -230,20 +234,6 @@ def _prefix_xor(vertices, shape):
         if x > 0:
             grid[x] ^= grid[x - 1]
     return grid
-
-
-@kernel
-def _key_bounds(keys):
-    """The smallest and largest offset coordinates of 3-D keys, per axis (one pass, where a
-    NumPy reduction along the short axis of the vertices is slow)."""
-    lo = np.full(3, _sweep.MASK)
-    hi = np.zeros(3, np.int64)
-    for key in keys:
-        for axis in range(3):
-            value = (key >> ((2 - axis) * _sweep.BITS)) & _sweep.MASK
-            lo[axis] = min(lo[axis], value)
-            hi[axis] = max(hi[axis], value)
-    return lo, hi
 
 
 def vertex_keys(slices, shape, offset=(0, 0, 0)):
@@ -464,7 +454,7 @@ class EVM:
         if self.is_empty():
             return None
         if self._bounds is None:
-            lo, hi = _key_bounds(self._keys["xyz"])
+            lo, hi = _sweep.key_bounds(self._keys["xyz"])
             self._bounds = (tuple(int(a) - _sweep.OFFSET for a in lo),
                             tuple(int(a) - _sweep.OFFSET for a in hi))
         return self._bounds
@@ -886,17 +876,8 @@ class EVM:
         VolumeEVMError
             When the mesh would need more memory than is available.
         """
-        if manifold:
-            from ._manifold import manifold_mesh
-
-            vertices, polygons = manifold_mesh(self)
-        else:
-            from ._mesh import boundary_mesh
-
-            vertices, polygons = boundary_mesh(self)
+        vertices, polygons = manifold_mesh(self) if manifold else boundary_mesh(self)
         if smooth:
-            from ._smooth import smooth_mesh
-
             return smooth_mesh(vertices, polygons)
         return vertices, polygons
 
@@ -908,9 +889,7 @@ class EVM:
         list of EVM
             Empty for an empty region.
         """
-        from ._components import face_components
-
-        return face_components(self)
+        return [EVM._from_keys(keys) for keys in face_components(self)]
 
 
 def _check_evm(other):
