@@ -16,7 +16,8 @@ import atexit
 import bpy
 
 from . import operators, ui
-from .blender import compositor, gpu_viewport, handlers, kernels, sidecar, tool_stack
+from .blender import (compositor, gpu_viewport, handlers, kernels, native_volume, sidecar,
+                      tool_stack)
 from .operators import import_volume
 from .ui import panels, props
 
@@ -41,7 +42,7 @@ def register():
     bpy.types.TOPBAR_MT_file_import.append(import_volume.menu_import)
     bpy.types.STATUSBAR_HT_header.append(panels.draw_status)
     handlers.install(compositor.HANDLERS + sidecar.HANDLERS + tool_stack.HANDLERS
-                     + gpu_viewport.HANDLERS)
+                     + native_volume.HANDLERS + gpu_viewport.HANDLERS)
     gpu_viewport.register()
     atexit.register(unregister)
     _registered.append(True)

@@ -24,6 +24,11 @@ A camera that shows the whole volume (the default cube, 2 m, hides a 0.26 m scan
     api.hide_enclosing(vol)                         # hide objects that enclose the volume
     api.frame_volume(vol, "FRONT")                  # or BACK, LEFT, RIGHT, TOP, BOTTOM
 
+The region as a native Blender Volume (OpenVDB grid) that Cycles and EEVEE render, with a
+material from the Render settings' transfer function (both follow their changes)::
+
+    native = api.make_volume_object(vol)
+
 Direct volume rendering into the scene::
 
     from bl_ext.user_default.volumeevm.volumeevm_addon import TransferFunction
@@ -49,6 +54,7 @@ from .compositor import setup_compositor
 from .dvr import DVRResult, render_dvr, render_dvr_animation
 from .framing import enclosing_objects, frame_volume, hide_enclosing
 from .labels import export_label_measurements, make_label_meshes, measure_labels
+from .native_volume import make_volume_object
 from .objects import get_vevm, volume_object
 from .tool_stack import (
     add_tool,
@@ -63,7 +69,7 @@ from .transfer import load_preset, set_transfer_function, transfer_function
 from .volumes import build, get_volume, import_volume, make_mesh
 
 __all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "measure_labels",
-           "export_label_measurements", "volume_object", "get_vevm",
+           "export_label_measurements", "make_volume_object", "volume_object", "get_vevm",
            "get_volume",
            "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
            "stack_state", "render_dvr", "render_dvr_animation", "DVRResult",

@@ -2,7 +2,8 @@
 
 A *volume object* (``obj.volumeevm.role == "VOLUME"``) is the wire box of an imported grid; its
 VolumeEVM lives in a sidecar file (:mod:`.sidecar`). Its *surface object* (``"SURFACE"``) is the
-mesh of the VolumeEVM's boundary (or of its tool stack's result), a child of the volume object.
+mesh of the VolumeEVM's boundary (or of its tool stack's result), a child of the volume object;
+its *native volume* (``"NATIVE"``, :mod:`.native_volume`) the region as a Blender Volume.
 Operators, panels and the script API all find the volume they act on here.
 """
 
@@ -37,7 +38,7 @@ def volume_object(obj):
     settings = obj.volumeevm
     if settings.role == "VOLUME":
         return obj
-    if settings.role == "SURFACE" and settings.volume is not None:
+    if settings.role in ("SURFACE", "NATIVE") and settings.volume is not None:
         return settings.volume
     raise VolumeEVMError(f"{obj.name}: not a VolumeEVM volume; import a volume first")
 
@@ -51,7 +52,7 @@ def active_volume(context):
     s = obj.volumeevm
     if s.role == "VOLUME":
         return obj
-    if s.role == "SURFACE" and s.volume is not None:
+    if s.role in ("SURFACE", "NATIVE") and s.volume is not None:
         return s.volume
     owner = obj.parent.parent if "volumeevm_label" in obj and obj.parent is not None else None
     if owner is not None and owner.volumeevm.role == "VOLUME":

@@ -6,13 +6,14 @@ Each operator reads its properties and Blender state, calls one function of the 
 in order.
 """
 
-from . import build, framing, import_volume, labels, mesh, render, tools
+from . import build, framing, import_volume, labels, mesh, native_volume, render, tools
 
 CLASSES = [
     *import_volume.CLASSES,
     *framing.CLASSES,
     *build.CLASSES,
     *mesh.CLASSES,
+    *native_volume.CLASSES,
     *labels.CLASSES,
     *tools.CLASSES,
     *render.CLASSES,

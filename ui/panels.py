@@ -243,6 +243,7 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
             mesh = surface.data
             layout.label(text=f"{surface.name}: {len(mesh.vertices):,} vertices, "
                               f"{len(mesh.polygons):,} faces")
+        layout.operator("volumeevm.make_volume_object", icon="VOLUME_DATA")
 
 
 class VOLUMEEVM_UL_labels(bpy.types.UIList):

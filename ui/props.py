@@ -132,6 +132,7 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
             ("NONE", "None", "Not a VolumeEVM object"),
             ("VOLUME", "Volume", "The box of an imported volume"),
             ("SURFACE", "Surface", "The boundary mesh of a VolumeEVM"),
+            ("NATIVE", "Native Volume", "The region as a Blender Volume (OpenVDB grid)"),
         ),
         default="NONE",
     )
@@ -238,6 +239,8 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
                              description="The mesh made from this volume's VolumeEVM")
     volume: PointerProperty(name="Volume", type=bpy.types.Object,
                             description="The volume object this surface was made from")
+    native: PointerProperty(name="Native Volume", type=bpy.types.Object,
+                            description="The Blender Volume object made from this region")
     stack_signature: StringProperty(
         name="Stack Signature",
         description="Digest of the VolumeEVM and tool stack this surface mesh shows ('' = the "

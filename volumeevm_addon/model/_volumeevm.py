@@ -471,6 +471,52 @@ class VolumeEVM:
         """
         return self._scatter(background)[0]
 
+    def dense_box(self, background, dtype=np.float32):
+        """The region's bounding box as a dense array: its densities, ``background`` elsewhere.
+
+        What a sparse grid is copied from (e.g. OpenVDB's ``copyFromArray`` with ``background``
+        as the grid's background: exactly the region's voxels differ from it when no density
+        equals it). Memory follows the region's box, not the whole grid.
+
+        Parameters
+        ----------
+        background : scalar
+            Value outside the region, cast to ``dtype``.
+        dtype : dtype, optional
+            Type of the array (default ``np.float32``).
+
+        Returns
+        -------
+        lo : tuple of 3 int
+            Voxel index of ``box[0, 0, 0]``.
+        box : (X, Y, Z) ndarray
+            C-contiguous; ``box[i, j, k]`` is voxel ``lo + (i, j, k)``.
+
+        Raises
+        ------
+        VolumeEVMError
+            For an empty region, or when the box would need more memory than is available.
+
+        Examples
+        --------
+        >>> array = np.zeros((5, 5, 5)); array[1:3, 2, 2:4] = [[5, 6], [7, 8]]
+        >>> lo, box = VolumeEVM.from_array(array, 1).dense_box(-1)
+        >>> lo, box.shape, box[:, 0, :].tolist()
+        ((1, 2, 2), (2, 1, 2), [[5.0, 6.0], [7.0, 8.0]])
+        """
+        bounds = self.evm.bounds()
+        if bounds is None:
+            raise VolumeEVMError("the region is empty: no voxels to copy")
+        lo, hi = bounds
+        shape = tuple(b - a for a, b in zip(lo, hi))
+        check_memory(math.prod(shape) * (np.dtype(dtype).itemsize + 1), "making the region's box",
+                     source=f"VolumeEVM box {shape}",
+                     advice="clip the region to the part you need")
+        mask = self.evm.to_mask(shape, offset=lo)
+        box = np.full(shape, background, dtype=dtype)
+        box[mask] = self._tables[0]
+        return lo, box
+
     def _scatter(self, background):
         """The dense grid (``background`` outside the region) and the region's voxel mask.
 
