@@ -195,10 +195,11 @@ def test_panels_draw_every_state(ext, data_dir, tmp_path):
     calls = draw_all(ext, context)
     assert "Built at 2.9: build again" in texts(calls)
     # The Build button carries the object's settings, so the redo panel can change them; the
-    # Make Manifold Mesh button is Make Mesh with its manifold option.
+    # Make Manifold Mesh and Make Smooth Mesh buttons are Make Mesh with its manifold and smooth
+    # options.
     passed = {args[1]: args[2] for name, args, _ in calls if name == "operator_property"}
     assert passed == {"use_settings": False, "threshold": 3.0, "use_upper": False,
-                      "upper": obj.volumeevm.upper, "manifold": True}
+                      "upper": obj.volumeevm.upper, "manifold": True, "smooth": True}
     # The Viewport DVR: its Fast While Moving toggle, and the level its last draw showed (set
     # here: draw handlers never run without a window).
     settings = context.scene.volumeevm_render
