@@ -44,10 +44,10 @@ def mesh_arrays(mesh):
     return co.reshape(-1, 3), indices, starts, totals
 
 
-def assert_surface_is(surface, vevm):
-    """The Blender surface mesh equals the core's mesh of ``vevm`` exactly (x 0.001); returns
-    the core's polygons."""
-    verts_mm, polys = vevm.mesh()
+def assert_surface_is(surface, vevm, **options):
+    """The Blender surface mesh equals the core's mesh of ``vevm`` (made with ``options``, e.g.
+    ``smooth=True``) exactly (x 0.001); returns the core's polygons."""
+    verts_mm, polys = vevm.mesh(**options)
     co, indices, starts, totals = mesh_arrays(surface.data)
     np.testing.assert_array_equal(co, (verts_mm * 0.001).astype(np.float32))
     np.testing.assert_array_equal(indices, polys.indices)

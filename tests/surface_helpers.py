@@ -45,19 +45,24 @@ def roughness(vertices, faces):
     return float((angle * length).sum() / (area.sum() / 2))
 
 
-def sample_triangles(vertices, faces, spacing, rng):
-    """Points on the triangles, about one per ``spacing**2`` of area (at least one each, the
-    centroid), uniformly placed."""
-    p = vertices[faces]
+def _inside_samples(p, spacing, rng):
+    """Uniform points inside the triangles ``p`` (T, 3, 3), about one per ``spacing**2`` of
+    area and at least one each, with the triangle each lies in."""
     area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1) / 2
     counts = np.maximum(np.ceil(area / spacing**2).astype(np.int64), 1)
-    which = np.repeat(np.arange(len(faces)), counts)
+    which = np.repeat(np.arange(len(p)), counts)
     r1, r2 = rng.random(len(which)), rng.random(len(which))
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
     q = p[which]
-    points = q[:, 0] + r1[:, None] * (q[:, 1] - q[:, 0]) + r2[:, None] * (q[:, 2] - q[:, 0])
-    return np.concatenate([points, p.mean(axis=1)])
+    return q[:, 0] + r1[:, None] * (q[:, 1] - q[:, 0]) + r2[:, None] * (q[:, 2] - q[:, 0]), which
+
+
+def sample_triangles(vertices, faces, spacing, rng):
+    """Points on the triangles, about one per ``spacing**2`` of area (at least one each, the
+    centroid), uniformly placed."""
+    p = vertices[faces]
+    return np.concatenate([_inside_samples(p, spacing, rng)[0], p.mean(axis=1)])
 
 
 def distance_to_boundary(mask, points):
@@ -171,17 +176,9 @@ def distance_to_triangles(points, vertices, faces, spacing=0.25, radius=1.5, see
     when none is)."""
     from scipy.spatial import cKDTree
 
-    rng = np.random.default_rng(seed)
     p = vertices[faces]
-    area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1) / 2
-    counts = np.maximum(np.ceil(area / spacing**2).astype(np.int64), 1)
-    which = np.repeat(np.arange(len(faces)), counts)
-    r1, r2 = rng.random(len(which)), rng.random(len(which))
-    flip = r1 + r2 > 1
-    r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
-    q = p[which]
-    samples = [q[:, 0] + r1[:, None] * (q[:, 1] - q[:, 0]) + r2[:, None] * (q[:, 2] - q[:, 0])]
-    owners = [which]
+    inside, which = _inside_samples(p, spacing, np.random.default_rng(seed))
+    samples, owners = [inside], [which]
     for s, e in ((0, 1), (1, 2), (2, 0)):  # and along the edges (thin triangles)
         steps = np.ceil(np.linalg.norm(p[:, e] - p[:, s], axis=1) / spacing).astype(np.int64) + 1
         owner = np.repeat(np.arange(len(faces)), steps)

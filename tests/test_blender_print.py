@@ -9,7 +9,7 @@ import bmesh  # bpy's own module, importable once bpy is
 import numpy as np
 import pytest
 from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
+    CT_BONE_HU, api, assert_surface_is, core, ct_crop_npy, ext, fresh)
 
 
 def round_trip(surface, path):
@@ -53,11 +53,8 @@ def test_manifold_mesh_exports_to_a_closed_manifold_stl(tmp_path, ct_crop_npy, c
     bpy.context.view_layer.objects.active = volume
     assert bpy.ops.volumeevm.make_mesh(manifold=True) == {"FINISHED"}
     surface = volume.volumeevm.surface
-    vertices, polygons = vevm.mesh(manifold=True)
-    co, indices, starts, totals = mesh_arrays(surface.data)
-    np.testing.assert_array_equal(co, (vertices * 0.001).astype(np.float32))
-    np.testing.assert_array_equal(indices, polygons.indices)
-    np.testing.assert_array_equal(totals, polygons.sizes)
+    assert_surface_is(surface, vevm, manifold=True)
+    vertices = vevm.mesh(manifold=True)[0]
     assert manifold_counts(surface) == (0, 0, 0)
 
     printed = round_trip(surface, tmp_path / "bone.stl")

@@ -7,7 +7,7 @@ Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 import bpy
 import numpy as np
 from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, core, ct_crop_npy, ext, fresh, mesh_arrays)
+    CT_BONE_HU, api, assert_surface_is, core, ct_crop_npy, ext, fresh, mesh_arrays)
 
 
 def shaded_smooth(mesh):
@@ -28,11 +28,8 @@ def test_smooth_mesh_operator_and_api(ct_crop_npy, core, api):
     bpy.context.view_layer.objects.active = volume
     assert bpy.ops.volumeevm.make_mesh(smooth=True) == {"FINISHED"}
     surface = volume.volumeevm.surface
-    vertices, polygons = vevm.mesh(smooth=True)
-    co, indices, starts, totals = mesh_arrays(surface.data)
-    np.testing.assert_array_equal(co, (vertices * 0.001).astype(np.float32))
-    np.testing.assert_array_equal(indices, polygons.indices)
-    np.testing.assert_array_equal(totals, polygons.sizes)
+    assert_surface_is(surface, vevm, smooth=True)
+    co = mesh_arrays(surface.data)[0]
     assert shaded_smooth(surface.data).all()
     exact, _ = vevm.mesh()
     offset = np.abs(co[:len(exact)].astype(np.float64) * 1000.0 - exact)
