@@ -62,3 +62,4 @@ def unregister():
         delattr(owner, name)
     for cls in reversed(ui.CLASSES):
         bpy.utils.unregister_class(cls)
+    kernels.unregister()

@@ -48,7 +48,7 @@ import bpy
 from .compositor import setup_compositor
 from .dvr import DVRResult, render_dvr, render_dvr_animation
 from .framing import enclosing_objects, frame_volume, hide_enclosing
-from .labels import make_label_meshes
+from .labels import export_label_measurements, make_label_meshes, measure_labels
 from .objects import get_vevm, volume_object
 from .tool_stack import (
     add_tool,
@@ -62,7 +62,8 @@ from .tool_stack import (
 from .transfer import load_preset, set_transfer_function, transfer_function
 from .volumes import build, get_volume, import_volume, make_mesh
 
-__all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "volume_object", "get_vevm",
+__all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "measure_labels",
+           "export_label_measurements", "volume_object", "get_vevm",
            "get_volume",
            "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
            "stack_state", "render_dvr", "render_dvr_animation", "DVRResult",

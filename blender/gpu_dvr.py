@@ -23,7 +23,9 @@ them and draws one full-screen quad whose fragment shader marches the pixel's ra
 - leap over the empty blocks of ``8³`` voxels around the sample, as far as the empty-space
   texture says they reach (the same image);
 - write premultiplied RGBA and the axial depth of the front of the first visible part
-  (the core's depth rule), ``1e10`` where nothing is visible.
+  (the core's depth rule), ``1e10`` where nothing is visible; for a viewport, the colour
+  through the scene's display table first (:mod:`.display_lut`, a 3-D texture kept while
+  the table is the same).
 
 Textures are made lazily on the first draw and kept per VolumeEVM (the region, the gradients
 once a shaded frame needs them, and the empty-space blocks of its last few transfer functions
@@ -55,6 +57,7 @@ from gpu_extras.batch import batch_for_shader
 
 from ..volumeevm_addon import (BACKGROUND_DEPTH, GPU_UNIFORMS_GLSL, VolumeEVMError, gpu_frame,
                                gpu_gradients, gpu_occupancy, gpu_region, gpu_transfer_table)
+from . import display_lut
 
 #: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).
 METHOD = "gpu"
@@ -173,11 +176,25 @@ vec3 headlight(vec3 rgb, vec3 g, vec3 towards)
   return min(rgb * lit + t * params.shading.z * highlight, vec3(1.0));
 }
 
-/* Straight colour and opacity per unit length of a density (linear in the table). */
+/* Straight colour and opacity per unit length of a density (linear in the table; a label of a
+ * categorical function: its own row). */
 vec4 classify(float value)
 {
   float x = clamp((value - params.table.x) * params.table.y, 0.0, params.table.z - 1.0);
+  if (params.labels.x > 0.5) {
+    return texelFetch(tf_table, int(x + 0.5), 0);
+  }
   return texture(tf_table, (x + 0.5) / params.table.z);
+}
+
+/* (density, weight) at p: trilinear over the region's voxels, or (categorical function) the
+ * nearest voxel's label and whether that voxel is in the region. */
+vec2 sample_region(vec3 p, ivec3 cell, vec3 to_texture)
+{
+  if (params.labels.x > 0.5) {
+    return texelFetch(region, cell, 0).rg;
+  }
+  return texture(region, (p + 0.5) * to_texture).rg;
 }
 
 void main()
@@ -244,11 +261,12 @@ void main()
     /* (density, weight) summed over the region's voxels among the 8 neighbours: no weight,
      * no part of the sample's part lies in a region cell (those cells are neighbours with
      * weight); all the weight, all of it does (an outside cell would miss its >= 1/8). */
-    vec2 rg = texture(region, (p + 0.5) * to_texture).rg;
+    vec2 rg = sample_region(p, cell, to_texture);
     if (rg.y <= 0.0) {
       continue;
     }
-    vec2 cover = rg.y > 0.99999 ? vec2(1.0, 0.0) : coverage(p - 0.5 * dt * d, p + 0.5 * dt * d);
+    bool whole = rg.y > 0.99999 && params.labels.x < 0.5;
+    vec2 cover = whole ? vec2(1.0, 0.0) : coverage(p - 0.5 * dt * d, p + 0.5 * dt * d);
     if (cover.x <= 0.0) {
       continue;
     }
@@ -308,10 +326,14 @@ void main()
       }
     }
   }
-  if (params.image.w > 0.5 && acc.a > 0.0) { /* sRGB display: encode the straight colour */
-    vec3 c = clamp(acc.rgb / acc.a, 0.0, 1.0);
-    c = mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
-    acc.rgb = c * acc.a;
+  if (params.image.w > 0.5 && acc.a > 0.0) {
+    /* A viewport's display (display_lut.py): the straight colour through the scene's colour
+     * management (the table's lattice is cube-root shaped), then into the display-linear space
+     * (display value ^ 2.2) where Blender merges the viewport's overlay, premultiplied. */
+    vec3 u = pow(clamp(acc.rgb / acc.a, 0.0, 1.0), vec3(1.0 / DISPLAY_SHAPER));
+    float n = float(textureSize(display_lut, 0).x);
+    vec3 shown = max(texture(display_lut, (u * (n - 1.0) + 0.5) / n).rgb, 0.0);
+    acc.rgb = pow(shown, vec3(2.2)) * acc.a;
   }
   out_color = acc;
   if (seen) {
@@ -335,6 +357,7 @@ _stretch = None
 _volumes = weakref.WeakKeyDictionary()  # VolumeEVM -> _VolumeTextures
 _refused = weakref.WeakKeyDictionary()  # VolumeEVM -> why the GPU refused its region texture
 _tables = {}  # transfer-function version -> 1-D texture
+_display = []  # the display table drawn last and its 3-D texture
 _KEPT = 8
 """Transfer-function tables kept, and empty-space textures per VolumeEVM (the latest used)."""
 _context = False
@@ -487,7 +510,9 @@ def _shader_and_batch():
         info.sampler(2, "FLOAT_1D", "tf_table")
         info.sampler(3, "FLOAT_2D", "depth_in")
         info.sampler(4, "FLOAT_3D", "gradient")
-        _shader = _full_screen_shader(info, "volumeevm_dvr", _FRAGMENT,
+        info.sampler(5, "FLOAT_3D", "display_lut")
+        fragment = _FRAGMENT.replace("DISPLAY_SHAPER", f"{display_lut.SHAPER:.6f}")
+        _shader = _full_screen_shader(info, "volumeevm_dvr", fragment,
                                       (("VEC4", "out_color"), ("FLOAT", "out_depth")))
         _batch = batch_for_shader(_shader, "TRI_STRIP",
                                   {"pos": ((-1, -1), (1, -1), (-1, 1), (1, 1))})
@@ -506,8 +531,10 @@ def _stretch_shader():
 
 
 def _tf_key(tf):
-    """A transfer function's version: its control points and unit length (None for X-ray)."""
-    return None if tf is None else (tf.points.tobytes(), tf.unit_length_mm)
+    """A transfer function's version: its control points, unit length and whether it is
+    categorical (None for X-ray)."""
+    return None if tf is None else (tf.points.tobytes(), tf.unit_length_mm,
+                                    getattr(tf, "is_categorical", False))
 
 
 def _table_texture(tf):
@@ -519,6 +546,15 @@ def _table_texture(tf):
         texture = _texture(len(table), "RGBA32F", "tf", table)
     _keep(_tables, key, texture)
     return texture
+
+
+def _display_texture(table):
+    """The 3-D texture of a display table (:mod:`.display_lut`), remade when the table is
+    another array."""
+    if not _display or _display[0] is not table:
+        rgba = np.concatenate([table, np.ones(table.shape[:3] + (1,), np.float32)], axis=-1)
+        _display[:] = [table, _texture_3d(rgba, "RGBA32F")]
+    return _display[1]
 
 
 def _keep(textures, key, texture):
@@ -594,6 +630,7 @@ def free():
     _volumes.clear()
     _refused.clear()
     _tables.clear()
+    _display.clear()
     _shader = _batch = _stretch = None
 
 
@@ -614,7 +651,7 @@ def restored_state(blend="NONE"):
         gpu.state.depth_mask_set(saved[2])
 
 
-def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
+def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE", display=None):
     """Draw the volume of ``frame`` (the core's ``gpu_frame``) into the bound framebuffer: one
     full-screen quad, RGBA (premultiplied) to colour slot 0 and axial depth to slot 1.
 
@@ -630,6 +667,8 @@ def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
     blend : str
         ``gpu.state.blend_set`` mode for the draw: ``"NONE"`` offscreen (the values as
         computed), ``"ALPHA_PREMULT"`` over a viewport.
+    display : (N, N, N, 3) ndarray, optional
+        The display table (:mod:`.display_lut`) of a frame made with ``display=True``.
     """
     shader, batch = _shader_and_batch()
     region, occupancy, gradient = _textures(frame, tf, tuple(xray))
@@ -646,10 +685,12 @@ def draw(frame, tf, *, xray=(1.0, 0.0), blend="NONE"):
         shader.uniform_sampler("tf_table", _table_texture(tf))
         shader.uniform_sampler("depth_in", depth_texture)
         shader.uniform_sampler("gradient", gradient)
+        shader.uniform_sampler("display_lut",
+                               region if display is None else _display_texture(display))
         batch.draw(shader)
 
 
-def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0)):
+def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0), display=None):
     """Draw ``frame`` at its own, coarser image ``size`` (width, height) into textures of that
     size, then stretch its colour over the whole bound framebuffer, premultiplied over what is
     there: the viewport's coarser frame while the view moves (a ray per block of pixels)."""
@@ -662,7 +703,7 @@ def draw_stretched(frame, tf, size, *, xray=(1.0, 0.0)):
         gpu.state.viewport_set(0, 0, width, height)
         try:
             framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0))
-            draw(frame, tf, xray=xray)
+            draw(frame, tf, xray=xray, display=display)
         finally:
             gpu.state.viewport_set(*viewport)
     shader = _stretch_shader()

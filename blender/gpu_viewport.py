@@ -13,11 +13,19 @@ level and early termination, through the GPU method's one draw routine
   volume veils what lies behind it and what lies in front hides it;
 - the premultiplied colour goes over the viewport with ``ALPHA_PREMULT`` blending.
 
-Colour: Blender draws add-ons' ``POST_VIEW`` drawings into the viewport's overlay, after the
-scene's view transform, so the DVR is encoded for an sRGB display there (``gpu_frame(...,
-srgb=True)``). The viewport then shows what F12 shows with the view transform "Standard"
-(exposure 0, gamma 1, no look); with "Filmic" or "AgX" F12 tone-maps the DVR and the viewport
-does not, so the viewport is brighter and more saturated in the highlights.
+Colour: Blender draws add-ons' ``POST_VIEW`` drawings into the viewport's overlay, an 8-bit
+sRGB texture (the GPU encodes what a shader writes, so it holds linear values), after the
+scene's view transform; its display pass then merges the overlay over the colour-managed scene
+in display-linear space: ``shown = (scene_display^2.2 * (1 - a) + overlay)^(1/2.2)``
+(``gpu_shader_display_transform_frag.glsl``, the same in 4.5 and 5.x). So the DVR applies the
+scene's colour management itself (``gpu_frame(..., display=True)``): its straight colour through
+the scene's display table (:mod:`.display_lut`: view transform, look, exposure, gamma, as F12
+saves them), raised to the power 2.2 and premultiplied. Where the volume is opaque, or over a
+black background, the viewport shows F12's display pixel of a transparent-film render; a
+translucent DVR over other things blends with them in display space, not scene-linear. While a
+table for new settings is baked (a timer: a draw cannot write data) the last one is drawn; a
+scene whose table cannot be baked is drawn with the sRGB table ("Standard"), and the sidebar
+says so (:func:`colour_problem`).
 
 While a view moves (its matrices, a drawn volume's placement, or the tool stack's live result
 change from one draw of the region to the next) and the Render setting "Fast While Moving" is
@@ -41,7 +49,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from ..volumeevm_addon import VolumeEVMError, axial_from_window, camera_from_viewport
-from . import gpu_dvr, runtime
+from . import display_lut, gpu_dvr, runtime
 from .dvr import settings_options
 from .objects import get_vevm, volume_object
 from .transfer import transfer_function
@@ -111,7 +119,7 @@ def block_starts(size, n):
 
 
 def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, mode="over",
-                pixel=1, **options):
+                pixel=1, display=None, **options):
     """Draw ``vevm``'s DVR over the bound framebuffer, stopped by its depth buffer.
 
     The viewport's drawing, and the tests' (over ``GPUOffScreen.draw_view3d``).
@@ -132,9 +140,11 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
     pixel : int
         One ray per ``pixel × pixel`` block of the framebuffer's pixels, the coarser frame
         stretched over it (each block's rays stop at its nearest geometry); 1: a ray a pixel.
+    display : (N, N, N, 3) ndarray, optional
+        A display table (:mod:`.display_lut`): draw for the viewport's display. None: the
+        scene-linear colour.
     **options
-        The GPU method's options (:func:`.gpu_dvr.options`), ``level`` and ``srgb`` (as for the
-        core's ``gpu_frame``).
+        The GPU method's options (:func:`.gpu_dvr.options`) and ``level``.
 
     Returns
     -------
@@ -160,13 +170,14 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
                                   np.asarray(view_matrix, np.float64), *coarse)
     depth_in = np.flipud(axial_from_window(window, camera))
     frame = gpu_dvr.fitted_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
-                                 matrix_world=matrix_world, **options)
+                                 matrix_world=matrix_world, display=display is not None,
+                                 **options)
     if not frame.vevm.evm.is_empty():
         xray = (options.get("xray_scale", 1.0), options.get("xray_offset", 0.0))
         if pixel > 1:
-            gpu_dvr.draw_stretched(frame, tf, coarse, xray=xray)
+            gpu_dvr.draw_stretched(frame, tf, coarse, xray=xray, display=display)
         else:
-            gpu_dvr.draw(frame, tf, xray=xray, blend="ALPHA_PREMULT")
+            gpu_dvr.draw(frame, tf, xray=xray, blend="ALPHA_PREMULT", display=display)
     return frame.level
 
 
@@ -224,6 +235,7 @@ def draw_view(scene, volumes, key, size, projection, view_matrix):
     signature = (tuple(map(tuple, projection)), tuple(map(tuple, view_matrix)), tuple(size),
                  tuple((vol.name, tuple(map(tuple, vol.matrix_world)), id(vevm))
                        for vol, vevm in shown))
+    display, _ = display_lut.table(scene)
     wait = _motion.observe(key, signature, time.monotonic())
     moving = wait > 0.0 and settings.viewport_fast
     if moving:
@@ -233,7 +245,7 @@ def draw_view(scene, volumes, key, size, projection, view_matrix):
             options = draw_options(settings_options(settings, vol, gpu_dvr.METHOD), moving)
             _levels[vol.name] = draw_volume(vevm, tf, projection, view_matrix, size,
                                             matrix_world=vol.matrix_world, mode=settings.mode,
-                                            srgb=True, **options)
+                                            display=display, **options)
             _problems.pop(vol.name, None)
         except VolumeEVMError as error:
             _problems[vol.name] = str(error)
@@ -253,6 +265,12 @@ def _redraw_after(seconds):
 def problem(vol_obj):
     """What kept the viewport from drawing ``vol_obj`` the last time it tried, or ""."""
     return _problems.get(vol_obj.name, "")
+
+
+def colour_problem(scene):
+    """Why the viewport cannot show the DVR through ``scene``'s view transform, or ""."""
+    problem = display_lut.problem(scene)
+    return f"Viewport colours as 'Standard': {problem}" if problem else ""
 
 
 def shown_level(vol_obj):
@@ -278,11 +296,13 @@ def on_load_pre(*_args):
 
 
 def _forget():
-    """Forget the views and what the last draws said; cancel the rest timer (Blender 4.5's
-    ``bpy`` module hangs at exit when a file load dropped a timer it had)."""
+    """Forget the views, what the last draws said and the display tables; cancel the rest and
+    bake timers (Blender 4.5's ``bpy`` module hangs at exit when a file load dropped a timer
+    it had)."""
     _problems.clear()
     _levels.clear()
     _motion.clear()
+    display_lut.free()
     if bpy.app.timers.is_registered(_redraw_rested):
         bpy.app.timers.unregister(_redraw_rested)
 

@@ -30,6 +30,9 @@ from ..volumeevm_addon import set_kernel_cache_dir, set_kernel_compile_hook, set
 #: The progress text while kernels are loaded or compiled for the first time in a session.
 FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"
 
+_before = []  # the cache folder register() replaced, given back by unregister()
+
+
 def register(package):
     """Keep compiled kernels in the user folder of the extension ``package`` (its
     ``__package__``); nothing changes when ``package`` is not an installed extension."""
@@ -38,7 +41,14 @@ def register(package):
     except ValueError:  # loaded from source: not an extension, the core's default cache stays
         return
     if folder:  # "" when Blender could not make the folder (it printed why)
-        set_kernel_cache_dir(folder)
+        _before.append(set_kernel_cache_dir(folder))
+
+
+def unregister():
+    """Give the kernel cache folder back as it was before :func:`register` (the core is a
+    process-wide module: another user of it in this Blender keeps its own choice)."""
+    while _before:
+        set_kernel_cache_dir(_before.pop())
 
 
 def render_threads(scene):

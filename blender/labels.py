@@ -22,7 +22,7 @@ import bpy
 import numpy as np
 
 from ..volumeevm_addon import Polygons, VolumeEVM, VolumeEVMError
-from . import jobs
+from . import jobs, tool_stack
 from .meshes import Faces, fill_mesh, surface_geometry
 from .objects import volume_object
 from .volumes import read_steps, source_of
@@ -159,3 +159,124 @@ def make_label_meshes(obj, *, single_mesh=False, manifold=False):
         that is gone.
     """
     return jobs.run(label_meshes_job(bpy.context, obj, single_mesh=single_mesh, manifold=manifold))
+
+
+# ---------------------------------------------------------------------- measurements
+SMOOTH_AREA_NOTE = ("Exact for the voxel model: volume = voxels × voxel volume, area = the voxel "
+                    "faces. A smooth surface through the voxels has less area: the faces' area "
+                    "is the smooth area × (|nx|+|ny|+|nz|), 1 to 1.73, 1.5 on average (a sphere)")
+"""What the measurements are, shown beside them (see :meth:`VolumeEVM.measure`)."""
+
+
+def _measure_steps(uid, path, options):
+    volume = yield from read_steps(uid, path, options)
+    yield 0.2, "building every label"
+    regions = VolumeEVM.from_labels(volume)
+    rows = []
+    for number, (label, region) in enumerate(regions.items()):
+        yield 0.3 + 0.7 * number / len(regions), f"measuring {regions.infos[label].name}"
+        rows.append((label, regions.infos[label], region.measure()))
+    return rows
+
+
+def measure_job(context, obj):
+    """The measurements job (see :func:`measure_labels`)."""
+    vol_obj = volume_object(obj)
+    name = vol_obj.name
+    path, options = source_of(vol_obj)
+
+    def commit(rows):
+        owner = bpy.data.objects.get(name)
+        if owner is None:
+            raise VolumeEVMError(f"{name}: the volume object was deleted while measuring")
+        table = owner.volumeevm.label_measurements
+        table.clear()
+        for label, info, row in rows:
+            item = table.add()
+            item.label, item.name, item.color = label, info.name, info.color
+            item.voxels = float(row["voxels"])
+            item.volume_ml, item.area_mm2 = row["volume_ml"], row["area_mm2"]
+            item.components = row["components"]
+        owner.volumeevm.label_measurement_index = -1
+        return rows
+
+    return jobs.Job(f"Measurements of {name}", _measure_steps(vol_obj.volumeevm.uid, path, options),
+                    commit)
+
+
+def measure_labels(obj):
+    """Measure every label of a volume object's label map and list them in its sidebar.
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        A volume object whose data is a label map.
+
+    Returns
+    -------
+    list of tuple
+        ``(label, LabelInfo, VolumeEVM.measure() dict)`` per label, in increasing label order;
+        the volume object's ``volumeevm.label_measurements`` holds the same rows.
+
+    Raises
+    ------
+    VolumeEVMError
+        Not a volume object, not a label map (names the file), a source file that is gone.
+    """
+    return jobs.run(measure_job(bpy.context, obj))
+
+
+def _export_steps(uid, path, options, csv_path, overwrite):
+    volume = yield from read_steps(uid, path, options)
+    yield 0.2, "building every label"
+    regions = VolumeEVM.from_labels(volume)
+    yield 0.5, "measuring every label"
+    return regions.write_measurements(csv_path, overwrite=overwrite)
+
+
+def export_measurements_job(context, obj, csv_path, *, overwrite=False):
+    """The CSV export job (see :func:`export_label_measurements`)."""
+    vol_obj = volume_object(obj)
+    path, options = source_of(vol_obj)
+    csv_path = bpy.path.abspath(str(csv_path))
+    return jobs.Job(f"Measurements of {vol_obj.name} to CSV",
+                    _export_steps(vol_obj.volumeevm.uid, path, options, csv_path, overwrite),
+                    lambda written: written)
+
+
+def export_label_measurements(obj, csv_path, *, overwrite=False):
+    """Write every label's exact measurements as CSV (:meth:`LabelSet.write_measurements`).
+
+    Parameters
+    ----------
+    obj : bpy.types.Object
+        A volume object whose data is a label map.
+    csv_path : str or os.PathLike
+        The file (``//`` = beside the .blend), written atomically.
+    overwrite : bool, optional
+        Replace an existing file (default False: an existing file is an error).
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    VolumeEVMError
+        Not a label map, the file exists and ``overwrite`` is False, or it cannot be written.
+    """
+    return jobs.run(export_measurements_job(bpy.context, obj, csv_path, overwrite=overwrite))
+
+
+def select_label(context, vol_obj, label):
+    """Select the label's object alone and make it active (nothing when it has none); the
+    sidebar keeps showing its volume (:func:`.objects.active_volume`)."""
+    obj = tool_stack.label_objects(vol_obj).get(label)
+    if obj is None or obj.name not in context.view_layer.objects:
+        return None
+    for other in context.view_layer.objects.selected:
+        other.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+    return obj

@@ -42,7 +42,7 @@ class Faces:
         return len(self.edges), len(self.polygons.indices), len(self.polygons)
 
 
-def surface_geometry(vevm, previous=None, manifold=False):
+def surface_geometry(vevm, previous=None, manifold=False, smooth=False):
     """The boundary mesh of a VolumeEVM, ready for :func:`fill_mesh`.
 
     Parameters
@@ -55,6 +55,9 @@ def surface_geometry(vevm, previous=None, manifold=False):
     manifold : bool
         Make the manifold mesh for 3D printing instead (``vevm.mesh(manifold=True)``), from
         scratch; ``boundary`` is then None.
+    smooth : bool
+        Make the smooth display surface instead (``vevm.mesh(manifold, smooth=True)``), from
+        scratch; ``boundary`` is then None.
 
     Returns
     -------
@@ -64,8 +67,8 @@ def surface_geometry(vevm, previous=None, manifold=False):
     boundary : BoundaryMesh
         The core's mesh, to update the next one from.
     """
-    if manifold:
-        vertices, polygons = vevm.evm.mesh(manifold=True)
+    if manifold or smooth:
+        vertices, polygons = vevm.evm.mesh(manifold=manifold, smooth=smooth)
         return _blender_units(vevm, vertices), Faces(polygons, *polygons.unique_edges()), None
     if previous is None:
         boundary = BoundaryMesh(vevm.evm)
@@ -109,19 +112,19 @@ def _write(mesh, co, faces):
     mesh.update()
 
 
-def fill_mesh(mesh, co, faces):
+def fill_mesh(mesh, co, faces, smooth=False):
     """Fill an empty mesh in bulk: vertices ``co`` (n, 3) float32 and :class:`Faces`.
 
     Positions, edges, corner vertices and corner edges are written through the mesh's
-    attributes (one copy each).
+    attributes (one copy each). Faces are flat (a voxel boundary has no smooth normals; new
+    meshes shade smooth since 4.1), or with ``smooth`` shaded smooth (the smooth surface).
     """
     mesh.vertices.add(len(co))
     mesh.edges.add(len(faces.edges))
     mesh.loops.add(len(faces.polygons.indices))
     mesh.polygons.add(len(faces.polygons))
-    # Flat faces: a voxel boundary has no smooth normals (new meshes shade smooth since 4.1).
     _attribute(mesh, "sharp_face", "BOOLEAN", "FACE").data.foreach_set(
-        "value", np.ones(len(faces.polygons), bool))
+        "value", np.full(len(faces.polygons), not smooth))
     _write(mesh, co, faces)
 
 

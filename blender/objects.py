@@ -43,7 +43,8 @@ def volume_object(obj):
 
 
 def active_volume(context):
-    """The volume object of the active object, or None."""
+    """The volume object of the active object (itself, the volume of a surface, or of a label
+    object Make Label Meshes made), or None."""
     obj = context.active_object
     if obj is None:
         return None
@@ -52,6 +53,9 @@ def active_volume(context):
         return obj
     if s.role == "SURFACE" and s.volume is not None:
         return s.volume
+    owner = obj.parent.parent if "volumeevm_label" in obj and obj.parent is not None else None
+    if owner is not None and owner.volumeevm.role == "VOLUME":
+        return owner
     return None
 
 

@@ -40,6 +40,8 @@ class StackState:
     shown: tuple = None  # (signature, co, Faces, BoundaryMesh) last written into the surface
     timing: dict = field(default_factory=dict)  # the last refresh: seconds by part, counts
     problem: str = ""  # why the last evaluation failed ("" if it did not)
+    labels: object = None  # a label map's LabelSet (the base of a stack on its label objects)
+    labels_shown: dict = field(default_factory=dict)  # label -> region its object shows
 
     def remember_tool(self, digest, evm):
         self.tools[digest] = evm
@@ -90,11 +92,6 @@ def stack_state(uid, name):
 
 def put_stack_state(uid, name, state):
     _stacks[(uid, name)] = state
-
-
-def stack_states():
-    """All tool stack states, ``{(uid, name): StackState}`` (a copy)."""
-    return dict(_stacks)
 
 
 def forget_stacks_except(keys):

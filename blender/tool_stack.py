@@ -24,6 +24,15 @@ so the next depsgraph update refreshes it through the same handler, or a script 
 stack first (:func:`stack_state`, :func:`evaluate`) gets it refreshed at once. Handlers never
 raise. While the API evaluates or writes, the handlers stay out (:func:`is_busy`).
 
+Label maps. A volume whose labels are mesh objects (Make Label Meshes, one object per label)
+applies its stack to the label set as a whole, with the core's :class:`LabelSet` edits: a cut
+removes the tool's voxels from every label, Keep Inside and Clip to Box keep every label's
+voxels inside the tool, Add gives them to the entry's ``label`` (taking them from the others),
+Keep Largest Part keeps each label's largest part. The base is the label set of the volume's
+file (no VolumeEVM build needed); the same calls, handlers and undo drive it, and each label
+object's mesh is rewritten only when its region changed (a label the stack empties keeps its
+object, with no faces). Apply is for one region only.
+
 Undo and redo restore the entries, ``vevm_path`` and the surface mesh with its signature;
 ``undo_post`` / ``redo_post`` re-sync the runtime stacks from those properties (a new
 ``EditStack`` when the base path changed) and rewrite the mesh only if it does not match.
@@ -42,14 +51,18 @@ import numpy as np
 from ..volumeevm_addon import (
     EVM,
     EditStack,
+    LabelSet,
+    Polygons,
     ToolOperation,
+    VolumeEVM,
     VolumeEVMError,
     box_evm,
     tool_to_grid,
     voxelize_mesh_evm,
 )
-from . import jobs, runtime, sidecar
-from .meshes import BOX_FACES, fill_mesh, refill_mesh, sizes, surface_geometry, tool_triangles
+from . import jobs, runtime, sidecar, volumes
+from .meshes import (BOX_FACES, Faces, fill_mesh, refill_mesh, sizes, surface_geometry,
+                     tool_triangles)
 from .objects import attach_surface, own_surface, volume_object
 
 
@@ -156,9 +169,10 @@ def _base_digest(vevm):
 class _Entry:
     """One stack entry read from Blender: what to do, and the tool's triangles and placement."""
 
-    def __init__(self, number, kind, enabled, density, tool_name, mesh):
+    def __init__(self, number, kind, enabled, density, tool_name, mesh, label=0):
         self.number, self.kind, self.enabled = number, kind, enabled
         self.density, self.tool_name, self.mesh = density, tool_name, mesh
+        self.to_label = label  # Add on a label set: the label that gets the voxels
         self.digest = "" if mesh is None else _digest(*mesh)
 
     @property
@@ -167,10 +181,11 @@ class _Entry:
         return f"{what} with {self.tool_name}" if self.tool_name else what
 
     def key(self):
-        return f"{self.kind.identifier}:{int(self.enabled)}:{self.density!r}:{self.digest}"
+        return (f"{self.kind.identifier}:{int(self.enabled)}:{self.density!r}:{self.to_label}:"
+                f"{self.digest}")
 
 
-def _read_entry(vol_obj, vevm, depsgraph, number, operation, tool_obj, enabled, density):
+def _read_entry(vol_obj, vevm, depsgraph, number, operation, tool_obj, enabled, density, label=0):
     """An :class:`_Entry` (reading the tool's evaluated mesh); raises for a bad tool."""
     kind = KINDS.get(operation)
     if kind is None:
@@ -178,7 +193,7 @@ def _read_entry(vol_obj, vevm, depsgraph, number, operation, tool_obj, enabled, 
     density = float(density) if kind.identifier == "ADD" and density is not None else None
     if kind.identifier == "LARGEST" or not enabled:
         name = "" if tool_obj is None or kind.identifier == "LARGEST" else tool_obj.name
-        return _Entry(number, kind, enabled, density, name, None)
+        return _Entry(number, kind, enabled, density, name, None, label)
     if tool_obj is None:
         raise VolumeEVMError(f"entry {number} ({kind.label}): it has no tool object "
                              f"(deleted?); choose one or remove the entry")
@@ -191,14 +206,14 @@ def _read_entry(vol_obj, vevm, depsgraph, number, operation, tool_obj, enabled, 
     to_grid = tool_to_grid(matrix, vevm.spacing, vevm.origin, vevm.orientation,
                            matrix_world=volume_matrix)
     return _Entry(number, kind, enabled, density, tool_obj.name,
-                  (vertices, faces, to_grid, np.asarray(vevm.shape)))
+                  (vertices, faces, to_grid, np.asarray(vevm.shape)), label)
 
 
 def _read_entries(vol_obj, vevm, depsgraph):
     entries = []
     for number, e in enumerate(vol_obj.volumeevm.tools, 1):
         entries.append(_read_entry(vol_obj, vevm, depsgraph, number, e.operation, e.tool,
-                                   e.enabled, e.density if e.use_density else None))
+                                   e.enabled, e.density if e.use_density else None, e.label))
     return entries
 
 
@@ -244,7 +259,7 @@ def stack_state(obj):
     vol_obj = volume_object(obj)
     if _waiting_key(vol_obj) in _waiting:
         _refresh_safely(vol_obj, bpy.context.evaluated_depsgraph_get())
-    return _synced_state(vol_obj)
+    return _stack_state_of(vol_obj) if label_objects(vol_obj) else _synced_state(vol_obj)
 
 
 def _operation(state, entry, timing):
@@ -338,13 +353,14 @@ def refresh(vol_obj, depsgraph, *, create=False, force=False, extra=None):
     force : bool
         Evaluate even when the surface already shows this stack (returns the result).
     extra : tuple, optional
-        ``(kind, tool_obj, density)``: an entry to evaluate after the stored ones (not stored);
-        ``kind`` is an entry operation (``"CUT"``, ...).
+        ``(kind, tool_obj, density, label)``: an entry to evaluate after the stored ones (not
+        stored); ``kind`` is an entry operation (``"CUT"``, ...).
 
     Returns
     -------
-    VolumeEVM or None
-        The stack's result (None when nothing needed evaluating).
+    VolumeEVM, LabelSet or None
+        The stack's result (a LabelSet for a volume with label objects, see the module
+        docstring); None when nothing needed evaluating.
 
     Raises
     ------
@@ -360,13 +376,22 @@ def refresh(vol_obj, depsgraph, *, create=False, force=False, extra=None):
     with _exclusive():
         state = None
         try:
+            if label_objects(vol_obj):
+                state = _stack_state_of(vol_obj)
+                result = _refresh_labels(vol_obj, state, depsgraph, extra, force, timing)
+                state.problem = ""
+                if result is None:
+                    return None
+                timing["total_s"] = time.perf_counter() - start
+                timing["voxels"] = sum(region.voxel_count for region in result.values())
+                state.timing = timing
+                return result
             state = _synced_state(vol_obj)
             vevm = state.stack.base
             entries = _read_entries(vol_obj, vevm, depsgraph)
             if extra is not None:
-                kind, tool_obj, density = extra
-                entries.append(_read_entry(vol_obj, vevm, depsgraph, len(entries) + 1, kind,
-                                           tool_obj, True, density))
+                entries.append(_read_entry(vol_obj, vevm, depsgraph, len(entries) + 1, *extra[:2],
+                                           True, *extra[2:]))
             timing["read_s"] = time.perf_counter() - start
             signature = _signature(state, entries)
             surface = own_surface(vol_obj)
@@ -420,16 +445,17 @@ def entry_changed(vol_obj):
     script asks for the stack first. Nothing is marked while the API writes entries itself, or
     when the volume has no surface to show the result.
     """
-    if _busy or vol_obj is None or own_surface(vol_obj) is None:
+    if _busy or vol_obj is None or (own_surface(vol_obj) is None and not label_objects(vol_obj)):
         return
     _waiting.add(_waiting_key(vol_obj))
     vol_obj.update_tag(refresh={"OBJECT"})
 
 
 # ---------------------------------------------------------------------------- script API
-def _commit_entry(vol_obj, kind, tool_obj, density):
+def _commit_entry(vol_obj, kind, tool_obj, density, label):
     s = vol_obj.volumeevm
     entry = s.tools.add()
+    entry.label = label
     jobs.on_undo(functools.partial(s.tools.remove, len(s.tools) - 1))
     entry.operation = kind.identifier
     entry.tool = tool_obj if kind.identifier != "LARGEST" else None
@@ -439,7 +465,7 @@ def _commit_entry(vol_obj, kind, tool_obj, density):
     return entry
 
 
-def add_tool(volume_obj, tool_obj, operation, density=None):
+def add_tool(volume_obj, tool_obj, operation, density=None, *, label=0):
     """Add a tool operation to a volume's stack, evaluate it and refresh the surface mesh.
 
     Parameters
@@ -454,11 +480,14 @@ def add_tool(volume_obj, tool_obj, operation, density=None):
         face-connected part, keep only the inside of the tool's bounding box.
     density : float, optional
         Density of added voxels (``"add"``), in data units; default: the region's largest.
+    label : int, optional
+        ``"add"`` on a label map's label objects: the label that gets the voxels (required).
 
     Returns
     -------
-    VolumeEVM
-        The stack's result (its mesh is now the surface object's, made if missing).
+    VolumeEVM or LabelSet
+        The stack's result (its mesh is now the surface object's, made if missing; for a
+        volume with label objects the label set, each label's mesh now its object's).
 
     Raises
     ------
@@ -478,11 +507,13 @@ def add_tool(volume_obj, tool_obj, operation, density=None):
             raise VolumeEVMError(f"{vol_obj.name}: {problem}")
     if density is not None and kind.identifier != "ADD":
         raise VolumeEVMError(f"density is for 'add' only, not {operation!r}")
+    if label and kind.identifier != "ADD":
+        raise VolumeEVMError(f"label is for 'add' only, not {operation!r}")
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    refresh(vol_obj, depsgraph, extra=(kind.identifier, tool_obj, density))
+    refresh(vol_obj, depsgraph, extra=(kind.identifier, tool_obj, density, label))
     with jobs.transaction():  # an error now (e.g. making the mesh) takes the entry back
         with _exclusive():
-            _commit_entry(vol_obj, kind, tool_obj, density)
+            _commit_entry(vol_obj, kind, tool_obj, density, label)
         return refresh(vol_obj, depsgraph, create=True, force=True)
 
 
@@ -566,6 +597,9 @@ def apply_stack(obj):
     s = vol_obj.volumeevm
     if not len(s.tools):
         raise VolumeEVMError(f"{vol_obj.name}: the tool stack is empty; nothing to apply")
+    if label_objects(vol_obj):
+        raise VolumeEVMError(f"{vol_obj.name}: the stack edits its label objects live; Apply "
+                             f"makes one region's VolumeEVM permanent and is not for label maps")
     result = refresh(vol_obj, bpy.context.evaluated_depsgraph_get(), create=True, force=True)
     with _exclusive():
         path = sidecar.save_new(s.uid, result)
@@ -595,7 +629,9 @@ def stack_volumes():
         surface = own_surface(obj)
         if surface is not None and (len(s.tools) or surface.volumeevm.stack_signature):
             found.append(obj)
-    return found
+    return found + [obj for obj in bpy.data.objects
+                    if obj.volumeevm.role == "VOLUME" and obj.library is None and obj not in found
+                    and (len(obj.volumeevm.tools) or _labels_edited(obj)) and label_objects(obj)]
 
 
 def _touches(tool, objects, meshes):
@@ -644,3 +680,103 @@ def on_undo_redo(*_args):
 
 HANDLERS = (("depsgraph_update_post", on_depsgraph_update_post), ("undo_post", on_undo_redo),
             ("redo_post", on_undo_redo))
+
+
+# ---------------------------------------------------------------------------- label sets
+def label_objects(vol_obj):
+    """``label -> object`` of the label objects Make Label Meshes made for ``vol_obj`` (one per
+    label); empty when it made none (or one mesh for all labels)."""
+    collection = bpy.data.collections.get(f"{vol_obj.name} labels")
+    if collection is None:
+        return {}
+    return {int(o["volumeevm_label"]): o for o in collection.objects
+            if "volumeevm_label" in o and o.type == "MESH"}
+
+
+def has_target(vol_obj):
+    """Whether the volume's stack has something to edit: a built VolumeEVM or label objects."""
+    return bool(vol_obj.volumeevm.vevm_path) or bool(label_objects(vol_obj))
+
+
+def _labels_edited(vol_obj):
+    """Whether a label object shows a stack's result (its signature is set)."""
+    return any(o.get("volumeevm_stack") for o in label_objects(vol_obj).values())
+
+
+def _label_base(vol_obj, state):
+    """The label set of the volume's file (cached in the stack state)."""
+    if state.labels is None:
+        path, options = volumes.source_of(vol_obj)
+        volume = jobs.drain(volumes.read_steps(vol_obj.volumeevm.uid, path, options), verbose=False)
+        state.labels = VolumeEVM.from_labels(volume)
+    return state.labels
+
+
+def _label_edit(labels, entry, tool, shown):
+    """One entry applied to a label set (the core's LabelSet edits); Add must name one of the
+    ``shown`` labels (those with an object)."""
+    core = entry.kind.core
+    if core == "cut":
+        return labels.cut(tool)
+    if core == "keep":
+        return labels.keep(tool)
+    if core == "largest":
+        return LabelSet({label: region.largest_component() for label, region in labels.items()},
+                        labels.infos)
+    if not entry.to_label:
+        raise VolumeEVMError("Add on a label map needs the label that gets the material")
+    if entry.to_label not in shown:
+        raise VolumeEVMError(f"label {entry.to_label} is not one of the label objects' labels "
+                             f"{sorted(shown)}")
+    return labels.add(tool, entry.to_label)
+
+
+def _refresh_labels(vol_obj, state, depsgraph, extra, force, timing):
+    """:func:`refresh` of a volume with label objects: the stack on its label set, each label
+    object's mesh rewritten where its region changed (None when nothing needed it)."""
+    base = _label_base(vol_obj, state)
+    grid = next(iter(base.values()))
+    entries = _read_entries(vol_obj, grid, depsgraph)
+    if extra is not None:
+        entries.append(_read_entry(vol_obj, grid, depsgraph, len(entries) + 1, *extra[:2], True,
+                                   *extra[2:]))
+    text = "|".join(e.key() for e in entries)
+    signature = hashlib.blake2b(text.encode(), digest_size=16).hexdigest() if entries else ""
+    objects = label_objects(vol_obj)
+    shown = all(o.get("volumeevm_stack", "") == signature for o in objects.values())
+    if shown and not force and extra is None:
+        return None
+    if not state.labels_shown and not any(o.get("volumeevm_stack") for o in objects.values()):
+        state.labels_shown = dict(base)  # the objects show the label set as made
+    result = base
+    for entry in entries:
+        if not entry.enabled:
+            continue
+        tool = None if entry.kind.core == "largest" else _operation(state, entry, timing).tool
+        start = time.perf_counter()
+        try:
+            result = _label_edit(result, entry, tool, objects)
+        except VolumeEVMError as error:
+            raise VolumeEVMError(f"{entry.label}: {error}") from None
+        timing["evaluate_s"] += time.perf_counter() - start
+    if extra is None:
+        start = time.perf_counter()
+        with jobs.transaction():
+            for label, obj in objects.items():
+                region = result.get(label)
+                previous = state.labels_shown.get(label)
+                same = (region is None if previous is None
+                        else region is not None and region.evm == previous.evm)
+                if same and obj.get("volumeevm_stack", "") == signature:
+                    continue
+                if region is None:
+                    none = np.zeros(0, np.int32)
+                    faces = Faces(Polygons(none, none, none), np.zeros((0, 2), np.int32), none)
+                    refill_mesh(obj.data, np.zeros((0, 3), np.float32), faces)
+                else:
+                    co, faces, _ = surface_geometry(region)
+                    refill_mesh(obj.data, co, faces)
+                jobs.assign_item(obj, "volumeevm_stack", signature)
+        state.labels_shown = {label: result.get(label) for label in objects}
+        timing["mesh_s"] = time.perf_counter() - start
+    return result

@@ -251,19 +251,19 @@ def build(obj, threshold=None, upper=None):
 
 
 # ---------------------------------------------------------------------------- mesh
-def _mesh_steps(vevm_or_path, manifold):
+def _mesh_steps(vevm_or_path, manifold, smooth):
     if isinstance(vevm_or_path, VolumeEVM):
         vevm = vevm_or_path
     else:
         yield 0.0, "loading VolumeEVM"
         vevm = VolumeEVM.load(vevm_or_path)
     yield 0.2, "meshing"
-    co, faces, _ = surface_geometry(vevm, manifold=manifold)
+    co, faces, _ = surface_geometry(vevm, manifold=manifold, smooth=smooth)
     yield 0.9, "making the mesh object"
     return vevm, co, faces
 
 
-def mesh_job(context, obj, manifold=False):
+def mesh_job(context, obj, manifold=False, smooth=False):
     """The make-mesh job (see :func:`make_mesh`)."""
     vol_obj = volume_object(obj)
     s = vol_obj.volumeevm
@@ -283,7 +283,7 @@ def mesh_job(context, obj, manifold=False):
         if owner is None:
             raise VolumeEVMError(f"{name}: the volume object was deleted while meshing")
         mesh = bpy.data.meshes.new(f"{name}_surface")
-        fill_mesh(mesh, co, faces)
+        fill_mesh(mesh, co, faces, smooth=smooth)
         surface = attach_surface(context, owner, mesh)
         jobs.assign(surface.volumeevm, stack_signature="")
         if len(owner.volumeevm.tools):
@@ -291,15 +291,17 @@ def mesh_job(context, obj, manifold=False):
             refresh_quietly(owner, context.evaluated_depsgraph_get())
         return surface
 
-    steps = _mesh_steps(cached if cached is not None else path, manifold)
+    steps = _mesh_steps(cached if cached is not None else path, manifold, smooth)
     return jobs.Job(f"Mesh of {name}", steps, commit)
 
 
-def make_mesh(obj, manifold=False):
+def make_mesh(obj, manifold=False, smooth=False):
     """Make (or refresh) the surface mesh object of a volume's VolumeEVM.
 
     With ``manifold`` the mesh is the one for 3D printing (``vevm.mesh(manifold=True)``):
-    every edge with two faces, every vertex one fan.
+    every edge with two faces, every vertex one fan. With ``smooth`` it is the smooth display
+    surface (``vevm.mesh(manifold, smooth=True)``: every vertex within half a voxel of the
+    exact boundary), shaded smooth. A tool stack's refresh shows its result's exact mesh.
 
     Returns
     -------
@@ -312,4 +314,4 @@ def make_mesh(obj, manifold=False):
     VolumeEVMError
         Not a volume object, no VolumeEVM built yet, a sidecar file that is gone.
     """
-    return jobs.run(mesh_job(bpy.context, obj, manifold))
+    return jobs.run(mesh_job(bpy.context, obj, manifold, smooth))

@@ -19,13 +19,18 @@ class VOLUMEEVM_OT_make_mesh(jobs.JobOperator, bpy.types.Operator):
         description="Split the edges and vertices where voxels touch only along an edge or at "
                     "a point (copies 0.001 voxel apart), so that every edge has two faces",
         default=False)
+    smooth: bpy.props.BoolProperty(
+        name="Smooth (display)",
+        description="Relax the vertices into a smooth surface, each within half a voxel of the "
+                    "exact boundary, shaded smooth; tools and measurements keep the exact mesh",
+        default=False)
 
     @classmethod
     def poll(cls, context):
         return poll_volume(cls, context, built=True) is not None
 
     def job(self, context):
-        return volumes.mesh_job(context, active_volume(context), self.manifold)
+        return volumes.mesh_job(context, active_volume(context), self.manifold, self.smooth)
 
     def finished(self, context, surface):
         mesh = surface.data

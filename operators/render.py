@@ -21,15 +21,13 @@ from ..volumeevm_addon import VolumeEVMError
 
 
 def _render_problem(context):
-    scene = context.scene
-    settings = scene.volumeevm_render
-    vol = render_volume(context, settings)
+    """Why the render cannot start now, or "". A missing camera is not one: the job reports it
+    (the panel shows it too), so the button stays clickable and says what is wrong."""
+    vol = render_volume(context, context.scene.volumeevm_render)
     if vol is None:
         return "Choose the volume to render (or select one)"
     if not vol.volumeevm.vevm_path:
         return f"{vol.name}: build the VolumeEVM first"
-    if scene.camera is None:
-        return "The scene has no camera"
     if jobs.CURRENT is not None:
         return f"Busy: {jobs.CURRENT.label}"
     return ""
@@ -53,7 +51,7 @@ class VOLUMEEVM_OT_render_dvr(jobs.JobOperator, bpy.types.Operator):
         if not hasattr(context.scene, "volumeevm_render"):
             return False
         problem = _render_problem(context)
-        if problem and not problem.startswith("The scene has no camera"):
+        if problem:
             cls.poll_message_set(problem)
             return False
         return True

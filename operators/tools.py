@@ -21,7 +21,7 @@ class _AddToolOperator:
 
     @classmethod
     def poll(cls, context):
-        obj = poll_volume(cls, context, built=True)
+        obj = _poll_target(cls, context)
         if obj is None:
             return False
         if cls.kind.identifier != "LARGEST":
@@ -34,16 +34,20 @@ class _AddToolOperator:
     def density_value(self):
         return None
 
+    def label_value(self):
+        return 0
+
     def execute(self, context):
         obj = active_volume(context)
         tool = None if self.kind.identifier == "LARGEST" else obj.volumeevm.tool_object
         try:
-            result = tool_stack.add_tool(obj, tool, self.kind.name, self.density_value())
+            tool_stack.add_tool(obj, tool, self.kind.name, self.density_value(),
+                                label=self.label_value())
         except Exception as error:
             return jobs.report_failure(self, error, self.bl_label)
         timing = tool_stack.stack_state(obj).timing
-        self.report({"INFO"}, f"{self.kind.label}: {result.voxel_count:,} voxels, refreshed in "
-                              f"{timing.get('total_s', 0.0):.2f} s")
+        self.report({"INFO"}, f"{self.kind.label}: {timing.get('voxels', 0):,} voxels, "
+                              f"refreshed in {timing.get('total_s', 0.0):.2f} s")
         return {"FINISHED"}
 
 
@@ -56,6 +60,14 @@ class _AddWithDensity(_AddToolOperator):
                     "(unset: the sidebar's choice)")
     density: FloatProperty(name="Density", description="Density of added voxels (data units)",
                            options={"SKIP_SAVE"})
+    label: IntProperty(name="Label", min=0, options={"SKIP_SAVE"},
+                       description="On a label map's label objects: the label that gets the "
+                                   "material (unset: the sidebar's choice)")
+
+    def label_value(self):
+        if not self.properties.is_property_set("label"):
+            self.label = active_volume(bpy.context).volumeevm.tool_label
+        return self.label
 
     def density_value(self):
         if not (self.properties.is_property_set("use_density")
@@ -77,12 +89,22 @@ def _add_tool_operator(kind):
     })
 
 
+def _poll_target(cls, context):
+    """The active volume if its stack has something to edit (a built VolumeEVM or label
+    objects), else None with the poll message saying why."""
+    obj = poll_volume(cls, context, built=False)
+    if obj is not None and not tool_stack.has_target(obj):
+        cls.poll_message_set("No VolumeEVM built yet: build one first (or Make Label Meshes)")
+        return None
+    return obj
+
+
 class _StackOperator:
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
     def poll(cls, context):
-        obj = poll_volume(cls, context, built=True)
+        obj = _poll_target(cls, context)
         if obj is None:
             return False
         if not len(obj.volumeevm.tools):

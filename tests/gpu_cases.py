@@ -51,6 +51,28 @@ def irregular():
     return VolumeEVM(EVM.from_mask(mask), dens[mask], shape=shape, spacing=(0.8, 1.0, 1.3))
 
 
+def two_labels():
+    """Red label 1 beside blue label 3 (label 2, green, absent), both in one band."""
+    a = np.zeros((14, 12, 10), np.uint8)
+    a[2:7, 2:10, 2:8] = 1
+    a[7:12, 2:10, 2:8] = 3
+    a[5:9, 4:7, 0:2] = 3
+    return VolumeEVM.from_array(a, 1, upper=3, spacing=(0.8, 1.0, 1.3))
+
+
+RED_GREEN_BLUE = {1: (1.0, 0.0, 0.0, 0.6), 2: (0.0, 1.0, 0.0, 0.6), 3: (0.0, 0.0, 1.0, 0.6)}
+LIVER_COLOURS = {84: (1.0, 0.0, 0.0, 0.3), 85: (0.0, 1.0, 0.0, 0.6), 127: (0.0, 0.0, 1.0, 0.2),
+                 255: (1.0, 1.0, 0.0, 0.05)}
+
+
+def liver(data_dir):
+    """The liver label map at every 5th voxel in x and y, 3rd in z, all labels in one band."""
+    meta = json.loads((data_dir / "seg_liver_cgal.json").read_text())
+    a = np.load(data_dir / "seg_liver_cgal.npy")[::5, ::5, ::3]
+    return VolumeEVM.from_array(a, 1, upper=255,
+                                spacing=tuple(np.array(meta["spacing_mm"]) * (5, 5, 3)))
+
+
 def ramp_tf():
     return TransferFunction([(-200, 0.1, 0.3, 0.9, 0.0), (300, 1.0, 0.6, 0.2, 0.5),
                              (900, 1.0, 1.0, 1.0, 0.9)])
@@ -107,6 +129,15 @@ def case(name, data_dir):
         if "_mip" in name:
             options["mode"] = "mip"
         return v, cam, TransferFunction.preset("ct_bone"), options
+    if name.startswith("labels"):
+        v = liver(data_dir) if "_liver" in name else two_labels()
+        g = grid_to_world(v.spacing, v.origin)
+        scale = float(np.max(np.array(v.shape) * v.spacing)) * 1.2e-3 if "_liver" in name \
+            else 0.02
+        cam = camera(kind, g, v, (0.3 * scale, -0.4 * scale, 0.25 * scale), scale, res=(40, 32),
+                     lens_mm=50.0)
+        colours = LIVER_COLOURS if "_liver" in name else RED_GREEN_BLUE
+        return v, cam, TransferFunction.categorical(colours), {"termination": 1.0}
     if name.startswith("irregular"):
         v = irregular()
         g = grid_to_world(v.spacing, v.origin)
@@ -124,5 +155,6 @@ def case(name, data_dir):
 CASES = ("box_ortho", "box_persp", "blobs_ortho", "blobs_persp", "head_ortho", "head_persp",
          "head_persp_noskip", "head_persp_term", "head_persp_depth", "head_persp_xray",
          "head_persp_mip", "head_persp_shaded", "irregular_over_ortho", "irregular_under_ortho",
-         "irregular_over_shaded_ortho", "irregular_xray_persp", "irregular_mip_persp")
+         "irregular_over_shaded_ortho", "irregular_xray_persp", "irregular_mip_persp",
+         "labels_ortho", "labels_persp", "labels_liver_ortho", "labels_liver_persp")
 """Every case the runner renders."""

@@ -146,7 +146,7 @@ def viewport(vol, tf, options, arrays, out):
     composite, the matrices and the VolumeEVM (``<out>.vevm``) for the reference."""
     from mathutils import Matrix
 
-    from volumeevm.blender import api, gpu_viewport
+    from volumeevm.blender import api, display_lut, gpu_viewport
     from volumeevm.blender.camera import camera_from_blender
 
     scene = bpy.context.scene
@@ -174,15 +174,15 @@ def viewport(vol, tf, options, arrays, out):
                                  matrix_world=np.array(vol.matrix_world), **options)
         framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
                                data=gpu.types.Buffer("FLOAT", composite.size, composite))
-        for srgb in (False, True):  # the DVR alone, scene-linear and for an sRGB display
+        for table in (None, display_lut.srgb_table()):  # scene-linear, for an sRGB display
             alone = np.empty((h, w, 4), np.float32)
             framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
             gpu_viewport.draw_volume(api.get_vevm(vol), tf, projection, view, (w, h),
-                                     matrix_world=np.array(vol.matrix_world), srgb=srgb,
+                                     matrix_world=np.array(vol.matrix_world), display=table,
                                      **options)
             framebuffer.read_color(0, 0, w, h, 4, 0, "FLOAT",
                                    data=gpu.types.Buffer("FLOAT", alone.size, alone))
-            arrays[f"viewport_alone_{'srgb' if srgb else 'linear'}"] = np.flipud(alone)
+            arrays[f"viewport_alone_{'linear' if table is None else 'srgb'}"] = np.flipud(alone)
     offscreen.free()
     arrays.update(viewport_solid=np.flipud(solid), viewport_window_depth=np.flipud(window),
                   viewport_composite=np.flipud(composite), viewport_projection=projection,
@@ -247,6 +247,92 @@ def viewport_handler(vol, arrays):
     arrays["handler_alpha"], arrays["handler_trace"] = np.array(alphas), np.array(trace)
 
 
+VIEW_TRANSFORMS = {"standard": ("Standard", 0.0, 1.0), "filmic": ("Filmic", 0.0, 1.0),
+                   "agx": ("AgX", 0.0, 1.0), "agx_exposed": ("AgX", 0.7, 1.3)}
+"""The colour management cases of :func:`display_colours`: view transform, exposure, gamma."""
+
+
+def display_colours(arrays, meta, data_dir):
+    """The CT head rendered by Render VolumeEVM's job (GPU method, transparent film) and saved
+    as F12 saves it (an 8-bit PNG through the scene's colour management), and drawn by the
+    viewport's handler drawing into an 8-bit sRGB texture as the viewport's overlay is, under
+    each of :data:`VIEW_TRANSFORMS`: saves ``display_<case>_png`` and ``display_<case>_overlay``
+    (the raw bytes, bottom row first flipped to top first) and the seconds each bake took;
+    then the same with a bake that fails (an unwritable temporary folder):
+    ``display_fallback_overlay`` and the sidebar's text."""
+    import tempfile
+
+    from mathutils import Matrix
+
+    from volumeevm.blender import api, display_lut, gpu_viewport, images
+    from volumeevm.blender.camera import camera_from_blender
+    from volumeevm.blender.dvr import settings_options
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    vol = api.import_volume(data_dir / "ct_head_invesalius.npy")
+    api.build(vol, -300.0)  # skin and bone
+    api.frame_volume(vol, "FRONT").data.lens *= 2.2  # the head, not the grid's corners
+    scene.render.resolution_x = scene.render.resolution_y = 128
+    scene.render.resolution_percentage = 100
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples = 1
+    scene.render.film_transparent = True
+    settings = scene.volumeevm_render
+    api.load_preset(settings, "ct_skin", vol)
+    settings.resolution, settings.shading = "full", True
+    tf = api.transfer_function(settings)
+    result = api.render_dvr(vol, tf, method="gpu", options=settings_options(settings, vol, "gpu"))
+    settings.viewport = True
+    camera = camera_from_blender(scene)
+    h, w = camera.shape
+    projection = Matrix(camera.matrix_projection().tolist())
+    view = Matrix(np.linalg.inv(camera.matrix_world).tolist())
+
+    def overlay(name):
+        """The handler's drawing into an 8-bit sRGB colour texture and a depth texture."""
+        colour = gpu.types.GPUTexture((w, h), format="SRGB8_A8")
+        depth = gpu.types.GPUTexture((w, h), format="DEPTH32F_STENCIL8")
+        framebuffer = gpu.types.GPUFrameBuffer(depth_slot=depth, color_slots=colour)
+        with framebuffer.bind():
+            framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
+            gpu_viewport.draw_view(scene, [vol], name, (w, h), projection, view)
+        raw = np.array(colour.read().to_list(), np.uint8).reshape(h, w, 4)
+        arrays[f"display_{name}_overlay"] = np.flipud(raw)
+
+    meta["display_bake_seconds"] = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for name, (transform, exposure, gamma) in VIEW_TRANSFORMS.items():
+            view_settings = scene.view_settings
+            view_settings.view_transform, view_settings.look = transform, "None"
+            view_settings.exposure, view_settings.gamma = exposure, gamma
+            png = Path(folder) / f"{name}.png"
+            images.write_png(result.dvr_image, png, scene)
+            saved = bpy.data.images.load(str(png))
+            saved.colorspace_settings.name = "Non-Color"
+            pixels = np.empty(len(saved.pixels), np.float32)
+            saved.pixels.foreach_get(pixels)
+            arrays[f"display_{name}_png"] = np.flipud(pixels.reshape(h, w, 4))
+            bpy.data.images.remove(saved)
+            start = time.perf_counter()
+            meta[f"display_{name}_current_before"] = display_lut.table(scene)[1]
+            display_lut.refresh(scene)  # the timer's bake (headless: no timers run)
+            meta["display_bake_seconds"][name] = time.perf_counter() - start
+            overlay(name)
+    display_lut.free()
+    scene.view_settings.view_transform = "AgX"
+    writable = tempfile.tempdir
+    tempfile.tempdir = str(Path(writable or tempfile.gettempdir()) / "no such folder")
+    try:
+        meta["display_refreshed_without_tmp"] = display_lut.refresh(scene)
+        overlay("fallback")
+    finally:
+        tempfile.tempdir = writable
+    meta["display_colour_problem"] = gpu_viewport.colour_problem(scene)
+    settings.viewport = False
+    gpu_viewport._forget()
+
+
 def main(out, data_dir):
     ext = load_extension()
     from volumeevm.blender import gpu_dvr
@@ -294,6 +380,10 @@ def main(out, data_dir):
             handlers["freed on load"] = len(gpu_dvr._volumes) == 0
         except Exception:  # noqa: BLE001 (reported to the tests of the render job)
             meta["errors"]["scene"] = traceback.format_exc()
+        try:
+            display_colours(arrays, meta, data_dir)
+        except Exception:  # noqa: BLE001 (reported to the tests of the viewport's colours)
+            meta["errors"]["display"] = traceback.format_exc()
         finally:
             ext.unregister()
         handlers["removed"] = gpu_viewport._handle is None and gpu_dvr._shader is None

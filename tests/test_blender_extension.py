@@ -74,6 +74,7 @@ start = time.perf_counter()
 addon_utils.enable(package, default_set=True, handle_error=fail)
 result["enable_seconds"] = time.perf_counter() - start
 result["numba_imported_by_enabling"] = "numba" in sys.modules
+result["dask_imported_by_enabling"] = [m for m in ("dask", "numcodecs") if m in sys.modules]
 result["module"] = package in sys.modules
 result["registered"] = hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
 extension = sys.modules[package]
@@ -106,6 +107,10 @@ surface = api.make_mesh(vol)
 result["api"] = [vol.name, vevm.voxel_count, len(surface.data.polygons)]
 addon_utils.disable(package, default_set=True)
 result["unregistered"] = not hasattr(bpy.types, "VOLUMEEVM_OT_import_volume")
+# Disabling gave the kernel cache folder back (the core's default): set_kernel_cache_dir
+# returns the folder it replaces.
+core = sys.modules[package + ".volumeevm_addon"]
+result["cache_dir_after_disable"] = core.set_kernel_cache_dir(None)
 print("RESULT " + json.dumps(result), flush=True)
 '''
 
@@ -148,12 +153,18 @@ def _bpy_process(tmp_path, script, env, *args):
     return run, json.loads(lines[-1][len("RESULT "):])
 
 
+#: The compiled wheels the extension bundles per platform and Python, by lower-case name.
+COMPILED = ("numba", "llvmlite", "numcodecs", "pyyaml")
+
+
 def _pins():
-    """``{name: version}`` of Numba and llvmlite, the same in both environments' requirements."""
-    pins = [dict(re.findall(r"^(numba|llvmlite)==(\S+)$",
-                            (REPO / "requirements" / name).read_text(), re.M))
+    """``{name: version}`` of the compiled wheels (:data:`COMPILED`), the same in both
+    environments' requirements."""
+    pattern = rf"^({'|'.join(COMPILED)})==(\S+)$"
+    pins = [dict(re.findall(pattern, (REPO / "requirements" / name).read_text(), re.M | re.I))
             for name in ("py311.txt", "py313.txt")]
-    assert pins[0] == pins[1] and set(pins[0]) == {"numba", "llvmlite"}
+    pins = [{name.lower(): version for name, version in p.items()} for p in pins]
+    assert pins[0] == pins[1] and set(pins[0]) == set(COMPILED)
     return pins[0]
 
 
@@ -182,7 +193,7 @@ def _platform_source(tmp_path, wheels):
     return source
 
 
-def test_manifest_bundles_numba_and_llvmlite_per_platform_and_no_numpy():
+def test_manifest_bundles_compiled_wheels_per_platform_and_no_numpy():
     tags = [fetch_wheels.wheel_tags(w) for w in MANIFEST["wheels"]]
     assert all(w.startswith("./wheels/") for w in MANIFEST["wheels"])
     assert not any(t[0].lower() == "numpy" for t in tags)  # Blender's own, never bundled
@@ -192,9 +203,10 @@ def test_manifest_bundles_numba_and_llvmlite_per_platform_and_no_numpy():
     platform_wheels = sorted((name, version, python, abi, fetch_wheels.blender_platform(platform))
                              for name, version, python, abi, platform in tags if platform != "any")
     assert platform_wheels == sorted(
-        (name, pins[name], python, python, platform) for name in ("numba", "llvmlite")
+        (name, pins[name], python, python, platform) for name in COMPILED
         for python in ("cp311", "cp313") for platform in MANIFEST["platforms"])
-    assert all(t[2:] == ("py3", "none", "any") for t in tags if t[4] == "any")
+    assert all(t[2] in ("py3", "py2.py3") and t[3:] == ("none", "any")
+               for t in tags if t[4] == "any")
     assert MANIFEST["blender_version_min"] == "4.5.0"
     assert MANIFEST["license"] == ["SPDX:GPL-3.0-or-later"]
 
@@ -249,10 +261,11 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
           f"{1000 * result['register_seconds']:.1f} ms; import, build and mesh with the kernels' "
           f"first use {result['first_use_seconds']:.1f} s")
     assert installed["install"] == ["FINISHED"] and installed["registered"]
-    assert {"pydicom", "nibabel", "nrrd", "tifffile", "numba", "llvmlite"} <= set(
-        installed["site_packages"])
+    assert {"pydicom", "nibabel", "nrrd", "tifffile", "numba", "llvmlite", "dask", "numcodecs",
+            "yaml", "toolz"} <= set(installed["site_packages"])
     assert not any(name.lower().startswith("numpy") for name in installed["site_packages"])
     assert not installed["numba_imported_by_enabling"] and not result["numba_imported_by_enabling"]
+    assert result["dask_imported_by_enabling"] == []
     assert result["module"] and result["registered"]
     assert result["import"] == result["build"] == result["mesh"] == ["FINISHED"]
     pins = _pins()
@@ -263,6 +276,7 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     assert result["polygons"] == len(polys) and result["vertices"] == len(np.asarray(verts))
     assert result["api"] == ["by_api", expected.voxel_count, len(polys)]
     assert result["unregistered"]
+    assert result["cache_dir_after_disable"] is None
     # The installed add-on's folder got nothing written into it.
     folder = repo_dir / MANIFEST["id"]
     assert (folder / "blender_manifest.toml").is_file()

@@ -100,3 +100,125 @@ def test_manifold_label_meshes_for_3d_printing(api, core, segmentation):
         vertices, polygons = region.mesh(manifold=True)
         assert len(obj.data.vertices) == len(vertices) and len(obj.data.polygons) == len(polygons)
         assert _non_manifold_edges(obj) == 0, obj.name
+
+
+def test_a_segmentation_in_layers_becomes_one_object_per_segment(api, core, data_dir):
+    path = data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd"
+    vol = api.import_volume(path)
+    assert vol.volumeevm.label_count == 8
+    made = api.make_label_meshes(vol)
+    regions = core.VolumeEVM.from_labels(core.read_volume(path))
+    assert [o.name for o in made][-2:] == ["tissue", "overlapping sphere"]
+    for obj, region in zip(made, regions.values()):
+        assert_surface_is(obj, region)  # every segment its exact solid, overlaps and all
+    assert made[-1]["volumeevm_label"] == 8
+
+
+def test_measurements_listed_sorted_picked_and_exported(ext, api, core, segmentation, tmp_path):
+    from test_blender_ui import draw_all, texts
+
+    vol = api.import_volume(segmentation)
+    made = {o["volumeevm_label"]: o for o in api.make_label_meshes(vol)}
+    bpy.context.view_layer.objects.active = vol
+    assert "Not measured yet" in texts(draw_all(ext, bpy.context))
+    assert bpy.ops.volumeevm.measure_labels() == {"FINISHED"}
+    regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
+    rows = vol.volumeevm.label_measurements
+    assert [row.label for row in rows] == list(regions)
+    for row, (label, region) in zip(rows, regions.items()):
+        exact = region.measure()
+        assert row.name == regions.infos[label].name
+        assert row.voxels == exact["voxels"] and row.components == exact["components"]
+        assert row.volume_ml == pytest.approx(exact["volume_ml"], rel=1e-6)  # float32 property
+        assert row.area_mm2 == pytest.approx(exact["area_mm2"], rel=1e-6)
+    calls = draw_all(ext, bpy.context)
+    assert any(name == "template_list" and args[0] == "VOLUMEEVM_UL_labels"
+               for name, args, _ in calls)
+    shown = " ".join(texts(calls))
+    assert "Exact for the voxel model" in shown and "1.5 on average (a sphere)" in shown
+    # Sorting: by volume, largest first; by name; the list's own order is the label order.
+    ul = ext.ui.panels.VOLUMEEVM_UL_labels
+    listed = type("Listed", (), {"filter_name": "", "bitflag_filter_item": 1 << 30})()
+    for sort_by, key in [("VOLUME", lambda r: -r.volume_ml), ("NAME", lambda r: r.name.lower()),
+                         ("LABEL", lambda r: r.label)]:
+        listed.sort_by = sort_by
+        flags, order = ul.filter_items(listed, bpy.context, vol.volumeevm, "label_measurements")
+        shown_order = sorted(range(len(rows)), key=lambda i: order[i])
+        assert [rows[i].label for i in shown_order] == [r.label for r in sorted(rows, key=key)]
+    assert shown_order == list(range(len(rows)))
+    # Picking a row selects the label's object; the sidebar still shows the volume.
+    vol.volumeevm.label_measurement_index = 4
+    assert bpy.context.view_layer.objects.active == made[rows[4].label]
+    assert [o.name for o in bpy.context.selected_objects] == [made[rows[4].label].name]
+    assert ext.blender.objects.active_volume(bpy.context) == vol
+    # CSV: the core's writer; an existing file is never replaced without Overwrite.
+    csv = tmp_path / "labels.csv"
+    assert bpy.ops.volumeevm.export_label_measurements(filepath=str(csv)) == {"FINISHED"}
+    reference = tmp_path / "reference.csv"
+    regions.write_measurements(reference)
+    assert csv.read_bytes() == reference.read_bytes()
+    csv.write_text("mine")
+    with pytest.raises(RuntimeError, match="labels.csv: exists; choose another name"):
+        bpy.ops.volumeevm.export_label_measurements(filepath=str(csv))
+    assert csv.read_text() == "mine"
+    done = bpy.ops.volumeevm.export_label_measurements(filepath=str(csv), overwrite=True)
+    assert done == {"FINISHED"}
+    assert csv.read_bytes() == reference.read_bytes()
+    written = api.export_label_measurements(vol, tmp_path / "api.csv")
+    assert written.read_bytes() == reference.read_bytes()
+
+
+def test_tools_cut_keep_and_add_on_every_label_live(ext, api, core, data_dir, segmentation):
+    from test_blender_tools import expected_tool, tool_object, world_of_voxel
+
+    vol = api.import_volume(segmentation)
+    made = {o["volumeevm_label"]: o for o in api.make_label_meshes(vol)}
+    regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
+    grid = regions[1]
+    nut = tool_object(data_dir, "mesh_tool_nut", 90.0,
+                      at=world_of_voxel(core, grid, (64, 70, 17), vol))
+
+    def assert_objects_show(expected):
+        for label, obj in made.items():
+            if label in expected:
+                assert_surface_is(obj, expected[label])
+            else:
+                assert len(obj.data.polygons) == len(obj.data.vertices) == 0, obj.name
+
+    # No VolumeEVM built: the label objects are what the stack edits (the operator too).
+    bpy.context.view_layer.objects.active = vol
+    vol.volumeevm.tool_object = nut
+    assert bpy.ops.volumeevm.tool_cut() == {"FINISHED"}
+    tool = expected_tool(core, grid, vol, nut)[0]
+    cut = regions.cut(tool)
+    touched = [label for label in regions
+               if cut.get(label) is None or cut[label].evm != regions[label].evm]
+    assert len(touched) >= 3  # the nut cuts several structures at once
+    assert_objects_show(cut)
+    # Live: moving the tool re-cuts every label object.
+    nut.location.x += 0.03
+    bpy.context.view_layer.update()
+    moved = regions.cut(expected_tool(core, grid, vol, nut)[0])
+    assert any(moved[label].evm != cut[label].evm for label in moved if label in cut)
+    assert_objects_show(moved)
+    assert api.remove_tool(vol, 0) == ""
+    assert_objects_show(regions)
+    # Keep Inside keeps every label inside the tool.
+    tool = expected_tool(core, grid, vol, nut)[0]
+    result = api.add_tool(vol, nut, "keep")
+    assert list(result) == list(regions.keep(tool)) and len(result) >= 3
+    assert_objects_show(regions.keep(tool))
+    api.remove_tool(vol, 0)
+    # Add gives the tool's voxels to one label, taking them from the others.
+    with pytest.raises(core.VolumeEVMError, match="needs the label that gets the material"):
+        api.add_tool(vol, nut, "add")
+    assert len(vol.volumeevm.tools) == 0
+    added = regions.add(tool, 5)
+    result = api.add_tool(vol, nut, "add", label=5)
+    assert result[5].evm == added[5].evm and vol.volumeevm.tools[0].label == 5
+    assert_objects_show(added)
+    with pytest.raises(core.VolumeEVMError,
+                       match=r"label 99 is not one of the label objects' labels \[1, 2, 3, 4, 5, 6"):
+        api.add_tool(vol, nut, "add", label=99)
+    with pytest.raises(core.VolumeEVMError, match="not for label maps"):
+        api.apply_stack(vol)

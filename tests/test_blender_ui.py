@@ -5,6 +5,7 @@ are checked against the real ``UILayout`` functions, parameters and icons, and t
 runs with a minimal window manager that hands out timer events.
 """
 
+import tempfile
 import threading
 import time
 
@@ -212,6 +213,27 @@ def test_panels_draw_every_state(ext, data_dir, tmp_path):
     panel = _PanelSelf()
     ext.ui.render_panel.VOLUMEEVM_PT_render.draw(panel, context)
     assert not [t for t in texts(panel.calls) if t.startswith("Showing level")]
+    # A view transform that cannot be baked into the viewport's colour table (no writable
+    # temporary folder): the sidebar says the viewport shows "Standard" and why, until the
+    # settings change and a bake works.
+    lut, view_settings = ext.blender.display_lut, context.scene.view_settings
+    writable = tempfile.tempdir
+    tempfile.tempdir = str(tmp_path / "no such folder")
+    try:
+        assert lut.refresh(context.scene) is False
+    finally:
+        tempfile.tempdir = writable
+    panel = _PanelSelf()
+    ext.ui.render_panel.VOLUMEEVM_PT_render.draw(panel, context)
+    said = [t for t in texts(panel.calls) if t.startswith("Viewport colours as 'Standard':")]
+    assert said and "could not be baked" in " ".join(texts(panel.calls))
+    view_settings.exposure = 0.5
+    assert lut.refresh(context.scene) is True and lut.table(context.scene)[1]
+    panel = _PanelSelf()
+    ext.ui.render_panel.VOLUMEEVM_PT_render.draw(panel, context)
+    assert not [t for t in texts(panel.calls) if t.startswith("Viewport colours")]
+    view_settings.exposure = 0.0
+    lut.free()
     settings.viewport = False
 
     surface = api.make_mesh(obj)  # the surface is active now: panels show its volume

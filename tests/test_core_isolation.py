@@ -145,3 +145,72 @@ def test_tests_take_public_names_from_the_public_api():
                  for path in files
                  for number, name in public_names_taken_privately(path.read_text(), str(path))]
     assert not offending, "public names imported from private modules:\n" + "\n".join(offending)
+
+
+# ------------------------------------------------------------------ imports go one way
+def core_imports():
+    """``{module: {core modules it imports}}`` for every module of the core, counting imports
+    anywhere in a module (a function-level import that breaks a circle is still one)."""
+    names = {}
+    for path in CORE.rglob("*.py"):
+        parts = path.relative_to(REPO).with_suffix("").parts
+        names[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for name, path in names.items():
+        package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                base = ".".join(package[:len(package) - node.level + 1]
+                                + ([node.module] if node.module else []))
+                for candidate in [base] + [f"{base}.{alias.name}" for alias in node.names]:
+                    if candidate in names and candidate != name:
+                        targets.add(candidate)
+            elif isinstance(node, (ast.Import, ast.ImportFrom)):
+                modules = ([alias.name for alias in node.names] if isinstance(node, ast.Import)
+                           else [node.module])
+                targets.update(m for m in modules if m in names and m != name)
+        graph[name] = targets
+    return graph
+
+
+def import_circles(graph):
+    """The circles of ``graph``: each strongly connected set of two or more modules, sorted."""
+    index, low, stack, on_stack, circles = {}, {}, [], set(), []
+
+    def visit(node):
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for other in graph[node]:
+            if other not in index:
+                visit(other)
+                low[node] = min(low[node], low[other])
+            elif other in on_stack:
+                low[node] = min(low[node], index[other])
+        if low[node] == index[node]:
+            members = []
+            while not members or members[-1] != node:
+                members.append(stack.pop())
+                on_stack.discard(members[-1])
+            if len(members) > 1:
+                circles.append(sorted(members))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return circles
+
+
+def test_the_circle_finder_finds_circles():
+    assert import_circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert import_circles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circles_in_the_core():
+    """A module may use only what is below it: no two core modules import each other, directly
+    or around a circle, even through an import inside a function."""
+    graph = core_imports()
+    assert {"volumeevm_addon.model._mesh", "volumeevm_addon.model._sweep"} <= graph[
+        "volumeevm_addon.model._evm"]  # the scan sees relative imports, top-level and not
+    assert import_circles(graph) == []

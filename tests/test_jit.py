@@ -25,9 +25,12 @@ def test_settings_are_checked_and_threads_restorable():
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(VolumeEVMError, match="^kernel threads must be a positive integer or None"):
             set_kernel_threads(bad)
-    for bad in (3, "", None):
+    for bad in (3, "", b"folder"):
         with pytest.raises(VolumeEVMError, match="^kernel cache dir must be a folder path"):
             set_kernel_cache_dir(bad)
+    assert set_kernel_cache_dir("/tmp/volumeevm-kernels") is None  # the default was set
+    assert set_kernel_cache_dir(None) == Path("/tmp/volumeevm-kernels")  # the default is back
+    assert set_kernel_cache_dir(None) is None
     with pytest.raises(VolumeEVMError, match="^kernel compile hook must be callable or None"):
         set_kernel_compile_hook(5)
     previous = set_kernel_threads(3)

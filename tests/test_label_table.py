@@ -8,6 +8,7 @@ import nrrd
 import numpy as np
 import pytest
 
+from reader_files import write_nrrd
 from volumeevm_addon import LabelInfo, VolumeEVM, VolumeEVMError, read_volume
 from volumeevm_addon.model._label_table import (default_label_info, label_table_for, palette_color,
                                                 read_label_table, slicer_segments)
@@ -133,10 +134,83 @@ def test_a_slicer_segmentation_reads_as_named_coloured_labels(data_dir):
     assert not read_volume(path, labels=False).is_label_map
 
 
-def test_a_segmentation_in_layers_is_refused_naming_every_segment(data_dir):
+def test_a_segmentation_in_layers_reads_every_segment_as_its_own_exact_label(data_dir):
     path = data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd"
-    with pytest.raises(VolumeEVMError, match=r"2 layers .*layer 0: ribs, .*layer 1: overlapping sphere"):
-        read_volume(path)
+    data, header = nrrd.read(str(path))
+    segments = slicer_segments(header, str(path))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every segment has voxels, every value a segment
+        volume = read_volume(path)
+    assert data.shape == (2, 128, 128, 34) and volume.shape == (128, 128, 34)
+    # Layer 0 keeps its values 1..7; layer 1's value 1 moves past them: label 8.
+    labels = {s["value"] + 7 * s["layer"]: LabelInfo(s["name"], s["color"]) for s in segments}
+    assert volume.labels == labels and volume.labels[8].name == "overlapping sphere"
+    assert len(volume.layers) == 2
+    assert np.array_equal(volume.layers[0], data[0])
+    assert np.array_equal(volume.layers[1], np.where(data[1] > 0, data[1] + 7, 0))
+    overlay = np.where(data[1] > 0, 8, data[0])  # the later layer over the earlier
+    assert np.array_equal(volume.array, overlay)
+    reference = read_volume(data_dir / "slicer" / "Segmentation.seg.nrrd")
+    assert volume.spacing == reference.spacing and volume.origin == reference.origin
+    assert np.array_equal(volume.orientation, reference.orientation)
+    regions = VolumeEVM.from_labels(volume)
+    assert list(regions) == list(range(1, 9)) and regions.infos == labels
+    for s in segments:
+        label = s["value"] + 7 * s["layer"]
+        exact = VolumeEVM.from_array(data[s["layer"]], s["value"], upper=s["value"]).evm
+        assert regions[label].evm == exact  # every segment an exact solid
+        assert regions[label].voxel_count == np.count_nonzero(data[s["layer"]] == s["value"])
+        assert (regions[label].table(0) == label).all()
+    # The sphere shares voxels with the labels of layer 0 (the reason for layers).
+    inside = data[0][data[1] == 1]
+    assert (regions[8].evm & regions[7].evm).volume() == np.count_nonzero(inside == 7) > 0
+    assert (regions[8].evm & regions[5].evm).volume() == np.count_nonzero(inside == 5) > 0
+    picked = VolumeEVM.from_labels(volume, labels=[2, 8])
+    assert list(picked) == [2, 8] and picked[8].evm == regions[8].evm
+    assert not read_volume(path, labels=False).is_label_map
+
+
+def _layered_file(tmp_path, data, segments):
+    """A two-layer .seg.nrrd written by pynrrd with ``segments``: (name, colour, layer, value)."""
+    header = {"kinds": ["list", "domain", "domain", "domain"], "space": "left-posterior-superior",
+              "space directions": [[np.nan] * 3, [1.0, 0, 0], [0, 1.0, 0], [0, 0, 2.0]],
+              "space origin": [0.0, 0.0, 0.0], "encoding": "raw"}
+    for n, (name, color, layer, value) in enumerate(segments):
+        header.update({f"Segment{n}_ID": f"s{n}", f"Segment{n}_Name": name,
+                       f"Segment{n}_Color": color, f"Segment{n}_LabelValue": str(value),
+                       f"Segment{n}_Layer": str(layer)})
+    path = tmp_path / "x.seg.nrrd"
+    write_nrrd(path, data, header)
+    return path
+
+
+def test_a_layered_segmentation_that_disagrees_with_its_data_is_reported(tmp_path):
+    data = np.zeros((2, 4, 5, 6), np.uint8)
+    data[0, :2] = 1
+    data[0, 2:, :2] = 3  # a value no segment describes
+    data[1, 1:3, 1:4] = 1
+    good = [("bone", "1 1 1", 0, 1), ("vessel", "1 0 0", 0, 2), ("tumour", "0 1 0", 1, 1)]
+    path = _layered_file(tmp_path, data, good)
+    with pytest.warns(UserWarning) as caught:
+        volume = read_volume(path)
+    assert sorted(str(w.message) for w in caught) == [
+        f"{path}: layer 0 holds label values [3] that no segment describes; they get labels [3] "
+        f"with the default names and colours",
+        f"{path}: segments 'vessel' (layer 0, label value 2) have no voxels in the data"]
+    # Layer 1 moves past layer 0's highest value in the header or the data (3).
+    assert volume.labels == {1: LabelInfo("bone", (1.0, 1.0, 1.0)), 3: default_label_info(3),
+                             4: LabelInfo("tumour", (0.0, 1.0, 0.0))}
+    assert VolumeEVM.from_labels(volume)[4].voxel_count == 2 * 3 * 6
+    for segments, message in [
+        (good[:2] + [("bone", "0 1 0", 1, 1)], "Segment2: name 'bone' is also segment 0's"),
+        (good[:2] + [("tumour", "0 1", 1, 1)], "Segment2_Color: colour .* is not three numbers"),
+        (good[:2] + [("tumour", "green", 1, 1)], "Segment2_Color: colour 'green'"),
+        (good[:2] + [("tumour", "0 1 0", 2, 1)], r"segments \['tumour'\] are in layers the data "
+                                                  r"does not have \(it has 2\)"),
+    ]:
+        path = _layered_file(tmp_path, data, segments)
+        with pytest.raises(VolumeEVMError, match=f"^{path}: .*{message}"):
+            read_volume(path)
 
 
 def test_a_label_map_with_its_table_or_the_palette(tmp_path, data_dir):

@@ -167,6 +167,19 @@ def test_a_ball_measures_its_voxel_count_and_a_turned_grid_turns_the_centroid():
     assert m["components"] == 1
 
 
+@pytest.mark.parametrize("radius, spacing", [(40, (1.0, 1.0, 1.0)), (80, (0.5, 0.5, 0.5))])
+def test_a_voxel_sphere_has_one_and_a_half_times_the_smooth_area(radius, spacing):
+    # The faces' area is the smooth area times |n_x| + |n_y| + |n_z|, whose mean over a sphere
+    # is 3 * 1/2: what the sidebar's note says. The volume matches the smooth sphere's.
+    n = 2 * radius + 2
+    grid = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1)
+    array = (np.linalg.norm(grid - (n - 1) / 2, axis=-1) <= radius).astype(np.uint8)
+    m = VolumeEVM.from_array(array, 1, spacing=spacing).measure()
+    r_mm = radius * spacing[0]
+    assert m["area_mm2"] / (4 * math.pi * r_mm ** 2) == pytest.approx(1.5, abs=1e-3)
+    assert m["volume_mm3"] / (4 / 3 * math.pi * r_mm ** 3) == pytest.approx(1.0, abs=1e-3)
+
+
 def test_parts_and_an_emptied_region():
     array = np.zeros((9, 9, 9), np.uint8)
     array[0:2, 0:2, 0:2] = array[5:9, 5:9, 5:9] = array[0, 8, 8] = 1
@@ -344,3 +357,53 @@ def test_touching_labels_meshes_cover_their_contact_exactly_once_from_each_side(
         assert all(sign_p[f] == -sign_q[f] for f in common)
         shared += len(common)
     assert shared > 1000  # the labels do touch, over many faces
+
+
+def _contact_faces(array, p, q):
+    """The voxel faces between labels ``p`` and ``q`` as ``(axis, plane, b, c)``."""
+    faces = set()
+    for axis in range(3):
+        a = np.moveaxis(array, axis, 0)
+        touching = ((a[:-1] == p) & (a[1:] == q)) | ((a[:-1] == q) & (a[1:] == p))
+        faces.update((axis, plane + 1, b, c) for plane, b, c in zip(*np.nonzero(touching)))
+    return faces
+
+
+def _cycles(evm):
+    """Each polygon of an EVM's mesh as its corner cycle (lattice points), from its smallest
+    corner: the same polygon with the opposite orientation is the reversed cycle."""
+    vertices, polygons = evm.mesh()
+    cycles = []
+    for loop in polygons:
+        corners = [tuple(int(x) for x in vertices[i]) for i in loop]
+        first = corners.index(min(corners))
+        cycles.append(tuple(corners[first:] + corners[:first]))
+    return cycles
+
+
+def _squares(cycle):
+    """The unit faces a polygon covers, as ``(axis, plane, b, c)``."""
+    corners = np.array(cycle)
+    axis = int(np.flatnonzero(np.ptp(corners, axis=0) == 0)[0])
+    b_axis, c_axis = [a for a in range(3) if a != axis]
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    return {(axis, int(lo[axis]), b, c) for b in range(lo[b_axis], hi[b_axis])
+            for c in range(lo[c_axis], hi[c_axis])}
+
+
+@pytest.mark.xfail(strict=True, reason="each label's mesh merges its coplanar faces into "
+                   "rectangles on its own: a rectangle can span the contact with one label and "
+                   "faces beside it, so the touching meshes cover the same unit faces (tested "
+                   "above) but not always with the same polygons")
+def test_touching_labels_meshes_carry_the_same_polygons_reversed(liver):
+    array, _ = liver
+    crop = array[150:260, 120:230, 40:120]
+    regions = VolumeEVM.from_labels(crop)
+    cycles = {label: _cycles(region.evm) for label, region in regions.items()}
+    for p, q in itertools.permutations(regions, 2):
+        contact = _contact_faces(crop, p, q)
+        reversed_q = {(c[0],) + tuple(reversed(c[1:])) for c in cycles[q]}
+        for cycle in cycles[p]:
+            covered = _squares(cycle)
+            if covered & contact:
+                assert covered <= contact and cycle in reversed_q, (p, q, cycle)

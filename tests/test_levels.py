@@ -7,7 +7,8 @@ import pytest
 from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, Camera, VolumeEVM, VolumeEVMError,
                              grid_to_world, render)
 from volumeevm_addon.metrics import rmse
-from volumeevm_addon.model._levels import auto_factor, coarsen, level_factor
+from volumeevm_addon.model._levels import coarsen
+from volumeevm_addon.rendering._levels import auto_factor, level_factor
 from render_helpers import camera, const_tf
 
 

@@ -472,7 +472,7 @@ def composited_slice(rows, lut, f, g):
                         np.zeros(1, np.float32), np.ones(1), np.array([beta_a]),
                         np.array([beta_b]), np.zeros(1), np.zeros(1), np.zeros(1),
                         np.zeros(1, np.int32), np.zeros(1, bool))
-    optics = kernels.Optics(MODE_CODES["over"], False, False, np.float32(1.0),
+    optics = kernels.Optics(MODE_CODES["over"], False, False, False, np.float32(1.0),
                             np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
                             0.0, 0.0, 64.0, _shear_warp._light(None, None, None), np.float32(0.0),
                             np.float32(0.0), np.float32(0.0))
@@ -546,8 +546,8 @@ def test_span_and_shift_move_indices_only():
             if span[1] <= span[0]:
                 continue
             assert (moved[0], moved[1]) == (span[0] + k, span[1] + k)
-            taps = [kernels.tap(p + origin, alpha, beta) for p in range(*span)]
-            moved_taps = [kernels.tap(p + origin - k, alpha, beta) for p in range(*moved)]
+            taps = [kernels.tap(p + origin, alpha, beta, False) for p in range(*span)]
+            moved_taps = [kernels.tap(p + origin - k, alpha, beta, False) for p in range(*moved)]
             assert moved_taps == taps
 
 

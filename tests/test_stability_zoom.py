@@ -11,7 +11,7 @@ import pytest
 from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, TransferFunction, VolumeEVM,
                              grid_to_world, phantoms, render)
 from volumeevm_addon.metrics import rmse, temporal_errors
-from volumeevm_addon.model._levels import auto_factor
+from volumeevm_addon.rendering._levels import auto_factor
 from render_helpers import camera, reference
 
 TF = TransferFunction([(0.0, 1.0, 0.8, 0.5, 0.0), (1.0, 1.0, 0.9, 0.7, 0.4)])

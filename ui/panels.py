@@ -3,11 +3,12 @@ histogram drawer (the Histogram panel's, and the Render panel's beside the trans
 """
 
 import math
+import textwrap
 
 import bpy
 import numpy as np
 
-from ..blender import framing, jobs, runtime, tool_stack
+from ..blender import framing, jobs, labels, runtime, tool_stack
 from ..blender.objects import active_volume
 
 #: Histogram rows drawn in the Histogram panel (the stored bins are summed in groups).
@@ -231,6 +232,8 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
         s = active_volume(context).volumeevm
         layout.operator("volumeevm.make_mesh", icon="MESH_DATA")
         layout.operator("volumeevm.make_mesh", text="Make Manifold Mesh (3D print)").manifold = True
+        layout.operator("volumeevm.make_mesh", text="Make Smooth Mesh (display)",
+                        icon="MOD_SMOOTH").smooth = True
         if s.label_count:  # a label map: every label its own object
             row = layout.row(align=True)
             row.operator("volumeevm.make_label_meshes", icon="GROUP_VERTEX").single_mesh = False
@@ -240,6 +243,68 @@ class VOLUMEEVM_PT_mesh(_VolumeSubpanel, bpy.types.Panel):
             mesh = surface.data
             layout.label(text=f"{surface.name}: {len(mesh.vertices):,} vertices, "
                               f"{len(mesh.polygons):,} faces")
+
+
+class VOLUMEEVM_UL_labels(bpy.types.UIList):
+    """A label map's exact measurements, one row per label; picking a row selects its object."""
+
+    sort_by: bpy.props.EnumProperty(
+        name="Sort By", default="LABEL",
+        items=(("LABEL", "Label", "In label order"), ("NAME", "Name", "Alphabetically"),
+               ("VOLUME", "Volume", "Largest first")))
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname,
+                  index=0, flt_flag=0):
+        split = layout.split(factor=0.4, align=True)
+        split.label(text=item.name)
+        split.label(text=f"{item.volume_ml:.4g} mL")
+        split.label(text=f"{item.area_mm2:.5g} mm²")
+        split.label(text=f"{item.components} part{'s' if item.components != 1 else ''}")
+
+    def draw_filter(self, context, layout):
+        row = layout.row(align=True)
+        row.prop(self, "filter_name", text="")
+        row.prop(self, "sort_by", expand=True)
+        row.prop(self, "use_filter_sort_reverse", text="", icon="SORT_DESC")
+
+    def filter_items(self, context, data, propname):
+        rows = getattr(data, propname)
+        flags = bpy.types.UI_UL_list.filter_items_by_name(self.filter_name,
+                                                          self.bitflag_filter_item, rows, "name")
+        keys = {"LABEL": lambda row: row.label, "NAME": lambda row: row.name.lower(),
+                "VOLUME": lambda row: -row.volume_ml}[self.sort_by]
+        ranked = sorted(range(len(rows)), key=lambda i: (keys(rows[i]), rows[i].label))
+        order = [0] * len(rows)
+        for place, i in enumerate(ranked):
+            order[i] = place
+        return flags, order
+
+
+class VOLUMEEVM_PT_labels(_VolumeSubpanel, bpy.types.Panel):
+    """A label map's exact measurements per label, sortable, exported as CSV."""
+
+    bl_label = "Label Measurements"
+
+    @classmethod
+    def poll(cls, context):
+        obj = active_volume(context)
+        return obj is not None and obj.volumeevm.label_count > 0
+
+    def draw(self, context):
+        layout = self.layout
+        s = active_volume(context).volumeevm
+        row = layout.row(align=True)
+        row.operator("volumeevm.measure_labels", icon="DRIVER_DISTANCE")
+        row.operator("volumeevm.export_label_measurements", text="CSV", icon="EXPORT")
+        if not s.label_measurements:
+            layout.label(text="Not measured yet")
+            return
+        layout.template_list("VOLUMEEVM_UL_labels", "", s, "label_measurements", s,
+                             "label_measurement_index", rows=min(8, len(s.label_measurements)))
+        col = layout.column(align=True)
+        col.scale_y = 0.7
+        for line in textwrap.wrap(labels.SMOOTH_AREA_NOTE, 48):
+            col.label(text=line)
 
 
 class VOLUMEEVM_UL_tools(bpy.types.UIList):
@@ -255,7 +320,9 @@ class VOLUMEEVM_UL_tools(bpy.types.UIList):
         sub.label(text=kind.label, icon=kind.icon)
         if item.operation != "LARGEST":
             sub.prop(item, "tool", text="")
-        if item.operation == "ADD":
+        if item.operation == "ADD" and tool_stack.label_objects(data.id_data):
+            sub.prop(item, "label", text="Label")
+        elif item.operation == "ADD":
             sub.prop(item, "use_density", text="", icon="DRIVER_DISTANCE")
             if item.use_density:
                 sub.prop(item, "density", text="")
@@ -279,9 +346,12 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
         layout = self.layout
         obj = active_volume(context)
         s = obj.volumeevm
-        if not s.vevm_path:
-            layout.label(text="Build the VolumeEVM first", icon="INFO")
+        labelled = bool(tool_stack.label_objects(obj))
+        if not (s.vevm_path or labelled):
+            layout.label(text="Build the VolumeEVM first (or Make Label Meshes)", icon="INFO")
             return
+        if labelled:
+            layout.label(text="Tools edit every label object", icon="GROUP_VERTEX")
         layout.prop(s, "tool_object", text="Tool")
         if s.tool_object is not None:
             problem = tool_stack.tool_problem(obj, s.tool_object)
@@ -294,10 +364,13 @@ class VOLUMEEVM_PT_tools(_VolumeSubpanel, bpy.types.Panel):
         add = tool_stack.KINDS["ADD"]
         row = layout.row(align=True)
         row.operator(f"volumeevm.tool_{add.name}", icon=add.icon)  # uses the settings below
-        row.prop(s, "tool_use_density", text="", icon="DRIVER_DISTANCE")
-        sub = row.row(align=True)
-        sub.active = s.tool_use_density
-        sub.prop(s, "tool_density", text="")
+        if labelled:
+            row.prop(s, "tool_label", text="Label")
+        else:
+            row.prop(s, "tool_use_density", text="", icon="DRIVER_DISTANCE")
+            sub = row.row(align=True)
+            sub.active = s.tool_use_density
+            sub.prop(s, "tool_density", text="")
 
         row = layout.row()
         row.template_list("VOLUMEEVM_UL_tools", "", s, "tools", s, "tool_index", rows=3)
@@ -332,7 +405,7 @@ def draw_status(self, context):
 
 
 #: UI lists (registered before the panels that draw them).
-LISTS = [VOLUMEEVM_UL_tools]
+LISTS = [VOLUMEEVM_UL_tools, VOLUMEEVM_UL_labels]
 
 CLASSES = [
     VOLUMEEVM_PT_main,
@@ -340,5 +413,6 @@ CLASSES = [
     VOLUMEEVM_PT_histogram,
     VOLUMEEVM_PT_build,
     VOLUMEEVM_PT_mesh,
+    VOLUMEEVM_PT_labels,
     VOLUMEEVM_PT_tools,
 ]

@@ -27,6 +27,7 @@ from bpy.props import (
 
 from ..blender import gpu_viewport, tool_stack
 from ..blender.dvr import DEFAULT_IMAGE, METHODS
+from ..blender.labels import select_label
 from ..blender.objects import render_volume
 from ..blender.transfer import load_preset
 from ..blender.volumes import HISTOGRAM_BINS
@@ -93,6 +94,28 @@ class VolumeEVMToolEntry(bpy.types.PropertyGroup):
     )
     density: FloatProperty(name="Density", precision=3, update=_entry_changed,
                            description="Density of added voxels, in data units")
+    label: IntProperty(name="Label", min=0, update=_entry_changed,
+                       description="Add on a label map's label objects: the label that gets "
+                                   "the material (0: none)")
+
+
+def _label_row_picked(settings, context):
+    index = settings.label_measurement_index
+    if 0 <= index < len(settings.label_measurements):
+        select_label(context, settings.id_data, settings.label_measurements[index].label)
+
+
+class VolumeEVMLabelMeasurement(bpy.types.PropertyGroup):
+    """One label's exact measurements, a row of the sidebar's list
+    (``Object.volumeevm.label_measurements``, filled by Measure Labels)."""
+
+    label: IntProperty(name="Label", description="The label's value in the label map")
+    name: StringProperty(name="Name", description="The label's name from the file")
+    color: FloatVectorProperty(name="Colour", size=3, subtype="COLOR", min=0.0, max=1.0)
+    voxels: FloatProperty(name="Voxels", description="The label's voxels")
+    volume_ml: FloatProperty(name="Volume", description="Voxels × voxel volume, in mL")
+    area_mm2: FloatProperty(name="Area", description="The boundary's voxel faces, in mm²")
+    components: IntProperty(name="Parts", description="Face-connected parts")
 
 
 class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
@@ -140,6 +163,12 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
                                      description="Index axis directions in LPS (3x3, row-major)")
     spacing_known: BoolProperty(name="Spacing Known", default=True)
     label_count: IntProperty(name="Labels", description="A label map's labels (0: not a label map)")
+    label_measurements: CollectionProperty(
+        name="Label Measurements", type=VolumeEVMLabelMeasurement,
+        description="Each label's exact measurements, from Measure Labels")
+    label_measurement_index: IntProperty(
+        name="Picked Label", default=-1, update=_label_row_picked,
+        description="The row picked in the list: selects the label's object")
     units: StringProperty(
         name="Units",
         description="The data's units (e.g. HU), as the file said unless you set them; CT "
@@ -201,6 +230,9 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     )
     tool_density: FloatProperty(name="Density", precision=3,
                                 description="Density of added material, in data units")
+    tool_label: IntProperty(name="Label", min=0,
+                            description="Add on a label map's label objects: the label that "
+                                        "gets the material")
     # --- links between a volume and its surface
     surface: PointerProperty(name="Surface", type=bpy.types.Object,
                              description="The mesh made from this volume's VolumeEVM")
@@ -352,5 +384,6 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
                     "another frame, camera or resolution (off: F12 leaves it out and says so)")
 
 
-CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMObjectSettings,
+CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMLabelMeasurement,
+           VolumeEVMObjectSettings,
            VolumeEVMRenderSettings]

@@ -39,6 +39,10 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         layout.prop(settings, "viewport")
         if settings.viewport:
             layout.prop(settings, "viewport_fast")
+            colours = gpu_viewport.colour_problem(context.scene)
+            if colours:
+                for line in wrap(colours, 40):
+                    layout.label(text=line, icon="ERROR")
             if vol is not None:
                 problem, level = gpu_viewport.problem(vol), gpu_viewport.shown_level(vol)
                 if problem:

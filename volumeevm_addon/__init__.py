@@ -27,14 +27,13 @@ from ._voxelize import (MeshCheck, box_evm, check_closed_mesh, tool_to_grid, vox
 from .model._cache import DerivedCache
 from .model._evm import EVM
 from .model._histogram import density_histogram, otsu_threshold
-from .model._levels import LEVELS
 from .model._label_set import LabelSet
 from .model._label_table import LabelInfo
 from .model._mesh import BoundaryMesh, Polygons
 from .model._stack import EditStack, ToolOperation
 from .model._volume import BLENDER_UNITS_PER_MM, Volume, grid_to_world, index_to_physical
 from .model._volumeevm import VolumeEVM
-from .readers import SUPPORTED_EXTENSIONS, read_volume
+from .readers import SUPPORTED_EXTENSIONS, read_volume, volume_levels
 from .rendering._camera import BACKGROUND_DEPTH, Camera
 from .rendering._compositing import composite_over, output_depth
 from .rendering._depth import VISIBLE_ALPHA
@@ -43,6 +42,7 @@ from .rendering._gpu_inputs import (GPU_UNIFORMS_GLSL, GPUFrame, axial_from_wind
                                     gpu_region,
                                     gpu_transfer_table, window_from_axial)
 from .rendering._images import exr_channels, openexr_module, read_exr, write_exr, write_png
+from .rendering._levels import LEVELS
 from .rendering._modes import MODES
 from .rendering._quality import method_options
 from .rendering._render import MAX_SAMPLES, METHODS, render, render_options
@@ -108,6 +108,7 @@ __all__ = [
     "set_kernel_threads",
     "tool_to_grid",
     "voxelize_mesh",
+    "volume_levels",
     "voxelize_mesh_evm",
     "window_from_axial",
     "write_atomically",

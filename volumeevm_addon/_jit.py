@@ -71,21 +71,30 @@ def set_kernel_cache_dir(path):
 
     Call it before the first kernel runs: kernels already loaded keep their folder. Blender's
     side calls it at registration with the extension's user folder, so that compiled code never
-    lands in the add-on's own (possibly read-only, replaced on update) folder.
+    lands in the add-on's own (possibly read-only, replaced on update) folder, and gives the
+    previous folder back when the extension is disabled.
 
     Parameters
     ----------
-    path : str or os.PathLike
-        The folder; a subfolder per import name and kernel version is made inside it.
+    path : str or os.PathLike or None
+        The folder; a subfolder per import name and kernel version is made inside it. None: the
+        platform's user cache (:func:`default_cache_dir`), the default.
+
+    Returns
+    -------
+    pathlib.Path or None
+        The folder set before (None: the default), to restore it later.
 
     Raises
     ------
     VolumeEVMError
-        If ``path`` is not a path (``str`` or ``os.PathLike``) or is empty.
+        If ``path`` is neither None nor a path (``str`` or ``os.PathLike``), or is empty.
     """
-    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
-        raise VolumeEVMError(f"kernel cache dir must be a folder path, got {path!r}")
-    _settings["cache_dir"] = Path(path)
+    if path is not None and (not isinstance(path, (str, os.PathLike)) or not os.fspath(path)):
+        raise VolumeEVMError(f"kernel cache dir must be a folder path or None, got {path!r}")
+    previous = _settings["cache_dir"]
+    _settings["cache_dir"] = None if path is None else Path(path)
+    return previous
 
 
 def set_kernel_threads(count):

@@ -22,7 +22,8 @@ from ._errors import VolumeEVMError
 from ._jit import kernel
 from ._memory import check_memory
 from .model import _sweep
-from .model._volume import transform
+from .model._evm import EVM, check_lattice_range
+from .model._volume import grid_to_world, transform
 
 __all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "tool_to_grid", "voxelize_memory",
            "voxelize_mesh", "voxelize_mesh_evm"]
@@ -776,8 +777,6 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     >>> voxelize_mesh_evm(v, f, (5, 5, 5), to_grid).volume()
     20
     """
-    from .model._evm import EVM, check_lattice_range
-
     verts, tris = _as_mesh(vertices, faces)
     shape = _as_shape(shape)
     check_lattice_range((0, 0, 0), shape, f"shape {shape}")
@@ -799,8 +798,6 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
 def _runs_evm(vertices, faces, shape, to_grid, offset):
     """The EVM of :func:`voxelize_mesh`'s voxels in the grid ``shape`` placed at lattice cell
     ``offset``, from their runs (no grid)."""
-    from .model._evm import EVM
-
     ptr, ends = _winding_runs(vertices, faces, _as_shape(shape), to_grid, dense=False)
     origin = np.asarray(offset, np.int64) + _sweep.OFFSET
     return EVM._from_keys(_run_keys(ptr, ends, np.asarray(shape, np.int64), origin))
@@ -830,8 +827,6 @@ def box_evm(lo, hi, shape):
     >>> box_evm((0.5, 0.0, -3.0), (2.0, 2.0, 9.0), (4, 4, 4)).volume()  # 1 x 2 x 4 voxels
     8
     """
-    from .model._evm import EVM
-
     low = np.clip(np.ceil(np.asarray(lo, np.float64)), 0, shape).astype(np.int64)
     high = np.clip(np.ceil(np.asarray(hi, np.float64)), 0, shape).astype(np.int64)
     if np.any(high <= low):
@@ -876,8 +871,6 @@ def tool_to_grid(tool_matrix, spacing, origin, orientation=None, *, matrix_world
     >>> tool_to_grid(moved, (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)) @ (0.0, 0.0, 0.0, 1.0)
     array([2., 0., 0., 1.])
     """
-    from .model._volume import grid_to_world
-
     tool = np.asarray(tool_matrix, dtype=np.float64)
     if tool.shape != (4, 4) or not np.isfinite(tool).all():
         raise VolumeEVMError(f"tool_matrix: a finite 4x4 matrix, got shape {tool.shape}")

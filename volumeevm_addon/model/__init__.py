@@ -7,6 +7,7 @@ One module per concept (private; the public names are imported from ``volumeevm_
 - ``_mesh.py``: the boundary of an EVM as a closed, outward polygon mesh with merged faces.
 - ``_manifold.py``: that mesh made 2-manifold (for 3D printing): non-manifold edges and
   vertices split.
+- ``_smooth.py``: that mesh relaxed into a smooth display surface within half a voxel.
 - ``_components.py``: face-connected components of an EVM, one EVM each.
 - ``_densities.py``: voxel -> index in a densities table, computed from the EVM alone.
 - ``_volumeevm.py``: the EVM of a region of interest plus the densities of its voxels.

@@ -1,4 +1,4 @@
-"""Face-connected components of an EVM, one EVM each.
+"""Face-connected components of an EVM: each one's extreme vertices.
 
 The region is cut into its ordered boxes (slabs, sub-slabs, runs). Two boxes are face-adjacent
 when they touch across a plane with a common area: consecutive sub-slabs of one slab, or boxes of
@@ -30,9 +30,8 @@ def _overlapping(keys_lo, keys_hi, group, lo, hi):
 
 
 def face_components(evm):
-    """Face-connected components of ``evm``, one :class:`EVM` each, largest volume first."""
-    from ._evm import EVM
-
+    """Face-connected components of ``evm``, largest volume first: each one's packed vertex keys
+    (sorted), from which :meth:`EVM.components` makes its EVM."""
     lo, hi = evm.boxes()
     if len(lo) == 0:
         return []
@@ -78,7 +77,7 @@ def face_components(evm):
     rank[np.argsort(-sizes, kind="stable")] = np.arange(len(sizes))
     component = rank[component]
 
-    # Each component's EVM: XOR of its boxes' corners, all components at once.
+    # Each component's vertices: XOR of its boxes' corners, all components at once.
     corners = np.concatenate([np.where([sx, sy, sz], hi, lo)
                               for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)])
     owner = np.tile(component, 8)
@@ -89,7 +88,7 @@ def face_components(evm):
     odd = (np.diff(np.r_[first, len(keys)]) & 1) == 1
     keys, owner = keys[first[odd]], owner[first[odd]]
     cuts = np.flatnonzero(np.diff(owner)) + 1
-    return [EVM._from_keys(part) for part in np.split(keys, cuts)]
+    return np.split(keys, cuts)
 
 
 def _connect(n, u, v):

@@ -26,6 +26,10 @@ from .._errors import VolumeEVMError
 from .._jit import kernel, parallel_map
 from .._memory import check_memory
 from . import _sweep
+from ._components import face_components
+from ._manifold import manifold_mesh
+from ._mesh import boundary_mesh
+from ._smooth import smooth_mesh
 
 ORDERS = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six lexicographic axis orders "ABC": A slowest."""
@@ -230,20 +234,6 @@ def _prefix_xor(vertices, shape):
         if x > 0:
             grid[x] ^= grid[x - 1]
     return grid
-
-
-@kernel
-def _key_bounds(keys):
-    """The smallest and largest offset coordinates of 3-D keys, per axis (one pass, where a
-    NumPy reduction along the short axis of the vertices is slow)."""
-    lo = np.full(3, _sweep.MASK)
-    hi = np.zeros(3, np.int64)
-    for key in keys:
-        for axis in range(3):
-            value = (key >> ((2 - axis) * _sweep.BITS)) & _sweep.MASK
-            lo[axis] = min(lo[axis], value)
-            hi[axis] = max(hi[axis], value)
-    return lo, hi
 
 
 def vertex_keys(slices, shape, offset=(0, 0, 0)):
@@ -464,7 +454,7 @@ class EVM:
         if self.is_empty():
             return None
         if self._bounds is None:
-            lo, hi = _key_bounds(self._keys["xyz"])
+            lo, hi = _sweep.key_bounds(self._keys["xyz"])
             self._bounds = (tuple(int(a) - _sweep.OFFSET for a in lo),
                             tuple(int(a) - _sweep.OFFSET for a in hi))
         return self._bounds
@@ -858,7 +848,7 @@ class EVM:
         box = np.array([lo, hi], np.int64) + _sweep.OFFSET
         return EVM._from_keys(_clip_keys(self.keys(), box[0], box[1]))
 
-    def mesh(self, manifold=False):
+    def mesh(self, manifold=False, smooth=False):
         """Boundary as a closed, outward polygon mesh in lattice units; see :mod:`._mesh`.
 
         Parameters
@@ -867,11 +857,17 @@ class EVM:
             Split the edges and vertices where voxels touch only along an edge or at a point,
             so that every edge has two faces and every vertex one fan (for 3D printing); the
             copies move off the lattice by ``1e-3`` voxel. See :mod:`._manifold`.
+        smooth : bool
+            A smooth display surface: the same mesh (the manifold one with ``manifold``) with
+            its vertices relaxed, each within half a voxel along each axis of its exact
+            position, and its faces that are no longer planar cut into triangles. For display
+            only: measurements use the exact mesh. See :mod:`._smooth`.
 
         Returns
         -------
         vertices : (n, 3) ndarray of np.float64
-            Lattice points (voxel corners), and with ``manifold`` the split copies.
+            Lattice points (voxel corners), and with ``manifold`` the split copies; with
+            ``smooth`` those moved, then the centres added to faces cut into fans.
         polygons : Polygons
             Faces merged per plane, counter-clockwise seen from outside.
 
@@ -880,13 +876,10 @@ class EVM:
         VolumeEVMError
             When the mesh would need more memory than is available.
         """
-        if manifold:
-            from ._manifold import manifold_mesh
-
-            return manifold_mesh(self)
-        from ._mesh import boundary_mesh
-
-        return boundary_mesh(self)
+        vertices, polygons = manifold_mesh(self) if manifold else boundary_mesh(self)
+        if smooth:
+            return smooth_mesh(vertices, polygons)
+        return vertices, polygons
 
     def components(self):
         """Face-connected components, one EVM each, largest first; see :mod:`._components`.
@@ -896,9 +889,7 @@ class EVM:
         list of EVM
             Empty for an empty region.
         """
-        from ._components import face_components
-
-        return face_components(self)
+        return [EVM._from_keys(keys) for keys in face_components(self)]
 
 
 def _check_evm(other):

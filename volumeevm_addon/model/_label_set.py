@@ -3,10 +3,11 @@ edits and measurements that treat all labels together.
 
 A :class:`LabelSet` is what :meth:`VolumeEVM.from_labels` returns: a read-only mapping from
 label to its VolumeEVM (so ``regions[127]``, ``for label, region in regions.items()``), plus
-``infos`` (each label's name and colour, :mod:`._label_table`). The regions are disjoint parts
-of one grid, and every edit keeps them so: a cut removes the tool's voxels from every label, a
-keep keeps every label's voxels inside the tool, and an add gives the tool's voxels to one label
-and takes them from the others. A label an edit empties leaves the set.
+``infos`` (each label's name and colour, :mod:`._label_table`). The regions are parts of one
+grid, disjoint for a label map (a segmentation in layers, :attr:`Volume.layers`, may overlap
+across layers): a cut removes the tool's voxels from every label, a keep keeps every label's
+voxels inside the tool, and an add gives the tool's voxels to one label and takes them from the
+others. A label an edit empties leaves the set.
 """
 
 from collections.abc import Mapping
@@ -19,12 +20,12 @@ from ._measure import measure_labels, write_measurements_csv
 
 
 class LabelSet(Mapping):
-    """Disjoint regions of one grid, one per label, with each label's name and colour.
+    """Regions of one grid, one per label, with each label's name and colour.
 
     Parameters
     ----------
     regions : mapping
-        ``label (int > 0) -> VolumeEVM``, disjoint regions of one grid.
+        ``label (int > 0) -> VolumeEVM``, regions of one grid (disjoint in a label map).
     infos : mapping, optional
         ``label -> LabelInfo``; labels it lacks get :func:`._label_table.default_label_info`.
 

@@ -297,3 +297,52 @@ def labels_present(array, source="array"):
     else:
         values = np.unique(array).astype(np.int64)
     return values[values != 0]
+
+
+def layered_regions(maps, labels=None, *, source="array"):
+    """:func:`label_regions` of label maps that hold different labels of one grid (a
+    segmentation's layers), merged: one sweep per map.
+
+    Parameters
+    ----------
+    maps : sequence of (X, Y, Z) ndarray of int
+        The label maps; a label may appear in one of them only.
+    labels, source
+        As for :func:`label_regions`.
+
+    Returns
+    -------
+    dict
+        ``label -> (keys, voxel_count)``, as :func:`label_regions` gives it.
+
+    Raises
+    ------
+    VolumeEVMError
+        As :func:`label_regions`, or if the maps differ in shape or share a label.
+
+    Warns
+    -----
+    UserWarning
+        Naming the wanted labels that have no voxel in any map.
+    """
+    if len(maps) == 1:
+        return label_regions(maps[0], labels, source=source)
+    if len({np.shape(m) for m in maps}) > 1:
+        raise VolumeEVMError(f"{source}: the layers of a label map must share one shape")
+    wanted = _wanted(labels)
+    merged = {}
+    for number, array in enumerate(maps):
+        present = labels_present(array, f"{source}: layer {number}")
+        if wanted is not None:
+            present = np.intersect1d(present, wanted)
+        if len(present) == 0:
+            continue
+        shared = sorted(set(present.tolist()) & set(merged))
+        if shared:
+            raise VolumeEVMError(f"{source}: labels {shared} are in more than one layer")
+        merged.update(label_regions(array, present, source=f"{source}: layer {number}"))
+    if wanted is not None:
+        missing = sorted(set(wanted.tolist()) - set(merged))
+        if missing:
+            warnings.warn(f"{source}: labels {missing} have no voxels", UserWarning, stacklevel=3)
+    return dict(sorted(merged.items()))

@@ -35,14 +35,12 @@ from .._errors import VolumeEVMError
 from .._memory import check_memory
 from ._evm import EVM
 
-__all__ = ["coarsen", "checked_factor", "auto_factor", "level_factor", "level_memory", "LEVELS"]
-
-LEVELS = ("full", "auto")
-"""The named levels ``render`` accepts besides an integer factor."""
+__all__ = ["coarsen", "checked_factor", "level_memory"]
 
 
 def coarsen(vevm, factor):
-    """The VolumeEVM of ``vevm`` at ``factor`` times coarser voxels (see the module notes).
+    """The region and densities of ``vevm`` at ``factor`` times coarser voxels (see the module
+    notes); :meth:`VolumeEVM.level` makes the VolumeEVM of them.
 
     Parameters
     ----------
@@ -53,8 +51,12 @@ def coarsen(vevm, factor):
 
     Returns
     -------
-    VolumeEVM
-        Same orientation, units, threshold; ``spacing * factor``; origin at the centre of the
+    evm : EVM
+        The coarse region.
+    table : ndarray
+        Its densities in the table's order (float32, float64 when the fine table is).
+    shape, spacing, origin : tuple of 3
+        The coarse grid: ``ceil(shape / factor)``, ``spacing * factor``, the centre of the
         first block.
 
     Raises
@@ -63,8 +65,6 @@ def coarsen(vevm, factor):
         For a factor that is not such an integer, or when the level would need more memory
         than is available (:func:`volumeevm_addon.check_memory`).
     """
-    from ._volumeevm import VolumeEVM
-
     f = checked_factor(factor, vevm.shape)
     fine = np.array(vevm.shape)
     shape = -(-fine // f)
@@ -95,10 +95,8 @@ def coarsen(vevm, factor):
         coarse_table.append(sums[inside] / counts[inside])
     spacing = np.array(vevm.spacing) * f
     shift = vevm.orientation @ (np.array(vevm.spacing) * (f - 1) / 2.0)
-    return VolumeEVM(EVM.from_mask(coarse_mask), np.concatenate(coarse_table).astype(dtype),
-                     shape=tuple(shape), spacing=tuple(spacing),
-                     origin=tuple(np.array(vevm.origin) + shift), orientation=vevm.orientation,
-                     units=vevm.units, threshold=vevm.threshold, upper=vevm.upper)
+    return (EVM.from_mask(coarse_mask), np.concatenate(coarse_table).astype(dtype),
+            tuple(int(n) for n in shape), tuple(spacing), tuple(np.array(vevm.origin) + shift))
 
 
 def checked_factor(factor, shape):
@@ -135,52 +133,3 @@ def level_memory(shape, factor, voxel_count, vertex_count):
     entries = min(int(voxel_count), coarse[0] * coarse[1] * coarse[2])
     return (2 * (x + 1) * (y + 1) * (z + 1) + 100 * int(vertex_count)
             + 2 * 9 * factor * padded[1] * padded[2] + 16 * entries)
-
-
-def auto_factor(shape, grid_to_world, camera):
-    """The coarsest level whose voxels are still no wider than one image pixel.
-
-    Rule: with ``s`` the largest voxel edge in world units (the columns of ``grid_to_world``)
-    and ``p`` the smaller pixel edge in world units where the volume is nearest the camera
-    (orthographic: the view plane over the resolution; perspective: that at unit distance times
-    the smallest axial depth of the volume's box, at least the near clip), the factor is the
-    largest power of two ``f`` with ``f * s <= p`` (1 when a voxel already covers a pixel or
-    more), and never more than the grid's largest side.
-
-    Parameters
-    ----------
-    shape : tuple of 3 int
-        The fine grid.
-    grid_to_world : (4, 4) ndarray
-        Voxel-centre indices to world units (:func:`._volume.grid_to_world`).
-    camera : Camera
-
-    Returns
-    -------
-    int
-    """
-    g = np.asarray(grid_to_world, dtype=np.float64)
-    voxel = float(np.linalg.norm(g[:3, :3], axis=0).max())
-    xmin, xmax, ymin, ymax = camera.viewplane
-    pixel = min((xmax - xmin) / camera.width, (ymax - ymin) / camera.height)
-    if not camera.is_ortho:
-        n = np.asarray(shape, dtype=np.float64)
-        corners = np.array([[a, b, c] for a in (-0.5, n[0] - 0.5) for b in (-0.5, n[1] - 0.5)
-                            for c in (-0.5, n[2] - 0.5)])
-        nearest = camera.axial_depth(corners @ g[:3, :3].T + g[:3, 3]).min()
-        pixel *= max(float(nearest), camera.clip_start)
-    f = 1
-    while 2 * f * voxel <= pixel and 2 * f <= max(shape):
-        f *= 2
-    return f
-
-
-def level_factor(level, shape, grid_to_world, camera):
-    """The integer factor that ``level`` ("full", "auto" or an int >= 1) names for this view."""
-    if isinstance(level, str):
-        if level not in LEVELS:
-            raise VolumeEVMError(f"level must be one of {LEVELS} or an integer >= 1, got {level!r}")
-        return 1 if level == "full" else auto_factor(shape, grid_to_world, camera)
-    if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)) or level < 1:
-        raise VolumeEVMError(f"level must be one of {LEVELS} or an integer >= 1, got {level!r}")
-    return int(level)

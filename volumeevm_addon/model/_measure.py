@@ -11,7 +11,9 @@ smooth surface through the voxels' boundary to within half a voxel layer of the 
 
 Shared areas between labels come from the EVM algebra: two disjoint regions A and B bound the
 same faces exactly where they touch, so the faces they share are
-``(area(A) + area(B) - area(A xor B)) / 2``, per axis.
+``(area(A) + area(B) - area(A xor B)) / 2``, per axis. (For any two regions this counts the
+faces on both boundaries: for segments of different layers that overlap, also the faces both
+bound on the same side.)
 """
 
 import csv

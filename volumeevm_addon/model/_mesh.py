@@ -41,7 +41,6 @@ import numpy as np
 from .._jit import kernel, parallel_map
 from .._memory import check_memory
 from . import _sweep
-from ._evm import _key_bounds
 
 # Cyclic axis orders "ABC" with e_B x e_C = +e_A, so (B, C) counter-clockwise faces +A.
 _CYCLIC = ("xyz", "yzx", "zxy")
@@ -656,7 +655,7 @@ class BoundaryMesh:
         if len(self._keys) == 0:
             return BoundaryMesh(evm)
         # Faces change on the planes of old ^ new only: per axis, lo to hi (offset coordinates).
-        lo, hi = _key_bounds(changed)
+        lo, hi = _sweep.key_bounds(changed)
         orders = [evm.keys()] + [
             _sweep.xor(old, _sweep.radix_sort(_sweep.pack(_sweep.unpack(changed, 3)[:, axes]), 0, 3)[0])
             for old, axes in zip(self._orders[1:], _AXES[1:])]

@@ -367,3 +367,17 @@ def plane_area(keys):
                     total += (row[k + 1] - row[k]) * ((keys[p] >> BITS) - line)
         i = j
     return total
+
+
+@kernel
+def key_bounds(keys):
+    """The smallest and largest offset coordinates of 3-D keys, per axis (one pass, where a
+    NumPy reduction along the short axis of the vertices is slow)."""
+    lo = np.full(3, MASK)
+    hi = np.zeros(3, np.int64)
+    for key in keys:
+        for axis in range(3):
+            value = (key >> ((2 - axis) * BITS)) & MASK
+            lo[axis] = min(lo[axis], value)
+            hi[axis] = max(hi[axis], value)
+    return lo, hi

@@ -54,6 +54,11 @@ class Volume:
     labels : dict, optional
         For a label map (a segmentation: integers, 0 = background), each label's name and
         colour, ``label -> LabelInfo`` (:mod:`._label_table`); None for densities.
+    layers : tuple of (X, Y, Z) ndarray, optional
+        For a label map whose labels overlap (a 3D Slicer segmentation in layers), the label
+        maps that hold them, each label in one layer; ``array`` is then their overlay (a later
+        layer over an earlier one), and :meth:`VolumeEVM.from_labels` builds each label from its
+        layer. None when ``array`` holds every label.
 
     Examples
     --------
@@ -71,6 +76,7 @@ class Volume:
     source: str = ""
     spacing_known: bool = True
     labels: dict = None
+    layers: tuple = None
 
     @property
     def is_label_map(self):
@@ -91,6 +97,22 @@ class Volume:
             :func:`index_to_physical` of this volume's geometry.
         """
         return index_to_physical(self.spacing, self.origin, self.orientation)
+
+
+def is_lazy(array):
+    """True when ``array`` is a lazy Dask array (a store's or a memory-mapped file's), whose
+    chunks are read only when computed; found without importing Dask.
+
+    Parameters
+    ----------
+    array : object
+        A volume's ``array``.
+
+    Returns
+    -------
+    bool
+    """
+    return type(array).__module__.split(".")[0] == "dask"
 
 
 def index_to_physical(spacing, origin, orientation=None):

@@ -25,13 +25,16 @@ from .._errors import VolumeEVMError
 from .._files import write_atomically
 from .._memory import available_memory, check_memory
 from ._cache import DerivedCache, default_budget
+from ._chunked import build_chunked
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
-from ._labels import label_regions
+from ._labels import layered_regions
+from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
-from ._volume import Volume, checked_densities, checked_geometry, index_to_physical, transform
+from ._volume import (Volume, checked_densities, checked_geometry, index_to_physical, is_lazy,
+                      transform)
 
 
 class VolumeEVM:
@@ -213,6 +216,12 @@ class VolumeEVM:
     def from_volume(cls, volume, threshold, upper=None):
         """Build from a :class:`Volume` (a reader's result), keeping its geometry and units.
 
+        A lazy volume (its ``array`` a Dask array: an OME-Zarr store, ``read_volume(path,
+        lazy=True)``) is built chunk by chunk (:mod:`._chunked`) on Dask's scheduler: threads
+        by default, a ``dask.distributed`` cluster when a ``Client`` exists. The result is
+        identical to :meth:`from_array` on the same data in memory, for any chunk shape, and
+        memory follows the chunks in flight and the result, not the grid.
+
         Parameters
         ----------
         volume : Volume
@@ -229,7 +238,9 @@ class VolumeEVM:
         ------
         VolumeEVMError
             If ``volume`` is not a :class:`Volume`; otherwise as :meth:`from_array`, the
-            messages naming the volume's source file.
+            messages naming the volume's source file (for a lazy volume, a chunk with NaN or
+            infinite densities names the chunk, and memory is checked before the first chunk
+            and after every batch of chunks).
 
         Examples
         --------
@@ -241,9 +252,35 @@ class VolumeEVM:
         """
         if not isinstance(volume, Volume):
             raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got {type(volume).__name__}")
+        if is_lazy(volume.array):
+            return cls._from_lazy(volume, threshold, upper)
         return cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
                               origin=volume.origin, orientation=volume.orientation,
                               units=volume.units, source=volume.source or "volume")
+
+    @classmethod
+    def _from_lazy(cls, volume, threshold, upper):
+        """:meth:`from_volume` of a lazy volume, checked as :meth:`from_array` checks."""
+        source = volume.source or "volume"
+        array = volume.array
+        if array.ndim != 3 or array.dtype.kind not in "uif" or 0 in array.shape:
+            raise VolumeEVMError(f"{source}: expected a non-empty 3-D array of integers or real "
+                                 f"numbers indexed [x, y, z], got shape {array.shape} and dtype "
+                                 f"{array.dtype}")
+        shape = _grid_shape(array.shape, f"{source}: ")
+        spacing, origin, orientation = checked_geometry(volume.spacing, volume.origin,
+                                                        volume.orientation, source=source)
+        threshold, upper = _density_interval(threshold, upper, f"{source}: ")
+        if not isinstance(volume.units, str):
+            raise VolumeEVMError(
+                f"{source}: units must be a string (such as 'HU'), got {volume.units!r}")
+        keys, table, low, high = build_chunked(array, threshold, upper, source)
+        if len(table) == 0:
+            band = f">= {threshold}" if upper is None else f"in [{threshold}, {upper}]"
+            raise VolumeEVMError(f"{source}: the region is empty: no density is {band} "
+                                 f"(data range {low} .. {high})")
+        return cls(EVM._from_keys(keys), table, shape=shape, spacing=spacing, origin=origin,
+                   orientation=orientation, units=volume.units, threshold=threshold, upper=upper)
 
     @classmethod
     def from_labels(cls, labels_map, labels=None, *, spacing=None, origin=None, orientation=None,
@@ -258,7 +295,9 @@ class VolumeEVM:
         ----------
         labels_map : Volume or (X, Y, Z) ndarray of int
             The label map: non-negative integers. A :class:`Volume` brings its geometry, units
-            and source; for an array, pass them here.
+            and source; for an array, pass them here. A Volume with ``layers`` (a segmentation
+            whose segments overlap) builds each label from its layer: labels of different
+            layers may then share voxels.
         labels : int or iterable of int, optional
             The labels to build (default every label present but 0).
         spacing, origin, orientation, units, source
@@ -298,15 +337,18 @@ class VolumeEVM:
             geometry = {"spacing": labels_map.spacing, "origin": labels_map.origin,
                         "orientation": labels_map.orientation}
             units, source = labels_map.units, labels_map.source or "volume"
-            infos, labels_map = labels_map.labels, labels_map.array
+            infos, maps = labels_map.labels, labels_map.layers or (labels_map.array,)
+            labels_map = maps[0]
+        else:
+            maps = (labels_map,)
         geometry = dict(zip(geometry, checked_geometry(
             (1.0, 1.0, 1.0) if geometry["spacing"] is None else geometry["spacing"],
             (0.0, 0.0, 0.0) if geometry["origin"] is None else geometry["origin"],
             geometry["orientation"], source=source)))
         if not isinstance(units, str):
             raise VolumeEVMError(f"{source}: units must be a string, got {units!r}")
-        regions = label_regions(labels_map, labels, source=source)
-        shape = _grid_shape(labels_map.shape, f"{source}: ")
+        regions = layered_regions(maps, labels, source=source)
+        shape = _grid_shape(np.shape(labels_map), f"{source}: ")
         check_memory(sum(count for _, count in regions.values()) * labels_map.dtype.itemsize,
                      "the label tables", source=source, advice="pick fewer labels with labels=")
         return LabelSet({label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
@@ -399,10 +441,15 @@ class VolumeEVM:
             For a factor that is not such an integer, or when the level would need more
             memory than is available.
         """
-        from ._levels import checked_factor, coarsen
-
         factor = checked_factor(factor, self.shape)
-        return self.cache.get(("level", factor), lambda: coarsen(self, factor))
+        return self.cache.get(("level", factor), lambda: self._coarse(factor))
+
+    def _coarse(self, factor):
+        """The VolumeEVM of :func:`._levels.coarsen`'s arrays (not cached)."""
+        evm, table, shape, spacing, origin = coarsen(self, factor)
+        return VolumeEVM(evm, table, shape=shape, spacing=spacing, origin=origin,
+                         orientation=self.orientation, units=self.units,
+                         threshold=self.threshold, upper=self.upper)
 
     def to_dense(self, background=0):
         """The full grid: the region's densities, ``background`` everywhere else.
@@ -604,7 +651,7 @@ class VolumeEVM:
         """
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
-    def mesh(self, manifold=False):
+    def mesh(self, manifold=False, smooth=False):
         """The region's boundary mesh in physical mm (LPS), e.g. to show it in Blender.
 
         Parameters
@@ -612,11 +659,15 @@ class VolumeEVM:
         manifold : bool
             Every edge with two faces and every vertex one fan, for 3D printing
             (:meth:`EVM.mesh`): split copies move by 1e-3 voxel, i.e. 1e-3 times the spacing.
+        smooth : bool
+            A smooth display surface (:meth:`EVM.mesh`): every vertex within half a voxel of
+            its exact position along each grid axis (half the spacing); faces no longer planar
+            cut into triangles. Measurements (:meth:`measure`) use the exact mesh.
 
         Returns
         -------
         vertices : (n, 3) ndarray of np.float64
-            Voxel corners in physical mm.
+            Voxel corners in physical mm (moved ones with ``smooth``).
         polygons : Polygons
             Faces merged per plane, counter-clockwise seen from outside (:meth:`EVM.mesh`).
 
@@ -625,7 +676,7 @@ class VolumeEVM:
         VolumeEVMError
             When the mesh would need more memory than is available.
         """
-        vertices, polygons = self.evm.mesh(manifold)
+        vertices, polygons = self.evm.mesh(manifold, smooth)
         return self.corner_positions(vertices), polygons
 
     def measure(self):

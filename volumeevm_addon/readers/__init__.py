@@ -36,6 +36,7 @@ from ._npy import read_npy
 from ._nrrd import read_nrrd
 from ._raw import read_raw
 from ._tiff import read_tiff
+from ._zarr import read_zarr, volume_levels
 
 _READERS = {
     ".npy": read_npy,
@@ -52,10 +53,11 @@ _READERS = {
 }
 
 #: File name endings :func:`read_volume` accepts (lower case; matched case-insensitively).
-#: DICOM series are also read from a folder or a list of files, whatever their names.
+#: DICOM series are also read from a folder or a list of files, whatever their names, and
+#: OME-Zarr stores from a folder named ``*.zarr`` (``*.ome.zarr``).
 SUPPORTED_EXTENSIONS = tuple(_READERS)
 
-__all__ = ["SUPPORTED_EXTENSIONS", "read_volume"]
+__all__ = ["SUPPORTED_EXTENSIONS", "read_volume", "volume_levels"]
 
 
 def read_volume(path, *, units=None, labels=None, **options):
@@ -84,7 +86,14 @@ def read_volume(path, *, units=None, labels=None, **options):
         - raw (``.raw``, ``.bin``): ``shape=(X, Y, Z)`` and ``dtype`` (required),
           ``byte_order="little"`` or ``"big"``, ``header_bytes=0``, ``spacing=(sx, sy, sz)``
           in mm;
-        - DICOM (folder, list, ``.dcm``): ``series_uid=`` to pick one series of several.
+        - ``.npy`` and raw: ``lazy=True`` maps the file read-only and returns a lazy Dask
+          array (a file larger than memory opens; :meth:`VolumeEVM.from_volume` builds it
+          chunk by chunk);
+        - DICOM (folder, list, ``.dcm``): ``series_uid=`` to pick one series of several;
+        - OME-Zarr (a ``.zarr`` / ``.ome.zarr`` folder, NGFF 0.4 or 0.5): ``level=0`` (the
+          pyramid level, :func:`volume_levels` lists them), ``channel=0`` and ``time=0``; the
+          result's ``array`` is a lazy Dask array with the store's chunks (nothing is read
+          until it is computed: :meth:`VolumeEVM.from_volume` builds chunk by chunk).
 
         Other formats take none.
 
@@ -143,6 +152,10 @@ def _read(path, options):
     name = path.name.lower()
     ending = next((e for e in _READERS if name.endswith(e)), None)
     mode = _file_mode(path)
+    if name.endswith(".zarr"):
+        if not stat.S_ISDIR(mode):
+            raise VolumeEVMError(f"{path}: not a folder; an OME-Zarr store is a folder")
+        return read_zarr(path, **options)
     if stat.S_ISDIR(mode):
         if ending is not None and _READERS[ending] is not read_dicom:
             raise VolumeEVMError(

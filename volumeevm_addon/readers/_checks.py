@@ -11,7 +11,8 @@ Before that, the readers share one way to get at the bytes: :func:`require_regul
 :func:`open_file` (no FIFO read forever, an unreadable file named in words),
 :func:`check_read_memory` (the read's peak against the memory available, before allocating)
 and :func:`read_payload` (exactly the bytes the header announces, from a file or a
-decompressing stream, checksums verified).
+decompressing stream, checksums verified); for ``lazy=True``, :func:`lazy_mapped` (the samples
+as a lazy Dask array over a read-only memory map, after the same checks of the file's length).
 """
 
 import importlib
@@ -19,12 +20,13 @@ import math
 import os
 import stat
 import zlib
+from pathlib import Path
 
 import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ..model._volume import Volume
+from ..model._volume import Volume, is_lazy
 
 #: Bytes read per call when filling a buffer, so a decompressing stream never holds a second
 #: full-size copy of the data.
@@ -82,6 +84,61 @@ def import_reader_package(module, pip_name, path):
             f"{path}: reading this format needs the Python package '{pip_name}', which is not "
             f"installed ({exc})"
         ) from exc
+
+
+#: Bytes per chunk of a lazy memory-mapped volume (whole planes, as many as fit).
+LAZY_CHUNK_BYTES = 64 << 20
+
+
+class MappedChunks:
+    """A memory-mapped array as Dask reads it: each chunk a copy of its part of the map.
+
+    Handing Dask the ``np.memmap`` itself would not do: ``dask.array.from_array`` copies a
+    NumPy array (a memmap is one) into memory whole.
+    """
+
+    def __init__(self, mapped):
+        self.mapped = mapped
+        self.shape, self.dtype, self.ndim = mapped.shape, mapped.dtype, mapped.ndim
+
+    def __getitem__(self, slices):
+        return np.array(self.mapped[slices])
+
+
+def lazy_mapped(path, offset, shape, dtype, *, fortran_order):
+    """The ``(X, Y, Z)`` samples of a file as a lazy Dask array over a read-only memory map.
+
+    Chunks are :data:`LAZY_CHUNK_BYTES` of whole planes across the axis that varies slowest
+    in the file (x for C order, z for Fortran order), so each chunk is one contiguous read.
+
+    Parameters
+    ----------
+    path : Path
+        The file, already checked to hold exactly ``offset`` + the data's bytes.
+    offset : int
+        Bytes before the data.
+    shape : tuple of 3 int
+        The grid, positive sizes.
+    dtype : numpy dtype
+        The samples as stored (any byte order).
+    fortran_order : bool
+        True when x varies fastest in the file.
+
+    Returns
+    -------
+    dask array
+        Named by the file's path and modification time, so Dask never mixes two versions.
+    """
+    da = import_reader_package("dask.array", "dask", path)
+    order = "F" if fortran_order else "C"
+    mapped = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape, order=order)
+    slow = 2 if fortran_order else 0
+    plane = math.prod(shape) // shape[slow] * dtype.itemsize
+    chunks = [-1, -1, -1]
+    chunks[slow] = max(1, min(shape[slow], LAZY_CHUNK_BYTES // plane))
+    name = f"mapped-{Path(path).resolve()}-{os.stat(path).st_mtime_ns}"
+    return da.from_array(MappedChunks(mapped), chunks=tuple(chunks), name=name, asarray=False,
+                         fancy=False, meta=np.empty((0, 0, 0), dtype))
 
 
 def mm_per_unit(unit, path, what):
@@ -288,16 +345,20 @@ def check_ndim(shape, path):
 def checked_array(array, path):
     """Check that ``array`` is a usable density grid and return it in the core's layout.
 
+    A lazy Dask array (:func:`~volumeevm_addon.model._volume.is_lazy`) is checked by its
+    dtype and shape only and stays lazy (native byte order as a lazy conversion): its
+    densities are checked for NaN and Inf when a build computes its chunks.
+
     Parameters
     ----------
-    array : ndarray
+    array : ndarray or dask array
         Decoded densities, already indexed ``[x, y, z]``.
     path : str
         The file the array came from, for the message.
 
     Returns
     -------
-    (X, Y, Z) ndarray
+    (X, Y, Z) ndarray or dask array
         The same values, C-contiguous and in native byte order (a copy only if needed).
 
     Raises
@@ -306,7 +367,9 @@ def checked_array(array, path):
         If the array is not 3-D, is empty, has a dtype other than integer or real floating
         point, or (float data) holds NaN or Inf.
     """
-    array = np.asarray(array)
+    lazy = is_lazy(array)
+    if not lazy:
+        array = np.asarray(array)
     if array.dtype.kind not in "uif":
         raise VolumeEVMError(
             f"{path}: unsupported data type {array.dtype}; densities must be integers or real "
@@ -315,6 +378,9 @@ def checked_array(array, path):
     check_ndim(array.shape, path)
     if array.size == 0:
         raise VolumeEVMError(f"{path}: the volume is empty (shape {array.shape})")
+    if lazy:
+        native = array.dtype.newbyteorder("=")
+        return array if array.dtype == native else array.astype(native)
     if array.dtype.kind == "f":
         finite = np.isfinite(array)
         if not finite.all():
@@ -334,8 +400,8 @@ def checked_volume(
 
     Parameters
     ----------
-    array : ndarray
-        Decoded densities indexed ``[x, y, z]``.
+    array : ndarray or dask array
+        Decoded densities indexed ``[x, y, z]`` (lazy ones as :func:`checked_array` says).
     path : str
         The file or folder read, stored as ``Volume.source`` and named in messages.
     spacing : sequence of 3 float, optional

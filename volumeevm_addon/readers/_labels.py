@@ -22,7 +22,9 @@ def label_map(volume, table=None):
         For labels the table names but the data lacks, or the data has but the table lacks.
     """
     source = volume.source or "volume"
-    present = labels_present(volume.array, source)
+    present = set()
+    for layer in volume.layers or (volume.array,):
+        present.update(labels_present(layer, source).tolist())
     return dataclasses.replace(volume, labels=label_table_for(present, table, source=source))
 
 
@@ -32,6 +34,6 @@ def as_label_map(volume, labels):
     a path a label map named by that label table (ITK-SNAP ``.txt`` or JSON)."""
     if labels is None:
         return volume
-    if labels is False:
-        return dataclasses.replace(volume, labels=None)
+    if labels is False:  # a segmentation in layers: their overlay
+        return dataclasses.replace(volume, labels=None, layers=None)
     return label_map(volume, None if labels is True else read_label_table(labels))

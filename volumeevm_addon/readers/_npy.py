@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import check_read_memory, checked_volume, data_units, open_file, read_payload
+from ._checks import (check_ndim, check_read_memory, checked_volume, data_units, lazy_mapped,
+                      open_file, read_payload)
 
 #: ``numpy.lib.format`` header readers by format version (3.0 only adds UTF-8 field names,
 #: which a volume's plain dtype never needs).
@@ -31,13 +32,18 @@ _HEADER_READERS = {
     (2, 0): np.lib.format.read_array_header_2_0,
 }
 
-def read_npy(path):
+def read_npy(path, lazy=False):
     """Read a ``.npy`` volume indexed ``[x, y, z]`` and its optional JSON sidecar.
 
     Parameters
     ----------
     path : str or Path
         The ``.npy`` file.
+    lazy : bool
+        Map the file into memory read-only and return its array as a lazy Dask array
+        (:func:`._checks.lazy_mapped`): nothing is read until a chunk is computed, so a file
+        larger than memory opens (for :meth:`VolumeEVM.from_volume`, which builds chunk by
+        chunk). Checked as the eager read: header and file length.
 
     Returns
     -------
@@ -74,10 +80,22 @@ def read_npy(path):
                 f"announces {start} + {count * dtype.itemsize} for shape {shape} of {dtype}); "
                 f"the file is truncated or corrupt"
             )
+        if lazy:
+            return _lazy(path, start, shape, fortran_order, dtype)
         reordered = fortran_order or not dtype.isnative
         check_read_memory(path, shape, dtype, copies=2 if reordered else 1)
         buffer = read_payload(f, count * dtype.itemsize, path, "array data")
     array = np.frombuffer(buffer, dtype=dtype).reshape(shape, order="F" if fortran_order else "C")
+    spacing, units = _read_sidecar(path.with_suffix(".json"), array)
+    return checked_volume(array, path, spacing=spacing, units=units)
+
+
+def _lazy(path, start, shape, fortran_order, dtype):
+    """The ``.npy`` file's volume over a read-only memory map (:func:`lazy_mapped`)."""
+    check_ndim(shape, path)
+    if math.prod(shape) == 0:
+        raise VolumeEVMError(f"{path}: the volume is empty (shape {shape})")
+    array = lazy_mapped(path, start, shape, dtype, fortran_order=fortran_order)
     spacing, units = _read_sidecar(path.with_suffix(".json"), array)
     return checked_volume(array, path, spacing=spacing, units=units)
 

@@ -27,23 +27,29 @@ millimetres are converted to millimetres, in the spellings tools write ("microns
 
 Axis kinds: every axis whose ``kinds`` entry is not spatial (``domain``, ``space``, or none
 given) is refused: a colour, vector or list component, time or complex parts would otherwise be
-read as a grey volume whose first axis is the colour channel.
+read as a grey volume whose first axis is the colour channel. The one exception is a 3D Slicer
+segmentation whose overlapping segments sit in layers: ``dimension: 4``, ``kinds: list domain
+domain domain``, the first axis the layer.
 
 Data units: the NRRD ``sample units`` field ("HU" and its spellings), else "" (the format has no
 other field for it; Slicer writes none).
 """
 
 import bz2
+import dataclasses
 import difflib
 import gzip
 import math
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ..model._label_table import LabelInfo, slicer_segments
+from .._memory import check_memory
+from ..model._label_table import LabelInfo, default_label_info, slicer_segments
+from ..model._labels import checked_labels, labels_present
 from ._checks import (
     check_ndim,
     check_read_memory,
@@ -115,7 +121,8 @@ _ASCII_BYTES_PER_VALUE = 64
 
 def read_nrrd(path):
     """Read a 3-D scalar NRRD file (a 3D Slicer ``.seg.nrrd`` as a label map with its segments'
-    names and colours).
+    names and colours; a segmentation in several layers with every segment a label of its own,
+    ``layers`` holding each layer, see :func:`_layered_segmentation`).
 
     Parameters
     ----------
@@ -142,14 +149,8 @@ def read_nrrd(path):
     with open_file(path) as f:
         header = _parse_header(nrrd, _header_lines(f, path), path)
         segments = slicer_segments(header, path)
-        if segments and len({s["layer"] for s in segments}) > 1:
-            raise VolumeEVMError(
-                f"{path}: a 3D Slicer segmentation in {len({s['layer'] for s in segments})} layers "
-                f"(segments that overlap: {_by_layer(segments)}); a label map holds one label per "
-                f"voxel, so VolumeEVM reads single-layer segmentations only: in Slicer, export "
-                f"the overlapping segments to separate files"
-            )
-        sizes, dtype, encoding = _layout(header, path)
+        layered = bool(segments) and _is_layered(header)
+        sizes, dtype, encoding = _layout(header, path, layered)
         data_file = _data_file(header, path)
         if data_file is None:
             data = _read_data(f, header, sizes, dtype, encoding, path, str(path))
@@ -158,7 +159,12 @@ def read_nrrd(path):
             with open_file(data_file) as g:
                 data = _read_data(g, header, sizes, dtype, encoding, path,
                                   f"{path}: data file {data_file}")
+    if layered:
+        header = {**header, "space directions": np.asarray(header["space directions"])[1:]}
     spacing, origin, orientation = _geometry(header, path)
+    if layered:
+        return _layered_segmentation(data, segments, path, spacing=spacing, origin=origin,
+                                     orientation=orientation)
     volume = checked_volume(data, path, spacing=spacing, origin=origin, orientation=orientation,
                             units=data_units(header.get("sample units", "")))
     if not segments:
@@ -167,11 +173,64 @@ def read_nrrd(path):
     return label_map(volume, table)
 
 
-def _by_layer(segments):
-    """``layer 0: ribs, ...; layer 1: ...`` for a message."""
-    layers = sorted({s["layer"] for s in segments})
-    return "; ".join(f"layer {layer}: " + ", ".join(s["name"] for s in segments if s["layer"] == layer)
-                     for layer in layers)
+def _is_layered(header):
+    """Whether a Slicer segmentation's data has a first axis of layers (``dimension: 4``,
+    ``kinds: list domain domain domain``)."""
+    kinds = [str(kind).lower() for kind in header.get("kinds", [])]
+    return header.get("dimension") == 4 and len(kinds) == 4 and kinds[0] == "list"
+
+
+def _layered_segmentation(data, segments, path, **geometry):
+    """A Slicer segmentation in layers as a label map with one label per segment.
+
+    ``data`` is ``(layers, X, Y, Z)``. Layer 0 keeps its label values; each later layer's values
+    are moved past the highest value of the layers before it (in the header or the data), so
+    every segment gets a label of its own: ``Volume.layers`` holds each layer so renumbered (the
+    segments exactly, overlaps and all) and ``array`` their overlay, a later layer over an
+    earlier one, for views that take one label per voxel. A segment with no voxels in its layer,
+    and a value in a layer that no segment describes, are reported in a warning.
+    """
+    count = data.shape[0]
+    beyond = sorted({s["name"] for s in segments if s["layer"] >= count})
+    if beyond:
+        raise VolumeEVMError(f"{path}: segments {beyond} are in layers the data does not have "
+                             f"(it has {count})")
+    layers = [checked_labels(data[k], f"{path}: layer {k}") for k in range(count)]
+    present = [set(labels_present(layer).tolist()) for layer in layers]
+    offsets, top = [], 0
+    for k, layer in enumerate(layers):
+        offsets.append(top)
+        top += max([s["value"] for s in segments if s["layer"] == k] + [int(layer.max())])
+    dtype = np.dtype(np.uint8 if top < 1 << 8 else np.uint16 if top < 1 << 16 else np.uint32)
+    check_memory((count + 2) * layers[0].size * dtype.itemsize, "reading the segmentation's layers",
+                 source=str(path))
+    empty = [f"{s['name']!r} (layer {s['layer']}, label value {s['value']})"
+             for s in segments if s["value"] not in present[s["layer"]]]
+    if empty:
+        warnings.warn(f"{path}: segments {', '.join(empty)} have no voxels in the data",
+                      UserWarning, stacklevel=3)
+    labels = {}
+    for k in range(count):
+        described = {s["value"]: s for s in segments if s["layer"] == k}
+        unnamed = sorted(present[k] - set(described))
+        if unnamed:
+            warnings.warn(f"{path}: layer {k} holds label values {unnamed} that no segment "
+                          f"describes; they get labels {[v + offsets[k] for v in unnamed]} with "
+                          f"the default names and colours", UserWarning, stacklevel=3)
+        for value in sorted(present[k]):
+            s = described.get(value)
+            labels[value + offsets[k]] = (LabelInfo(s["name"], s["color"]) if s
+                                          else default_label_info(value + offsets[k]))
+    shifted = []
+    for k, layer in enumerate(layers):
+        moved = layer.astype(dtype)
+        moved[moved > 0] += dtype.type(offsets[k])
+        shifted.append(moved)
+    overlay = shifted[0].copy()
+    for layer in shifted[1:]:
+        np.copyto(overlay, layer, where=layer > 0)
+    volume = checked_volume(overlay, path, **geometry)
+    return dataclasses.replace(volume, labels=dict(sorted(labels.items())), layers=tuple(shifted))
 
 
 def _header_lines(f, path):
@@ -230,8 +289,9 @@ def _parse_header(nrrd, lines, path):
         ) from exc
 
 
-def _layout(header, path):
-    """Sizes (3 Python ints), sample dtype and encoding, checked."""
+def _layout(header, path, layered=False):
+    """Sizes (3 Python ints, 4 with a segmentation's layers first), sample dtype and encoding,
+    checked."""
     for field in ("dimension", "type", "sizes", "encoding"):
         if field not in header:
             raise VolumeEVMError(f"{path}: corrupt NRRD file (required field '{field}' missing)")
@@ -241,8 +301,8 @@ def _layout(header, path):
             f"{path}: corrupt NRRD file (sizes {list(sizes)} are not {header['dimension']} "
             f"positive numbers as 'dimension' says)"
         )
-    _check_kinds(header, path)
-    check_ndim(sizes, path)
+    _check_kinds(header, path, layered)
+    check_ndim(sizes[1:] if layered else sizes, path)
     if header["type"] not in _TYPES:
         raise VolumeEVMError(
             f"{path}: corrupt NRRD file (type {header['type']!r} is not a NRRD scalar type "
@@ -266,8 +326,9 @@ def _layout(header, path):
     return sizes, dtype, encoding
 
 
-def _check_kinds(header, path):
-    """Refuse axes that are not spatial (``kinds``: colour, vector, list, time, complex...)."""
+def _check_kinds(header, path, layered=False):
+    """Refuse axes that are not spatial (``kinds``: colour, vector, list, time, complex...),
+    but a segmentation's first axis of layers."""
     kinds = header.get("kinds")
     if kinds is None:
         return
@@ -277,7 +338,8 @@ def _check_kinds(header, path):
             f"{path}: corrupt NRRD file ('kinds' gives {len(kinds)} kinds for "
             f"{header['dimension']} axes)"
         )
-    odd = [(axis, kind) for axis, kind in enumerate(kinds) if kind.lower() not in _SPATIAL_KINDS]
+    odd = [(axis, kind) for axis, kind in enumerate(kinds)
+           if kind.lower() not in _SPATIAL_KINDS and not (layered and axis == 0)]
     if odd:
         axis, kind = odd[0]
         raise VolumeEVMError(

@@ -13,12 +13,13 @@ import os
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import check_read_memory, checked_volume, open_file, read_payload
+from ._checks import check_read_memory, checked_volume, lazy_mapped, open_file, read_payload
 
 _BYTE_ORDERS = {"little": "<", "big": ">"}
 
 
-def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=0, spacing=None):
+def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=0, spacing=None,
+             lazy=False):
     """Read a headerless raw volume with x fastest in the file.
 
     Parameters
@@ -36,6 +37,9 @@ def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=
         Bytes to skip at the start of the file.
     spacing : sequence of 3 float, optional
         Voxel size in mm (x, y, z); without it 1 mm is used and ``spacing_known`` is False.
+    lazy : bool
+        Map the file read-only and return a lazy Dask array (chunks of whole z planes,
+        :func:`._checks.lazy_mapped`): nothing is read until a chunk is computed.
 
     Returns
     -------
@@ -89,6 +93,9 @@ def read_raw(path, *, shape=None, dtype=None, byte_order="little", header_bytes=
                 f"{header_bytes} header bytes needs exactly {expected}; the file is truncated or "
                 f"the layout is wrong"
             )
+        if lazy:
+            array = lazy_mapped(path, int(header_bytes), shape, sample, fortran_order=True)
+            return checked_volume(array, path, spacing=spacing)
         check_read_memory(path, shape, sample, copies=2)  # the file's bytes, then C order
         f.seek(header_bytes)
         buffer = read_payload(f, nbytes, path, "raw data")

@@ -21,6 +21,8 @@ method; ``_render.py`` is the entry point that checks the inputs and dispatches 
 - ``_images.py``: image files of the results: OpenEXR (R, G, B, A, Z) and PNG previews.
 - ``_compositing.py``: a volume render laid over a scene render (alpha over, output depth).
 - ``_quality.py``: one quality setting as each method's options (``method_options``).
+- ``_levels.py``: which resolution level a view needs (``LEVELS``, the auto rule); the levels
+  themselves are the model's.
 - ``_gpu_inputs.py``: the NumPy half of the GPU method (which draws on the Blender side,
   ``blender/gpu_dvr.py``): checks, pixel rays, depth conversions, textures, uniforms.
 

@@ -16,7 +16,7 @@ from ._modes import MODES, Compositing
 __all__ = ["RAY_STEPS_PER_VOXEL", "REFERENCE_STEPS_PER_VOXEL", "finite_number",
            "positive_number", "positive_integer", "flag", "checked_step_mm", "checked_xray",
            "checked_affine", "check_mode", "check_volumeevm", "check_camera",
-           "check_transfer_function", "checked_view"]
+           "check_transfer_function", "categorical", "checked_categorical_level", "checked_view"]
 
 RAY_STEPS_PER_VOXEL = 2
 """The ray casters' default step: the smallest voxel size over this (half a voxel)."""
@@ -135,6 +135,47 @@ def check_transfer_function(tf, mode):
     use one."""
     if mode != "xray" and not all(hasattr(tf, a) for a in _TF_API):
         raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
+
+
+CATEGORICAL_METHODS = ("raycast", "raycast_navigate", "shear_warp", "reference", "gpu")
+"""Methods that sample the nearest voxel for a categorical transfer function (label maps)."""
+
+
+def categorical(tf, mode):
+    """True when ``tf`` is a categorical transfer function that ``mode`` uses: samples take
+    the nearest voxel's label (``TransferFunction.categorical``)."""
+    return mode != "xray" and bool(getattr(tf, "is_categorical", False))
+
+
+def checked_categorical_level(tf, method, mode, level, options):
+    """The resolution level to render with ``tf``: ``level`` as given, except that a
+    categorical function renders the full level for ``"auto"``.
+
+    A categorical function (label map) is drawn with the nearest voxel's label: interpolating
+    labels, a coarser level (its densities are block means) or gradients of label numbers
+    would invent labels, so it is refused with those, and with the methods that interpolate
+    by construction (splatting's kernels).
+    """
+    if not categorical(tf, mode):
+        return level
+    if method not in CATEGORICAL_METHODS:
+        raise VolumeEVMError(f"method: {method!r} interpolates densities; a categorical transfer "
+                             f"function (labels) renders with one of {CATEGORICAL_METHODS}")
+    if mode not in ("over", "under"):
+        raise VolumeEVMError(f"mode: a categorical transfer function (labels) renders with "
+                             f"'over' or 'under', got {mode!r}")
+    for name, allowed in (("shading", (None, False)), ("preintegrate", (False,)),
+                          ("slices_per_voxel", (1,))):
+        if name in options and options[name] not in allowed:
+            raise VolumeEVMError(f"{name}: a categorical transfer function (labels) samples the "
+                                 f"nearest voxel's label; it takes {name}={allowed[0]!r}, got "
+                                 f"{options[name]!r}")
+    if level == "auto":
+        return "full"
+    if level not in ("full", 1):
+        raise VolumeEVMError(f"level: coarser levels average densities, which invents labels; a "
+                             f"categorical transfer function renders level 'full', got {level!r}")
+    return level
 
 
 def checked_view(vevm, camera, tf, grid_to_world, mode, depth_in, termination, xray_scale,

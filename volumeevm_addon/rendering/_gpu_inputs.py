@@ -53,12 +53,13 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import kernel
 from .._memory import check_memory
-from ..model._levels import level_factor
+from ._levels import level_factor
 from ..model._volume import grid_to_world
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera
-from ._checks import (RAY_STEPS_PER_VOXEL, check_camera, check_mode, check_transfer_function,
-                      check_volumeevm, checked_affine, checked_step_mm, checked_view,
+from ._checks import (RAY_STEPS_PER_VOXEL, categorical, check_camera, check_mode,
+                      check_transfer_function, check_volumeevm, checked_affine,
+                      checked_categorical_level, checked_step_mm, checked_view,
                       checked_xray, flag, positive_integer, positive_number)
 from ._gradients import region_gradients
 from ._render import check_samples
@@ -86,11 +87,12 @@ _FIELDS = (
     ("clip", "vec4", "t of clip_start and of clip_end; axial depth at t = 0; 0"),
     ("compositing", "vec4", "mode code; termination; xray_scale, xray_offset"),
     ("table", "vec4", "table: first value, rows per data unit, rows; unit_length_mm"),
-    ("image", "vec4", "width, height; 1 when depth_in is given; 1 to encode sRGB"),
+    ("image", "vec4", "width, height; 1 when depth_in is given; 1 for a display"),
     ("normal", "mat4", "index-space gradient g to world normal (m * vec4(g, 0)).xyz"),
     ("to_world", "mat4", "index-space direction d to world (m * vec4(d, 0)).xyz"),
     ("shading", "vec4", "Blinn-Phong ambient, diffuse, specular, shininess"),
     ("fade", "vec4", "gradient magnitudes where shading fades in, from, to; 1 when shaded; 0"),
+    ("labels", "vec4", "1 for a categorical function (nearest voxel, exact rows); 0, 0, 0"),
 )
 _FLOATS = {"vec4": 4, "mat4": 16}
 
@@ -388,7 +390,8 @@ def _fill_region(mask, dens, out):
 
 def gpu_transfer_table(tf):
     """The transfer function as the GPU's 1-D table: straight RGBA at :data:`GPU_TABLE_ROWS`
-    values over its control points' range (outside of which it is constant).
+    values (a categorical function: at its integers, a row per label) over its control points'
+    range (outside of which it is constant).
 
     Parameters
     ----------
@@ -397,7 +400,7 @@ def gpu_transfer_table(tf):
 
     Returns
     -------
-    table : (GPU_TABLE_ROWS, 4) ndarray of np.float32
+    table : (rows, 4) ndarray of np.float32
         Row ``i`` is the value ``lo + i·(hi - lo)/(rows - 1)``; opacity per ``unit_length_mm``.
     lo, hi : float
         The values of the first and last rows.
@@ -411,7 +414,7 @@ def gpu_transfer_table(tf):
         return np.zeros((GPU_TABLE_ROWS, 4), np.float32), 0.0, 1.0
     check_transfer_function(tf, "over")
     lo, hi = _table_range(tf)
-    table = tf.straight_table(lo=lo, hi=hi, n=GPU_TABLE_ROWS)
+    table = tf.straight_table(lo=lo, hi=hi, n=tf.lut_size(GPU_TABLE_ROWS))
     return np.ascontiguousarray(table, dtype=np.float32), lo, hi
 
 
@@ -474,7 +477,8 @@ def gpu_occupancy(vevm, tf, *, mode="over", xray_scale=1.0, xray_offset=0.0):
     blocks = vevm.cache.get(("raycast", "blocks", GPU_BLOCK, 1),
                             lambda: _Blocks(vevm, GPU_BLOCK, 1))
     lo, hi = _table_range(tf)
-    visible = blocks.visible(mode, tf, (hi - lo) / (GPU_TABLE_ROWS - 1), xray_scale,
+    rows = GPU_TABLE_ROWS if tf is None else tf.lut_size(GPU_TABLE_ROWS)
+    visible = blocks.visible(mode, tf, (hi - lo) / (rows - 1), xray_scale,
                              xray_offset)
     visible = visible.reshape(tuple(nb + 2))[1:-1, 1:-1, 1:-1]  # drop the padding
     return np.ascontiguousarray(_empty_distance(visible).transpose(2, 1, 0))
@@ -547,7 +551,7 @@ class GPUFrame:
 
 def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None, level="full",
               step_mm=None, termination=0.99, skip_empty=True, xray_scale=1.0,
-              xray_offset=0.0, srgb=False, shading=None):
+              xray_offset=0.0, display=False, shading=None):
     """Check one GPU render's settings and compute its uniforms (what :func:`render` does before
     it renders, for the GPU).
 
@@ -585,10 +589,11 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
         Skip blocks where nothing can be seen (the same image, faster).
     xray_scale, xray_offset : float, optional
         X-ray's attenuation per mm per data unit and density of zero attenuation.
-    srgb : bool, optional
-        Encode the colour for an sRGB display: the straight colour through the sRGB transfer
-        function, premultiplied again (a 3D viewport draws add-ons after the scene's view
-        transform). False (default): scene-linear, as every renderer returns it.
+    display : bool, optional
+        Draw for a 3D viewport's display: the shader maps the straight colour through the
+        display table it is given (the scene's colour management: a 3D viewport draws add-ons
+        after the scene's view transform) and premultiplies it again. False (default):
+        scene-linear, as every renderer returns it.
     shading : None, True, dict or Shading, optional
         Gradient shading for ``"over"`` and ``"under"`` (:class:`._shading.Shading`, as for
         the CPU methods; ignored by ``"xray"`` and ``"mip"``): the shader then reads
@@ -606,6 +611,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
         that would take more than ``MAX_SAMPLES`` samples.
     """
     check_camera(camera)
+    level = checked_categorical_level(tf, "gpu", mode, level, {"shading": shading})
     shading = checked_shading(shading)
     check_volumeevm(vevm)
     if step_mm is not None:
@@ -624,10 +630,11 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
     step = checked_step_mm(step_mm, spacing, RAY_STEPS_PER_VOXEL)
     check_samples("raycast", vevm, camera, g, {"step_mm": step})
     skip_empty = flag("skip_empty", skip_empty)
-    srgb = flag("srgb", srgb)
+    display = flag("display", display)
     rays, axial_origin = _pixel_rays(camera, g, vevm.shape)
     lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g, tf)
     lo, hi = _table_range(tf)
+    rows = GPU_TABLE_ROWS if tf is None else tf.lut_size(GPU_TABLE_ROWS)
     n = np.asarray(vevm.shape, dtype=np.float64)
     h, w = camera.shape
     uniforms = _pack({
@@ -640,13 +647,13 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
                  axial_origin, 0.0),
         "compositing": (_MODE_CODES[mode], compositing.termination if mode == "over" else 1.0,
                         compositing.xray_scale, compositing.xray_offset),
-        "table": (lo, (GPU_TABLE_ROWS - 1) / (hi - lo), GPU_TABLE_ROWS,
-                  1.0 if tf is None else tf.unit_length_mm),
-        "image": (w, h, float(depth_in is not None), float(srgb)),
+        "table": (lo, (rows - 1) / (hi - lo), rows, 1.0 if tf is None else tf.unit_length_mm),
+        "image": (w, h, float(depth_in is not None), float(display)),
         "normal": _mat4(np.zeros((3, 3)) if lighting is None else lighting.inv_t),
         "to_world": _mat4(g[:3, :3]),
         "shading": (0.0,) * 4 if lighting is None else lighting.weights()[:4],
         "fade": (0.0, 0.0, 0.0, 0.0) if lighting is None else (*lighting.fade, 1.0, 0.0),
+        "labels": (float(categorical(tf, mode)), 0.0, 0.0, 0.0),
     })
     if depth_in is not None:
         depth_in = np.ascontiguousarray(np.flipud(np.minimum(depth_in, BACKGROUND_DEPTH)),

@@ -9,7 +9,7 @@ render in the same words.
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ..model._levels import LEVELS
+from ._levels import LEVELS
 from ._render import METHODS
 
 __all__ = ["method_options"]

@@ -83,7 +83,7 @@ order "xyz" as float32, and ``relation`` (int64), the arrays :data:`RELATION_FIE
 ``relation_at[i] .. relation_at[i + 1]``."""
 
 Optics = namedtuple("Optics", "mode termination xray_scale xray_offset lut lut_lo lut_scale pre "
-                              "pre_lo pre_scale pre_n units visible shaded normal phong")
+                              "pre_lo pre_scale pre_n units visible nearest shaded normal phong")
 Optics.__doc__ = """How samples become colour.
 
 ``mode``: :data:`._modes.MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this
@@ -91,7 +91,9 @@ opacity (inf: never); ``xray_scale``, ``xray_offset`` (float32); ``lut`` (N, 4) 
 ``lut_lo`` + i / ``lut_scale``: straight colour and step-corrected opacity; ``pre`` (n·n, 4)
 float32 with ``pre_lo``, ``pre_scale``, ``pre_n``: the pre-integrated table (empty: off);
 ``units`` (float32): the step in unit lengths of the transfer function, ``visible``: the
-opacity from which a whole step is visible (:func:`._depth.visible_threshold`); ``shaded``:
+opacity from which a whole step is visible (:func:`._depth.visible_threshold`); ``nearest``:
+a sample takes its nearest voxel's density, transparent when that voxel is outside the region
+(categorical transfer functions: label numbers are never interpolated); ``shaded``:
 gradient shading, ``normal`` (9,): the matrix taking an index-space gradient to a world normal,
 row by row, and ``phong`` (6,): the Blinn–Phong weights and the fade
 (:meth:`._shading.Lighting.weights`)."""
@@ -497,6 +499,21 @@ def _density(p, n, strides, table, navigate, densities, relation, at, hood, hood
 
 
 @kernel
+def _nearest(f):
+    """Fractions ``f`` rounded to the nearest corner (0 or 1): trilinear blending then gives
+    exactly the nearest voxel's value."""
+    one, zero = np.float32(1), np.float32(0)
+    return (one if f[0] >= 0.5 else zero, one if f[1] >= 0.5 else zero,
+            one if f[2] >= 0.5 else zero)
+
+
+@kernel
+def _corner(f):
+    """The corner ``4a + 2b + c`` that rounded fractions ``f`` (:func:`_nearest`) select."""
+    return 4 * np.int64(f[0]) + 2 * np.int64(f[1]) + np.int64(f[2])
+
+
+@kernel
 def _cells(p, n):
     """:func:`_cell` along the three axes: the fractions and the base voxel of point ``p``."""
     fx, bx = _cell(p[0], n[0])
@@ -683,6 +700,8 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                     continue
                 checked = past
             f, base = _cells(p, n)
+            if optics.nearest:
+                f = _nearest(f)
             if navigate:
                 values, weights, gradients = _navigated_corners(densities, relation, at, base,
                                                                 shaded, hood, hood_in)
@@ -690,6 +709,9 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                 values, weights = _dense_corners(table, base, strides)
                 gradients = (_ZEROS8, _ZEROS8, _ZEROS8)  # read below, if the sample is seen
             mask = _region_mask(weights)
+            if optics.nearest and not (mask >> _corner(f)) & 1:
+                k += -1 if backward else 1  # its nearest voxel is outside: transparent
+                continue
             value, weight = _lerp8(values, f), np.float32(1)
             if mask != 255:
                 value, weight = _renormalised(values, weights, f)

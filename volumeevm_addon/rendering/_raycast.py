@@ -95,7 +95,7 @@ import numpy as np
 from .._jit import kernel, parallel_map
 from ..model._densities import TABLE_ORDERS, TableIndex
 from ._camera import BACKGROUND_DEPTH
-from ._checks import (RAY_STEPS_PER_VOXEL, checked_step_mm, checked_view, flag,
+from ._checks import (RAY_STEPS_PER_VOXEL, categorical, checked_step_mm, checked_view, flag,
                       positive_integer)
 from ._depth import visible_threshold
 from ._gradients import region_gradients
@@ -333,14 +333,16 @@ def _cache_keys(spacing, navigate, shaded, skip_empty, block, step_mm, preintegr
 
 # ---------------------------------------------------------------------------- casting
 def _lut(tf, step_mm):
-    """Straight colour and step-corrected opacity at ``_LUT_SIZE`` values over the transfer
-    function's control range; returns ``(table (n, 4) float32, lo, scale, step)``."""
+    """Straight colour and step-corrected opacity at ``_LUT_SIZE`` values (a categorical
+    function: at its integers) over the transfer function's control range; returns
+    ``(table (n, 4) float32, lo, scale, step)``."""
     lo, hi = tf.value_range
     if hi <= lo:
         hi = lo + 1.0
-    tab = np.array(tf.straight_table(lo=lo, hi=hi, n=_LUT_SIZE), dtype=np.float64)
+    size = tf.lut_size(_LUT_SIZE)
+    tab = np.array(tf.straight_table(lo=lo, hi=hi, n=size), dtype=np.float64)
     tab[:, 3] = 1.0 - np.power(1.0 - tab[:, 3], step_mm / tf.unit_length_mm)
-    step = (hi - lo) / (_LUT_SIZE - 1)
+    step = (hi - lo) / (size - 1)
     return tab.astype(np.float32), lo, 1.0 / step, step
 
 
@@ -455,7 +457,7 @@ def _optics(compositing, tf, step_mm, lut, pre, lighting):
         np.zeros((0, 4), np.float32) if pre is None else np.ascontiguousarray(pre[0]),
         0.0 if pre is None else float(pre[1]), 0.0 if pre is None else float(pre[2]),
         0 if pre is None else int(pre[4]), units, float(visible_threshold(units, np.float64)),
-        lighting is not None,
+        categorical(tf, compositing.mode), lighting is not None,
         _floats((np.zeros((3, 3)) if lighting is None else lighting.inv_t).ravel()),
         (0.0,) * 6 if lighting is None else lighting.weights())
 

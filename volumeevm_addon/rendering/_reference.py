@@ -35,6 +35,8 @@ same solid the EVM describes.
     own densities table: 9 % of the VoI's voxels for the head above -300 HU, 66 % for bone
     above 150 HU) could. Interpolation in the VoI then equals the full dense render's. Same
     measurements: 0.0000 (above -300 HU) and 0.004 (above 150 HU).
+- A categorical transfer function (label maps) reads no neighbours: a sample takes the label
+  of its own voxel (its cell), so the image is the exact integral of the labels' cells.
 - Gradients (shading) are per voxel the 3x3x3 Sobel over readable voxels (:mod:`._gradients`:
   each of the 9 lines' central difference, one-sided where one end is not readable, lines
   without one left out, zero where none has one); they are interpolated like the densities.
@@ -72,7 +74,7 @@ import numpy as np
 from .._errors import VolumeEVMError
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera  # noqa: F401  (Camera: doctest)
-from ._checks import (REFERENCE_STEPS_PER_VOXEL, check_camera, check_mode,
+from ._checks import (REFERENCE_STEPS_PER_VOXEL, categorical, check_camera, check_mode,
                       check_transfer_function, checked_affine, checked_step_mm, checked_xray,
                       positive_integer)
 from ._gradients import region_gradients
@@ -130,9 +132,11 @@ def _dilate(mask):
 
 class _Sampler:
     """Trilinear reconstruction at index-space points: samples in ``visible`` cells interpolate
-    the densities of ``readable`` voxels (renormalised weights), others are transparent."""
+    the densities of ``readable`` voxels (renormalised weights), others are transparent.
+    ``nearest`` (categorical transfer functions): a sample takes its own voxel's density."""
 
-    def __init__(self, densities, visible, readable, with_gradient):
+    def __init__(self, densities, visible, readable, with_gradient, nearest=False):
+        self.nearest = nearest
         self.n = np.array(densities.shape)
         pshape = tuple(self.n + 2)
         vpad = np.zeros(pshape, dtype=bool)
@@ -192,6 +196,8 @@ class _Sampler:
         i0 = np.floor(p)
         np.clip(i0, -1, self.n - 1, out=i0)
         f = np.clip(p - i0, 0.0, 1.0)
+        if self.nearest:  # all the weight on the corner whose cell holds p
+            f = (f >= 0.5).astype(np.float64)
         base = (i0.astype(np.int64) + 1) @ self.strides
         vals = self.table[base[:, None] + self.offsets[None, :]]  # (m, 8, C)
         # weights: prod over axes of (f if corner==1 else 1-f)
@@ -299,7 +305,8 @@ def render_reference(densities, mask, grid_to_world, spacing, camera, tf, *, mod
     max_rays = max(1, min(chunk_rays, _BREAK_BUDGET // per_ray_breaks))
     readable = m if boundary == "clamp" else _dilate(m)
     lighting = Lighting.of_view(shading if mode in ("over", "under") else None, g, tf)
-    sampler = _Sampler(d, m, readable, with_gradient=lighting is not None)
+    sampler = _Sampler(d, m, readable, with_gradient=lighting is not None,
+                       nearest=categorical(tf, mode))
     start = 0
     while start < len(live):
         stop = min(len(live), start + max_rays)

@@ -30,11 +30,12 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ..model._levels import level_factor
+from ._levels import level_factor
 from ..model._volume import grid_to_world
 from ._camera import Camera
 from ._checks import (RAY_STEPS_PER_VOXEL, REFERENCE_STEPS_PER_VOXEL, check_mode,
-                      check_volumeevm, checked_affine, checked_step_mm, positive_number)
+                      check_volumeevm, checked_affine, checked_categorical_level,
+                      checked_step_mm, positive_number)
 from ._depth import checked_depth_in
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
@@ -116,7 +117,11 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
     camera : Camera
         Blender's projection (see :mod:`._camera`): image size, pixels and depth.
     tf : TransferFunction
-        Colour and opacity per density; unused (may be None) for ``mode="xray"``.
+        Colour and opacity per density; unused (may be None) for ``mode="xray"``. A
+        categorical one (:meth:`TransferFunction.categorical`, label maps) is sampled at the
+        nearest voxel, never interpolated: with ray casting, shear-warp and the reference,
+        ``"over"``/``"under"``, no shading, no pre-integration, shear-warp's one slice per
+        voxel, and the full level (``"auto"`` renders the full level).
     method : {"shear_warp", "splat", "raycast", "raycast_navigate", "reference"}
         ``"shear_warp"`` (default): shear-warp factorisation (Lacroute & Levoy), the fastest
         on the CPU. ``"splat"``: sheet-buffer splatting (Westover), post-classified.
@@ -137,7 +142,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         Resolution level: ``"full"`` (default) renders ``vevm`` itself; an integer ``f >= 2``
         renders ``vevm.level(f)``, ``f`` times coarser voxels; ``"auto"`` picks the coarsest
         power of two whose voxels are still no wider than a pixel where the volume is nearest
-        the camera (:func:`volumeevm_addon.model._levels.auto_factor`). A coarser level scales a
+        the camera (:func:`volumeevm_addon.rendering._levels.auto_factor`). A coarser level scales a
         given ``step_mm`` by the factor (the ray casters keep their samples per voxel). The
         reference method ignores it: it is the full-resolution oracle.
     **options
@@ -237,7 +242,8 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
     Raises
     ------
     VolumeEVMError
-        For a bad method, mode, camera, option or placement; for a render that would take
+        For a bad method, mode, camera, option or placement (or one a categorical transfer
+        function cannot be rendered with); for a render that would take
         more than :data:`MAX_SAMPLES` samples (the message says which ``step_mm`` or
         ``substeps`` would do); and when the image or the render's estimated peak memory
         (:func:`render_memory`) exceeds the memory available
@@ -270,6 +276,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
     check_volumeevm(vevm)
     renderer = _renderers()[method]
     _check_option_types(method, options)
+    level = checked_categorical_level(tf, method, mode, level, options)
     depth_in = checked_depth_in(depth_in, camera.shape)
     h, w = camera.shape
     check_memory(h * w * _IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",

@@ -66,6 +66,8 @@ Pipeline
    ``1 - exp(-Σ μΔ)`` as grey premultiplied RGBA. ``"post"`` does the same for ``"over"`` and
    ``"under"``: densities (and, with shading, the per-voxel gradients) are interpolated, then
    classified through the table and lit per sample, the reference's order.
+   A **categorical** transfer function (label maps) puts all of a sample's bilinear weight on
+   the slice's voxel nearest to it (one sample per slice), and its table has a row per label.
 5. **Boundary policy "clamp"** (:mod:`._reference`), in the slice: a sample is transparent if the
    voxel nearest to it (its cell) is outside the region; otherwise the bilinear weights of
    outside voxels are dropped and the others renormalised. Outside voxels are never read: they
@@ -127,7 +129,7 @@ from ..model._densities import TABLE_ORDERS
 from ..model._volume import transform
 from . import _depth
 from ._camera import BACKGROUND_DEPTH
-from ._checks import checked_view, flag, positive_integer
+from ._checks import categorical, checked_view, flag, positive_integer
 from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode
 from ._shading import Shading, checked_shading, fade_magnitudes
@@ -692,6 +694,8 @@ def render_shear_warp(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=
         raise VolumeEVMError(
             f"classification: one of {CLASSIFICATIONS}, got {classification!r}")
     shading = checked_shading(shading) if mode in ("over", "under") else None
+    if categorical(tf, mode):  # one table row per label
+        lut_size = tf.lut_size(lut_size)
     sampling = _Sampling(int(slices_per_voxel), classification, int(lut_size), shading)
     h, w = camera.shape
     rgba_out = np.zeros((h, w, 4), np.float32)
@@ -727,6 +731,8 @@ def tables_to_build(vevm, camera, tf, grid_to_world, options):
     mode = options.get("mode", "over")
     shaded = mode in ("over", "under") and options.get("shading") not in (None, False)
     lut_size = options.get("lut_size", 4096)
+    if categorical(tf, mode):
+        lut_size = tf.lut_size(lut_size)
     if mode in ("xray", "mip"):
         parts = ("layout", "post")
     elif options.get("classification", "pre") == "post":
@@ -833,7 +839,7 @@ def _optics(vevm, view, layout, tf, compositing, sampling, delta):
         straight[1:] = tf.straight_table(n=lut_size)[:, :3]
         lo, hi, _ = tf._range(None, None, lut_size)  # the rows of quantize
         lut_lo, lut_scale = lo, (lut_size - 1) / (hi - lo)
-    optics = Optics(MODE_CODES[mode], post, shading is not None,
+    optics = Optics(MODE_CODES[mode], post, categorical(tf, mode), shading is not None,
                     np.float32(compositing.termination),
                     _depth.visible_threshold(1.0 if units is None else units, np.float32),
                     lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading, tf),

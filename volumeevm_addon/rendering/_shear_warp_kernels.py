@@ -95,7 +95,7 @@ an index-space gradient to a world normal, row by row (``n = g @ normal``); ``to
 the unit world direction of the light; the Blinn–Phong weights (:class:`._shading.Shading`);
 the fade's gradient magnitudes (float64, :attr:`._shading.Lighting.fade`)."""
 
-Optics = namedtuple("Optics", "mode post shaded termination visible lut straight lut_lo "
+Optics = namedtuple("Optics", "mode post nearest shaded termination visible lut straight lut_lo "
                               "lut_scale lut_rows light xray_offset xray_factor xray_visible")
 Optics.__doc__ = """How samples become colour.
 
@@ -106,7 +106,8 @@ sample with ``light`` (:data:`Light`) on the straight colours ``straight`` (rows
 ``termination`` (float32): "over" stops a pixel at this opacity (1: never); ``visible``
 (float32): the opacity from which a sample is visible (:mod:`._depth`); ``xray_offset``,
 ``xray_factor`` (float32): X-ray's ``μ·Δ = max(d - offset, 0)·factor`` and ``xray_visible``
-its visibility threshold."""
+its visibility threshold; ``nearest``: samples take the nearest voxel of the slice (all the
+bilinear weight on it: categorical transfer functions, one sample per slice)."""
 
 Frame = namedtuple("Frame", "origin_p origin_q ratio near far limit image rank next")
 Frame.__doc__ = """The intermediate image a view composites into.
@@ -340,17 +341,22 @@ def lit_colours(codes, rows, gradients, lut, straight, light, out):
 
 # ---------------------------------------------------------------------------- compositing
 @kernel
-def tap(point, alpha, beta):
+def tap(point, alpha, beta, nearest):
     """First tap ``i`` and fraction ``f`` (float32) of the sample at absolute intermediate
     coordinate ``point``: ``x = alpha·point + beta = i + f``. A translated slice (``alpha``
     1) takes its fraction from ``beta`` alone, so that it does not depend on the point (nor
-    on where the intermediate image starts)."""
+    on where the intermediate image starts). ``nearest``: ``f`` rounded to 0 or 1, all the
+    weight on the nearest voxel (categorical transfer functions)."""
     if alpha == 1.0:
         base = math.floor(beta)
-        return point + base, np.float32(beta - base)
-    x = alpha * point + beta
-    i = math.floor(x)
-    return i, np.float32(x - i)
+        i, f = point + base, np.float32(beta - base)
+    else:
+        x = alpha * point + beta
+        i = math.floor(x)
+        f = np.float32(x - i)
+    if nearest:
+        f = np.float32(1) if f >= _HALF else np.float32(0)
+    return i, f
 
 
 @kernel
@@ -408,7 +414,7 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
     index, values, channels = voxels.index, voxels.values, voxels.channels
     direct = index.size == 0
     lut, straight, light = optics.lut, optics.straight, optics.light
-    mode, post = optics.mode, optics.post
+    mode, post, snap = optics.mode, optics.post, optics.nearest
     skip = mode == _OVER and optics.termination < 1.0
     slices, others, keeps, blends = plan.slice, plan.other, plan.keep, plan.blend
     alphas, betas_a, betas_b = plan.alpha, plan.beta_a, plan.beta_b
@@ -446,12 +452,12 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
             translated = alpha == 1.0
             keep, blend, test, rank = keeps[n], blends[n], tests[n], sample_ranks[n]
             slots = 2 if s2 < 0 else 4
-            g = tap(0, alpha, beta_b)[1]  # (a translated slice's fraction for every pixel)
+            g = tap(0, alpha, beta_b, snap)[1]  # (a translated slice's fraction, every pixel)
             for x in range(wi):  # the columns' taps, the same on every scanline
-                column_tap[x], column_fraction[x] = tap(x + origin_q, alpha, beta_b)
+                column_tap[x], column_fraction[x] = tap(x + origin_q, alpha, beta_b, snap)
             p0, p1 = span(a0, a1, alpha, beta_a, origin_p, r0, r1)
             for p in range(p0, p1):
-                i, f = tap(p + origin_p, alpha, beta_a)
+                i, f = tap(p + origin_p, alpha, beta_a, snap)
                 busy = False
                 for k in range(slots):
                     row = i + (k & 1)

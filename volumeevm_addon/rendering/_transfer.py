@@ -30,6 +30,12 @@ Conventions
   pre-integrated volume rendering using hardware-accelerated pixel shading", Graphics Hardware
   2001), so that transfer functions much narrower than the density change per step are not
   missed between samples.
+- **Categorical functions** (:meth:`TransferFunction.categorical`, for label maps): a colour
+  and opacity per integer label, no blending between labels. Values are rounded to the nearest
+  integer before the lookup, the lookup tables have one row per integer
+  (:meth:`TransferFunction.lut_size`), and every renderer samples the nearest voxel's label
+  instead of interpolating (interpolating label numbers would invent labels that are not
+  there: halfway between labels 1 and 3 is label 2).
 """
 
 from dataclasses import KW_ONLY, dataclass, field
@@ -45,6 +51,10 @@ _PREINT_SUBSAMPLES = 8
 _ALPHA_CAP = 1.0 - 1e-12
 """Opacity 1 per unit length, as a finite extinction for pre-integration (``-ln 1e-12`` ≈ 27.6
 per unit length)."""
+
+MAX_CATEGORICAL_SPAN = 32000
+"""Largest ``max label - min label`` of a categorical function (its tables have a row per
+integer in between)."""
 
 PRESETS = ("ct_skin", "ct_bone", "ct_vessels", "mri", "microscopy")
 """Names accepted by :meth:`TransferFunction.preset`."""
@@ -123,12 +133,16 @@ class TransferFunction:
         Keyword-only, like ``name``.
     name : str, optional
         A label (the preset name for presets).
+    is_categorical : bool, optional
+        True for a function of integer labels (:meth:`categorical`): values are rounded to the
+        nearest integer, renderers sample the nearest voxel. Keyword-only.
 
     Raises
     ------
     VolumeEVMError
         For a table of the wrong shape, NaN or infinite entries, values that do not increase,
-        colour or alpha outside ``[0, 1]``, or a non-positive ``unit_length_mm``.
+        colour or alpha outside ``[0, 1]``, or a non-positive ``unit_length_mm``; for a
+        categorical function, values that are not consecutive integers.
 
     Examples
     --------
@@ -143,6 +157,7 @@ class TransferFunction:
     _: KW_ONLY
     unit_length_mm: float = 1.0
     name: str = ""
+    is_categorical: bool = False
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -151,6 +166,13 @@ class TransferFunction:
         if not np.isfinite(u) or u <= 0:
             raise VolumeEVMError(f"unit_length_mm: must be > 0, got {self.unit_length_mm!r}")
         object.__setattr__(self, "unit_length_mm", u)
+        object.__setattr__(self, "is_categorical", bool(self.is_categorical))
+        values = self.points[:, 0]
+        if self.is_categorical and (np.any(values != np.rint(values))
+                                    or np.any(np.diff(values) != 1)
+                                    or values[-1] - values[0] > MAX_CATEGORICAL_SPAN + 2):
+            raise VolumeEVMError("points: a categorical function needs one row per integer "
+                                 f"value, at most {MAX_CATEGORICAL_SPAN + 3} rows")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -214,6 +236,70 @@ class TransferFunction:
         return cls(rows, unit_length_mm=unit_length_mm, name=name)
 
     @classmethod
+    def categorical(cls, colors, *, opacity=0.5, unit_length_mm=1.0, name=""):
+        """A categorical function of a label map: a colour and opacity per integer label.
+
+        Labels not given (and values beyond them) are transparent. Renderers sample the
+        nearest voxel's label and look it up (module docstring), so a pixel only ever blends
+        the colours of labels that are present.
+
+        Parameters
+        ----------
+        colors : mapping of int to tuple or LabelInfo
+            Label to ``(r, g, b)`` (opacity ``opacity``), ``(r, g, b, alpha)``, or a
+            :class:`~volumeevm_addon.LabelInfo` (its colour, opacity ``opacity``), as in
+            ``Volume.labels``; straight colour in ``[0, 1]``, alpha per ``unit_length_mm``.
+        opacity : float, optional
+            Opacity per ``unit_length_mm`` of labels given without one (default 0.5).
+        unit_length_mm : float, optional
+            Reference length of the opacities (default 1 mm).
+        name : str, optional
+            A label.
+
+        Returns
+        -------
+        TransferFunction
+            With ``is_categorical`` True and one control point per integer from the smallest
+            label less 1 to the largest plus 1.
+
+        Raises
+        ------
+        VolumeEVMError
+            For no labels, a label that is not an integer, labels more than
+            :data:`MAX_CATEGORICAL_SPAN` apart, or a colour that is not 3 or 4 numbers in
+            ``[0, 1]`` (naming the label).
+
+        Examples
+        --------
+        >>> tf = TransferFunction.categorical({1: (1, 0, 0), 3: (0, 0, 1, 0.8)})
+        >>> tf.evaluate([1, 2, 3, 2.6]).tolist()
+        [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.8], [0.0, 0.0, 1.0, 0.8]]
+        >>> tf.lut_size(4096)
+        5
+        """
+        try:
+            items = sorted((_label_number(label), colour) for label, colour in dict(colors).items())
+        except (TypeError, ValueError) as exc:
+            raise VolumeEVMError(f"colors: expected a mapping label -> colour ({exc})") from None
+        if not items:
+            raise VolumeEVMError("colors: no labels")
+        lo, hi = items[0][0] - 1, items[-1][0] + 1
+        if hi - lo > MAX_CATEGORICAL_SPAN + 2:
+            raise VolumeEVMError(f"colors: labels {lo + 1} .. {hi - 1} span more than "
+                                 f"{MAX_CATEGORICAL_SPAN}")
+        rows = np.zeros((hi - lo + 1, 5))
+        rows[:, 0] = np.arange(lo, hi + 1)
+        for label, colour in items:
+            rgba = tuple(getattr(colour, "color", colour))
+            if len(rgba) == 3:
+                rgba += (opacity,)
+            if len(rgba) != 4:
+                raise VolumeEVMError(f"colors: label {label}: expected (r, g, b) or "
+                                     f"(r, g, b, alpha), got {colour!r}")
+            rows[label - lo, 1:] = rgba
+        return cls(rows, unit_length_mm=unit_length_mm, name=name, is_categorical=True)
+
+    @classmethod
     def preset(cls, name, *, data_range=None, unit_length_mm=1.0):
         """A ready-made transfer function.
 
@@ -275,11 +361,30 @@ class TransferFunction:
         v = np.asarray(values, dtype=np.float64)
         if np.isnan(v).any():
             raise VolumeEVMError("values: NaN densities cannot be classified")
+        if self.is_categorical:
+            v = np.rint(v)
         xp = self.points[:, 0]
         out = np.empty(v.shape + (4,), dtype=np.float64)
         for ch in range(4):
             out[..., ch] = np.interp(v, xp, self.points[:, 1 + ch])
         return out
+
+    def lut_size(self, n):
+        """Rows of a lookup table over the control points' range for a renderer that would
+        take ``n``: ``n``, or for a categorical function one row per integer (exact rows).
+
+        Parameters
+        ----------
+        n : int
+            The renderer's own table size.
+
+        Returns
+        -------
+        int
+        """
+        if self.is_categorical:
+            return len(self.points)
+        return int(n)
 
     def transparent_between(self, lo, hi):
         """True where the opacity is 0 for every value in ``[lo, hi]``.
@@ -298,6 +403,8 @@ class TransferFunction:
         """
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
+        if self.is_categorical:  # the labels in [lo, hi] (exact on the integer points)
+            lo, hi = np.rint(lo), np.rint(hi)
         xp, ap = self.points[:, 0], self.points[:, 4]
         opaque_at = xp[ap > 0]
         inner = np.searchsorted(opaque_at, hi, side="left") - np.searchsorted(
@@ -523,6 +630,14 @@ class TransferFunction:
         idx = np.rint((d - lo) * ((n - 1) / (hi - lo)))
         np.clip(idx, 0, n - 1, out=idx)
         return idx.astype(np.int32)
+
+
+def _label_number(label):
+    """An integer label from ``label`` (an int, or a float with an integer value)."""
+    number = float(label)
+    if not number.is_integer():
+        raise ValueError(f"label {label!r} is not an integer")
+    return int(number)
 
 
 def _preintegrate_rising(tau, colour, length):

@@ -1,0 +1,199 @@
+"""Chunked exact builds: ``VolumeEVM.from_volume`` on a lazy (Dask) volume equals
+``VolumeEVM.from_array`` on the same data in memory — vertices, every axis's table (values and
+dtype), grid, geometry, units and interval — for any chunk shape; lazy ``.npy`` files and
+OME-Zarr stores build the same way; memory is checked before the first chunk and as the result
+grows.
+"""
+
+import tracemalloc
+
+import dask
+import dask.array as da
+import numpy as np
+import pytest
+from zarr_files import pyramid, write_store
+
+from volumeevm_addon import Volume, VolumeEVM, VolumeEVMError, otsu_threshold, read_volume
+
+VOLUMES = ("ct_head_invesalius", "ct_skull_cgal", "seg_liver_cgal", "mr_t1_itk_kmeans",
+           "mr_brainsmall_volpack", "micro_nuclei3d_stardist")
+
+
+def assert_identical(got, expected):
+    """Every field of two VolumeEVMs equal (tables by value and dtype)."""
+    assert np.array_equal(got.evm.vertices, expected.evm.vertices)
+    assert got.evm.vertices.dtype == expected.evm.vertices.dtype
+    for axis in range(3):
+        assert got.table(axis).dtype == expected.table(axis).dtype
+        assert np.array_equal(got.table(axis), expected.table(axis))
+    for name in ("shape", "spacing", "origin", "units", "threshold", "upper", "voxel_count"):
+        assert getattr(got, name) == getattr(expected, name), name
+    assert np.array_equal(got.orientation, expected.orientation)
+
+
+def lazy(array, chunks, **geometry):
+    return Volume(da.from_array(array, chunks=chunks), **geometry)
+
+
+def random_chunks(rng, shape, parts=5):
+    """Random chunking: per axis, either a regular size or irregular cuts (at most ``parts``
+    pieces, so the test stays quick)."""
+    chunks = []
+    for n in shape:
+        if rng.random() < 0.5:
+            chunks.append(int(rng.integers(-(-n // parts), n + 1)))
+        else:
+            cuts = np.sort(rng.choice(np.arange(1, n), size=min(n - 1, int(rng.integers(0, parts))),
+                                      replace=False)) if n > 1 else []
+            chunks.append(tuple(int(c) for c in np.diff(np.r_[0, cuts, n])))
+    return tuple(chunks)
+
+
+@pytest.mark.parametrize("name", VOLUMES)
+def test_chunked_equals_in_memory_on_real_volumes(data_dir, name):
+    volume = read_volume(data_dir / f"{name}.npy")
+    array = volume.array
+    rng = np.random.default_rng(sum(map(ord, name)))
+    otsu = otsu_threshold(array)
+    low, high = np.percentile(array, [40, 90])
+    if array.dtype.kind in "iu":
+        otsu, low, high = int(otsu), int(low), int(high)
+    for threshold, upper in ((otsu, None), (low, high)):
+        expected = VolumeEVM.from_volume(volume, threshold, upper)
+        for _ in range(3):
+            chunks = random_chunks(rng, array.shape)
+            got = VolumeEVM.from_volume(
+                Volume(da.from_array(array, chunks=chunks), spacing=volume.spacing,
+                       origin=volume.origin, orientation=volume.orientation,
+                       units=volume.units, source=volume.source), threshold, upper)
+            assert_identical(got, expected)
+
+
+@pytest.mark.parametrize("case", ["noise", "checkerboard", "full", "corners", "float_band"])
+def test_chunked_equals_in_memory_on_synthetic_volumes(case):
+    rng = np.random.default_rng(7)
+    shape = (23, 17, 29)
+    if case == "noise":
+        array = rng.integers(0, 100, shape).astype(np.uint8)
+    elif case == "checkerboard":
+        array = (np.indices(shape).sum(axis=0) % 2).astype(np.int32)
+    elif case == "full":
+        array = np.ones(shape, np.int16)
+    elif case == "corners":
+        array = np.zeros(shape, np.uint16)
+        array[[0, 7, 8, 22], [0, 5, 6, 16], [0, 9, 10, 28]] = 1000
+    else:
+        array = rng.normal(size=shape)
+    threshold, upper = (0.0, 1.0) if case == "float_band" else (50 if case == "noise" else 1, None)
+    expected = VolumeEVM.from_array(array, threshold, upper, spacing=(0.5, 1.0, 2.0))
+    for chunks in [(3, 4, 5), (8, 6, 10), (23, 17, 1), (1, 17, 29), random_chunks(rng, shape)]:
+        got = VolumeEVM.from_volume(lazy(array, chunks, spacing=(0.5, 1.0, 2.0)), threshold, upper)
+        assert_identical(got, expected)
+
+
+def test_thread_count_does_not_change_the_result(data_dir):
+    array = np.load(data_dir / "mr_t1_itk_kmeans.npy")
+    results = []
+    for workers in (1, 2):
+        with dask.config.set(scheduler="threads", num_workers=workers):
+            results.append(VolumeEVM.from_volume(lazy(array, (32, 40, 16)), 80))
+    assert_identical(results[0], results[1])
+    assert_identical(results[0], VolumeEVM.from_array(array, 80))
+
+
+def test_bad_lazy_input_refused():
+    array = np.zeros((10, 10, 10), np.float32)
+    array[7, 3, 2] = np.nan
+    with pytest.raises(VolumeEVMError, match=r"^nan\.npy: densities are NaN or infinite in the "
+                                             r"chunk at voxel \(5, 0, 0\) \(first at voxel "
+                                             r"\(7, 3, 2\)\)"):
+        VolumeEVM.from_volume(lazy(array, 5, source="nan.npy"), 0.5)
+    with pytest.raises(VolumeEVMError, match=r"^zeros: the region is empty: no density is >= 1 "
+                                             r"\(data range 0.0 \.\. 0.0\)"):
+        VolumeEVM.from_volume(lazy(np.zeros((4, 4, 4)), 2, source="zeros"), 1)
+    with pytest.raises(VolumeEVMError, match=r"^b: expected a non-empty 3-D array"):
+        VolumeEVM.from_volume(lazy(np.zeros((4, 4), bool), 2, source="b"), 1)
+    with pytest.raises(VolumeEVMError, match=r"^v: upper \(1\) must be >= threshold \(2\)"):
+        VolumeEVM.from_volume(lazy(np.zeros((4, 4, 4)), 2, source="v"), 2, 1)
+
+
+def test_lazy_npy_builds_identically(tmp_path, data_dir):
+    path = data_dir / "ct_head_invesalius.npy"
+    volume = read_volume(path, lazy=True)
+    assert type(volume.array).__module__.startswith("dask")
+    eager = read_volume(path)
+    assert (volume.spacing, volume.origin, volume.units) == (eager.spacing, eager.origin,
+                                                            eager.units)
+    assert_identical(VolumeEVM.from_volume(volume, 300), VolumeEVM.from_volume(eager, 300))
+    # Fortran order and big-endian data read lazily as the eager reader reads them
+    array = np.load(path)[:60, :50, :40]
+    for name, stored in (("f.npy", np.asfortranarray(array)), ("b.npy", array.astype(">i2"))):
+        np.save(tmp_path / name, stored)
+        lazily = read_volume(tmp_path / name, lazy=True)
+        assert lazily.array.dtype == np.dtype("=i2")
+        assert np.array_equal(lazily.array.compute(), array)
+        assert_identical(VolumeEVM.from_volume(lazily, 300),
+                         VolumeEVM.from_volume(read_volume(tmp_path / name), 300))
+    (tmp_path / "short.npy").write_bytes((tmp_path / "b.npy").read_bytes()[:-2])
+    with pytest.raises(VolumeEVMError, match="short.npy: not a readable .npy array"):
+        read_volume(tmp_path / "short.npy", lazy=True)
+
+
+def test_lazy_raw_builds_identically(tmp_path, data_dir):
+    array = np.load(data_dir / "ct_head_invesalius.npy")
+    path = tmp_path / "head.raw"
+    path.write_bytes(b"H" * 100 + array.astype(">i2").tobytes(order="F"))
+    layout = {"shape": array.shape, "dtype": "int16", "byte_order": "big", "header_bytes": 100,
+              "spacing": (0.957, 0.957, 1.5)}
+    volume = read_volume(path, lazy=True, **layout)
+    assert volume.array.chunks[:2] == ((256,), (256,))  # whole z planes: contiguous reads
+    assert np.array_equal(volume.array.compute(), array)
+    assert_identical(VolumeEVM.from_volume(volume, 300),
+                     VolumeEVM.from_volume(read_volume(path, **layout), 300))
+    with pytest.raises(VolumeEVMError, match="head.raw: file has .* needs exactly"):
+        read_volume(path, lazy=True, **{**layout, "header_bytes": 98})
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_ome_zarr_levels_build_identically(tmp_path, data_dir, version):
+    ct = np.load(data_dir / "ct_head_invesalius.npy")
+    store = write_store(tmp_path / "head.ome.zarr", pyramid(ct, 3), version=version,
+                        translation_zyx=(-80.0, 10.0, 20.0))
+    for level in range(3):
+        volume = read_volume(store, level=level)
+        step = 2 ** level
+        expected = VolumeEVM.from_array(ct[::step, ::step, ::step], 300, spacing=volume.spacing,
+                                        origin=(20.0, 10.0, -80.0), source=str(store))
+        assert_identical(VolumeEVM.from_volume(volume, 300), expected)
+
+
+def test_memory_checked_before_and_during_the_build(data_dir, monkeypatch):
+    array = np.load(data_dir / "ct_head_invesalius.npy")
+    volume = lazy(array, (16, 256, 108), source="head")
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1M")
+    with pytest.raises(VolumeEVMError, match=r"^head: building the VolumeEVM with \d+ chunks in "
+                                             r"flight needs about .* only 1.0 MiB is available; "
+                                             r"raise the threshold"):
+        VolumeEVM.from_volume(volume, 300)
+    # The chunks in flight fit, the region at a low threshold (most of the grid) does not.
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "16M")
+    with dask.config.set(num_workers=1):
+        with pytest.raises(VolumeEVMError, match=r"^head: building the VolumeEVM chunk by chunk "
+                                                 r"needs about"):
+            VolumeEVM.from_volume(volume, -2000)
+        monkeypatch.delenv("VOLUMEEVM_MEMORY_LIMIT")
+        monkeypatch.setattr("volumeevm_addon.readers._checks.LAZY_CHUNK_BYTES", 16 * 256 * 108 * 2)
+        mapped = read_volume(data_dir / "ct_head_invesalius.npy", lazy=True)
+        assert mapped.array.chunks[0] == (16,) * 16
+        VolumeEVM.from_volume(mapped, 2000)  # Dask's and the kernels' one-time allocations
+        tracemalloc.start()
+        try:
+            region = VolumeEVM.from_volume(mapped, 1500)
+            _, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+    result = region.size_report()["total_bytes"]
+    print(f"peak {peak / 2**20:.1f} MiB for a {array.nbytes / 2**20:.1f} MiB grid, "
+          f"result {result / 2**20:.2f} MiB, chunk {16 * 256 * 108 * 2 / 2**20:.2f} MiB")
+    # One chunk in flight and the result, a few times over: far below the grid.
+    assert peak < 4 * 16 * 256 * 108 * 2 + 4 * result < array.nbytes / 2

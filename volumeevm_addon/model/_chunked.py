@@ -1,0 +1,189 @@
+"""Chunked exact builds: the VolumeEVM of a lazy (Dask) volume, chunk by chunk.
+
+The EVM of a union of disjoint voxel sets is the XOR of their EVMs (a lattice point's parity is
+the XOR of the parities), so each chunk's EVM, found from the chunk's own voxels alone and
+shifted to the grid's coordinates, XOR-merged with the others gives exactly the EVM of the
+whole region: vertices on a shared chunk plane cancel where the region continues across it.
+
+Each Dask task (:func:`chunk_region`) thresholds one chunk and returns its vertices (sorted
+packed keys), its region's densities in the chunk's C order and how many of them each
+``(x, y)`` row holds. Chunks are computed a few x-slabs of chunks at a time (Dask's scheduler:
+threads by default, a ``dask.distributed`` cluster when a ``Client`` exists): a slab's densities
+are one contiguous stretch of the table (order "xyz"), placed row by row from the row counts,
+and the slabs concatenate. The result is identical to :meth:`VolumeEVM.from_array` on the
+same data in memory, for any chunk shape.
+
+Memory: the chunks in flight (the scheduler's workers, each holding one chunk and what it
+derives from it) plus the result (table and vertices) plus one batch of slabs, checked before
+starting and after every batch (:func:`volumeevm_addon.check_memory`).
+"""
+
+import os
+import sys
+
+import numpy as np
+
+from .._errors import VolumeEVMError
+from .._memory import check_memory
+from . import _sweep
+from ._evm import _block_keys
+
+#: Chunks computed per batch, per scheduler worker: enough to keep every worker busy.
+TASKS_PER_WORKER = 4
+
+_ADVICE = ("raise the threshold or narrow the density interval, pick a coarser level, or use "
+           "smaller chunks")
+
+
+def chunk_region(block, offset, threshold, upper, source):
+    """One chunk's part of the region: what a Dask task returns.
+
+    Parameters
+    ----------
+    block : (x, y, z) ndarray
+        The chunk's densities.
+    offset : tuple of 3 int
+        Grid index of ``block[0, 0, 0]``.
+    threshold, upper : real number or None
+        The density interval.
+    source : str
+        Names the data in messages.
+
+    Returns
+    -------
+    keys : (k,) ndarray of int64
+        Sorted packed keys of the chunk's own EVM in grid coordinates.
+    values : (n,) ndarray
+        The region's densities in the chunk, in its C order.
+    rows : (x, y) ndarray of int64
+        How many of them each row (fixed x and y) holds.
+    low, high : scalar
+        The chunk's smallest and largest density.
+
+    Raises
+    ------
+    VolumeEVMError
+        If the chunk holds NaN or infinite densities, naming ``source`` and the chunk.
+    """
+    block = np.ascontiguousarray(block)
+    if block.dtype.kind == "f" and not np.isfinite(block).all():
+        bad = tuple(int(i) + o for i, o in zip(np.argwhere(~np.isfinite(block))[0], offset))
+        raise VolumeEVMError(f"{source}: densities are NaN or infinite in the chunk at voxel "
+                             f"{tuple(offset)} (first at voxel {bad}); densities must be finite")
+    selected = block >= threshold
+    if upper is not None:
+        selected &= block <= upper
+    ox, oy, oz = (int(o) + _sweep.OFFSET for o in offset)
+    keys = _block_keys(selected.view(np.uint8), 0, block.shape[0] + 1, ox, oy, oz)
+    return keys, block[selected], np.count_nonzero(selected, axis=2), block.min(), block.max()
+
+
+def build_chunked(array, threshold, upper, source):
+    """The sorted vertex keys and the densities table (order "xyz") of the region of a lazy
+    ``(X, Y, Z)`` Dask array, chunk by chunk.
+
+    Returns
+    -------
+    keys : (k,) ndarray of int64
+    table : (n,) ndarray of the array's dtype
+    low, high : scalar
+        The data's range (for the message about an empty region).
+
+    Raises
+    ------
+    VolumeEVMError
+        If a chunk holds NaN or infinite densities or the memory would not suffice.
+    """
+    import dask
+
+    workers = _workers(dask)
+    chunk_voxels = int(np.prod([max(c) for c in array.chunks]))
+    chunk_bytes = chunk_voxels * array.dtype.itemsize
+    # A worker holds its chunk, a contiguous copy, the mask, the densities and the keys.
+    in_flight = workers * (3 * chunk_bytes + 2 * chunk_voxels + 8 * chunk_voxels)
+    check_memory(in_flight, f"building the VolumeEVM with {workers} chunks in flight",
+                 source=source, advice=_ADVICE)
+    starts = [np.r_[0, np.cumsum(c)] for c in array.chunks]
+    blocks = array.to_delayed()
+    task = dask.delayed(chunk_region, pure=True)
+    per_batch = max(1, (TASKS_PER_WORKER * workers) // (blocks.shape[1] * blocks.shape[2]))
+    keys, tables = [], []
+    low = high = None
+    for first in range(0, blocks.shape[0], per_batch):
+        slabs = range(first, min(first + per_batch, blocks.shape[0]))
+        tasks = [task(blocks[i, j, k], (int(starts[0][i]), int(starts[1][j]), int(starts[2][k])),
+                      threshold, upper, source)
+                 for i in slabs for j in range(blocks.shape[1]) for k in range(blocks.shape[2])]
+        results = dask.compute(*tasks)
+        per_slab = blocks.shape[1] * blocks.shape[2]
+        for n, _ in enumerate(slabs):
+            slab = results[n * per_slab:(n + 1) * per_slab]
+            tables.append(_slab_table(slab, blocks.shape[1:], array.dtype))
+            keys.append(_sweep.parity(np.concatenate([r[0] for r in slab]), runs=True))
+            lows, highs = [r[3] for r in slab], [r[4] for r in slab]
+            low = min(lows + ([] if low is None else [low]))
+            high = max(highs + ([] if high is None else [high]))
+        del results, slab
+        held = sum(t.nbytes for t in tables) + sum(k.nbytes for k in keys)
+        # The result so far, the next batch's results (as large again, at most) and workers.
+        check_memory(2 * held + in_flight, "building the VolumeEVM chunk by chunk",
+                     source=source, advice=_ADVICE)
+    keys = _sweep.parity(np.concatenate(keys), runs=True)
+    return keys, _concatenated(tables, array.dtype), low, high
+
+
+def _workers(dask):
+    """How many chunks the scheduler computes at once (a distributed cluster's threads, else
+    the local threads)."""
+    if "distributed" in sys.modules:  # a user who made a Client imported it
+        from distributed import default_client
+
+        try:
+            return max(1, sum(default_client().nthreads().values()))
+        except ValueError:  # no client
+            pass
+    return int(dask.config.get("num_workers", None) or os.cpu_count() or 1)
+
+
+def _slab_table(slab, grid, dtype):
+    """The densities of one x-slab of chunks in table order "xyz".
+
+    ``slab`` holds the :func:`chunk_region` results of the slab's chunks, ``(y, z)`` chunk
+    order. Rows ``(x, y)`` follow one another in the table; inside a row the chunks' pieces
+    follow in z order. Each piece's place comes from the row counts.
+    """
+    ny, nz = grid
+    # rows[x, y, k]: densities of row (x, y) in the k-th chunk along z
+    rows = np.stack([np.concatenate([slab[j * nz + k][2] for j in range(ny)], axis=1)
+                     for k in range(nz)], axis=2)
+    starts = np.zeros(rows.size, np.int64)
+    np.cumsum(rows.ravel()[:-1], out=starts[1:])
+    starts = starts.reshape(rows.shape)
+    table = np.empty(int(rows.sum()), dtype)
+    y0 = 0
+    for j in range(ny):
+        height = slab[j * nz][2].shape[1]
+        for k in range(nz):
+            _, values, counts, _, _ = slab[j * nz + k]
+            if not len(values):
+                continue
+            counts = counts.ravel()
+            local = np.zeros(len(counts), np.int64)
+            np.cumsum(counts[:-1], out=local[1:])
+            shift = starts[:, y0:y0 + height, k].ravel() - local
+            table[np.repeat(shift, counts) + np.arange(len(values))] = values
+        y0 += height
+    return table
+
+
+def _concatenated(tables, dtype):
+    """One table from the slabs' tables, each dropped once copied (the new table's pages are
+    touched as it fills, so the peak stays near one table, not two)."""
+    table = np.empty(sum(len(t) for t in tables), dtype)
+    start = 0
+    while tables:
+        part = tables.pop(0)
+        table[start:start + len(part)] = part
+        start += len(part)
+        del part
+    return table
