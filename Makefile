@@ -39,7 +39,7 @@ $(CT_HEAD): sample_blends/fetch_ct_head.py | .venv/py313/.stamp
 
 demo-data: $(CT_HEAD)
 
-demo: .venv/py313/.stamp
+demo: .venv/py313/.stamp $(CT_HEAD)
 	.venv/py313/bin/python sample_blends/make_demo.py --out out
 
 # The extension: one zip per platform of the manifest (dist/volumeevm-VERSION-linux_x64.zip...),
