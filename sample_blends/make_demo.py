@@ -215,14 +215,16 @@ def main(argv):
     parser.add_argument("--size", type=int, default=512, help="still size in pixels")
     parser.add_argument("--turntable-size", type=int, default=320, help="turntable frame size")
     parser.add_argument("--frames", type=int, default=24, help="turntable frames")
+    parser.add_argument("--scan", type=Path, default=SAMPLE,
+                        help="the CT head (.npy beside its .json; default: the fetched one)")
     args = parser.parse_args(argv)
     out = Path(args.out).resolve()
     (out / "turntable").mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
 
     say(f"Blender {bpy.app.version_string}, NumPy {np.__version__}")
-    if not SAMPLE.exists():
-        sys.exit(f"[demo] {SAMPLE} is missing: run `python sample_blends/fetch_ct_head.py "
+    if not args.scan.exists():
+        sys.exit(f"[demo] {args.scan} is missing: run `python sample_blends/fetch_ct_head.py "
                  f"{SAMPLE.parent}` (make demo does)")
     bpy.ops.wm.read_factory_settings(use_empty=True)
     ext = load_extension()
@@ -232,8 +234,8 @@ def main(argv):
         from volumeevm.volumeevm_addon import Shading, TransferFunction
 
         scene = bpy.context.scene
-        say(f"importing {SAMPLE.name}")
-        volume = api.import_volume(SAMPLE)
+        say(f"importing {args.scan.name}")
+        volume = api.import_volume(args.scan)
         s = volume.volumeevm
         say(f"volume {tuple(s.shape)} voxels, spacing {tuple(round(v, 3) for v in s.spacing)} mm, "
             f"values {s.value_min:.0f} .. {s.value_max:.0f} HU")
