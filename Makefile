@@ -8,7 +8,7 @@ PY313 ?= $(shell PYENV_VERSION=3.13.0 pyenv which python3.13 2>/dev/null || comm
 VENVS := .venv/py311 .venv/py313
 PYTEST_ARGS ?=
 
-.PHONY: demo test test-py311 test-py313 bench bench-setup gl-debs bench-debs extension clean
+.PHONY: demo demo-data test test-py311 test-py313 bench bench-setup gl-debs bench-debs extension clean
 
 .venv/py311/.stamp: requirements/py311.txt
 	rm -rf .venv/py311
@@ -30,7 +30,16 @@ test-py311: .venv/py311/.stamp | gl-debs
 test-py313: .venv/py313/.stamp | gl-debs
 	.venv/py313/bin/python -m pytest tests $(PYTEST_ARGS)
 
-demo: .venv/py313/.stamp
+# The demo's CT head: fetched from the Debian archive (pinned package and SHA-256 digests) and
+# decoded by sample_blends/fetch_ct_head.py; see sample_blends/data/README.md.
+CT_HEAD := sample_blends/data/ct_head_invesalius.npy
+
+$(CT_HEAD): sample_blends/fetch_ct_head.py | .venv/py313/.stamp
+	.venv/py313/bin/python sample_blends/fetch_ct_head.py sample_blends/data
+
+demo-data: $(CT_HEAD)
+
+demo: .venv/py313/.stamp $(CT_HEAD)
 	.venv/py313/bin/python sample_blends/make_demo.py --out out
 
 # The extension: one zip per platform of the manifest (dist/volumeevm-VERSION-linux_x64.zip...),
