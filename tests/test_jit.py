@@ -1,9 +1,11 @@
 """The compiled-kernel layer: Numba only on first use, its settings, its disk cache, its threads."""
 
+import os
 import subprocess
 import sys
 import textwrap
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -123,3 +125,19 @@ def test_kernels_are_cached_in_the_chosen_folder(tmp_path):
     assert runs[0] == ["0", "1"] and runs[1] == ["1", "0"]  # compiled, then loaded
     (folder,) = (cache / "volumeevm_addon").iterdir()
     assert len(folder.name) == 16 and any(folder.rglob("*.nbi"))
+
+
+def test_kernel_folders_of_other_sources_are_removed_only_when_unused_for_a_day(tmp_path):
+    """Another Blender may be running other sources of the package now: its kernel folder stays
+    while it is in use (written within a day), and goes once stale."""
+    package = tmp_path / "volumeevm_addon"
+    fresh, stale, other = (package / name for name in ("0123456789abcdef", "fedcba9876543210",
+                                                       "not-a-digest"))
+    for folder in (fresh, stale, other):
+        folder.mkdir(parents=True)
+    long_ago = time.time() - _jit.STALE_SECONDS - 60
+    os.utime(stale, (long_ago, long_ago))
+    os.utime(other, (long_ago, long_ago))
+    ours = _jit._cache_folder.__wrapped__(tmp_path)  # white-box: the uncached function
+    assert ours.parent == package and ours.name not in (fresh.name, stale.name)
+    assert fresh.is_dir() and not stale.exists() and other.is_dir()

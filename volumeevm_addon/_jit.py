@@ -19,7 +19,9 @@ runs. The setting is this package's own: other Numba users in the process keep t
 that folder the kernels go in a subfolder named by the package's import name (plain Python
 imports ``volumeevm_addon``, Blender ``bl_ext.<repository>.volumeevm.volumeevm_addon``: a cached
 kernel refers to the kernels it calls by module name), and in it one named by a digest of all
-the package's modules; the subfolders of other digests are removed. Numba checks a cached
+the package's modules; the subfolders of other digests are removed once unused for a day (not
+sooner: another Blender or script may be running other sources of the package right now, and
+removing its folder while it compiles breaks its next cache write). Numba checks a cached
 kernel against its own file only, not against the kernels and constants it takes from other
 modules (a kernel's globals are frozen into its machine code), so any edit or update of the
 package starts afresh.
@@ -45,6 +47,7 @@ import os
 import shutil
 import sys
 import threading
+import time
 from pathlib import Path
 
 from ._errors import VolumeEVMError
@@ -213,10 +216,14 @@ def parallel_map(function, tasks):
     return results
 
 
+STALE_SECONDS = 24 * 3600
+"""A kernel folder of other sources is removed when nothing was written in it for this long."""
+
+
 @functools.cache
 def _cache_folder(parent):
     """The subfolder of ``parent`` for this import of the package's sources (see the module
-    docstring); removes the subfolders of other sources."""
+    docstring); removes the subfolders of other sources not written for :data:`STALE_SECONDS`."""
     package = Path(__file__).parent
     digest = hashlib.sha256()
     for path in sorted(package.rglob("*.py")):
@@ -226,7 +233,12 @@ def _cache_folder(parent):
     if imported.is_dir():
         for old in imported.iterdir():
             if old.name != name and len(old.name) == 16 and set(old.name) <= set("0123456789abcdef"):
-                shutil.rmtree(old, ignore_errors=True)
+                try:
+                    stale = time.time() - old.stat().st_mtime > STALE_SECONDS
+                except OSError:  # removed meanwhile by another process
+                    continue
+                if stale:
+                    shutil.rmtree(old, ignore_errors=True)
     return imported / name
 
 
