@@ -7,6 +7,10 @@ button give the same objects.
 - ``import_volume`` makes a *volume object*: a wire box around the grid, in physical
   millimetres scaled by :data:`BLENDER_UNITS_PER_MM` (1 mm = 0.001 BU), LPS axes = Blender X, Y, Z,
   object matrix identity. The dense array stays in a runtime cache (not in the .blend).
+  An OME-Zarr store (a ``*.zarr`` folder) is never read whole: import reads its metadata and
+  its coarsest level (for the histogram and the suggested threshold); the object keeps the
+  store's path, its levels (``zarr_levels``, JSON) and the level, channel and time to build
+  (``level`` and ``reader_options``), all saved in the .blend.
 - ``build`` makes the VolumeEVM of ``threshold <= density (<= upper)`` and keeps it in a sidecar
   ``.vevm`` file (see :mod:`.sidecar`).
 - ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
@@ -31,6 +35,7 @@ from ..volumeevm_addon import (
     index_to_physical,
     otsu_threshold,
     read_volume,
+    volume_levels,
 )
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
@@ -55,6 +60,15 @@ def default_name(path):
     return (path.stem if path.suffix else name) or "Volume"
 
 
+def zarr_store(path):
+    """The OME-Zarr store (a folder named ``*.zarr``) ``path`` is or lies in, else None (a file
+    picked inside a store in the file browser names the store)."""
+    if not isinstance(path, (str, Path)) or not str(path):
+        return None
+    path = Path(path)
+    return next((p for p in (path, *path.parents) if p.name.lower().endswith(".zarr")), None)
+
+
 def get_volume(obj):
     """The dense volume of a volume object (runtime cache, else re-read from its source)."""
     obj = volume_object(obj)
@@ -62,8 +76,13 @@ def get_volume(obj):
 
 
 def source_of(obj):
+    """The path and reader options a volume object is read with (an OME-Zarr store's with the
+    level picked on the object)."""
     settings = obj.volumeevm
-    return settings.source_path, json.loads(settings.reader_options or "{}")
+    options = json.loads(settings.reader_options or "{}")
+    if settings.zarr_levels:
+        options["level"] = settings.level
+    return settings.source_path, options
 
 
 def _grid_box(shape, spacing, origin, orientation):
@@ -100,9 +119,28 @@ def _import_steps(path, options, units):
     return vol, file_units, counts, lo, hi, threshold
 
 
+def _zarr_import_steps(path, options, units):
+    """An OME-Zarr store's levels, geometry (metadata only) and its coarsest level's histogram."""
+    yield 0.0, f"reading the levels of {default_name(path)}"
+    levels = volume_levels(path)
+    vol = read_volume(path, **options)  # lazy: metadata only
+    file_units = vol.units
+    if units is not None:
+        vol = dataclasses.replace(vol, units=str(units))
+    coarsest = levels[-1]["level"]
+    yield 0.3, f"histogram of level {coarsest}"
+    options = dict(options, level=coarsest)
+    coarse = np.asarray(read_volume(path, **options).array)
+    counts, lo, hi = density_histogram(coarse, bins=HISTOGRAM_BINS)
+    return vol, file_units, counts, lo, hi, otsu_threshold(coarse), levels
+
+
 def import_job(context, path, *, name=None, units=None, **reader_options):
     """The import job: read ``path`` and make a volume object (see :func:`import_volume`)."""
     require_enabled()
+    store = zarr_store(path)
+    if store is not None:
+        path = store
     if isinstance(path, (str, Path)):
         source = str(Path(path))
     else:
@@ -112,9 +150,10 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         path, source = files, str(Path(files[0]).parent)
     json.dumps(reader_options)  # options must be plain values (they are stored as JSON)
     name = name or default_name(path)
+    level = reader_options.pop("level", 0) if store is not None else 0
 
     def commit(result):
-        vol, file_units, counts, lo, hi, threshold = result
+        vol, file_units, counts, lo, hi, threshold, *levels = result
         mesh = bpy.data.meshes.new(name)
         wire_mesh(mesh, *_grid_box(vol.shape, vol.spacing, vol.origin, vol.orientation))
         obj = bpy.data.objects.new(name, mesh)
@@ -125,6 +164,9 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         s.uid = runtime.new_uid()
         s.source_path = source
         s.reader_options = json.dumps(reader_options)
+        if levels:
+            s.zarr_levels = json.dumps(levels[0])
+            s.level = level
         s.shape = vol.shape
         s.spacing = vol.spacing
         s.origin = vol.origin
@@ -139,11 +181,16 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         s.threshold = threshold
         s.upper = hi
         link(context, obj)
-        runtime.put_volume(s.uid, vol)
+        if not levels:  # a store's levels are read chunk by chunk when built, never kept
+            runtime.put_volume(s.uid, vol)
         runtime.forget_except({o.volumeevm.uid for o in bpy.data.objects})
         return obj
 
-    return jobs.Job(f"Import {name}", _import_steps(path, reader_options, units), commit)
+    if store is not None:
+        steps = _zarr_import_steps(path, dict(reader_options, level=level), units)
+    else:
+        steps = _import_steps(path, reader_options, units)
+    return jobs.Job(f"Import {name}", steps, commit)
 
 
 def import_volume(path, *, name=None, units=None, **reader_options):
@@ -152,7 +199,10 @@ def import_volume(path, *, name=None, units=None, **reader_options):
     Parameters
     ----------
     path : str, Path or sequence of str
-        A file with a supported extension, a DICOM folder, or the files of one DICOM series.
+        A file with a supported extension, a DICOM folder, the files of one DICOM series, or an
+        OME-Zarr store (a ``*.zarr`` / ``*.ome.zarr`` folder, or a file in it): only its
+        metadata and coarsest level are read; Build reads the object's ``level`` chunk by
+        chunk.
     name : str, optional
         Object name (default: the file's stem).
     units : str, optional
@@ -160,7 +210,9 @@ def import_volume(path, *, name=None, units=None, **reader_options):
         (default: as the file says). Stored as ``obj.volumeevm.units`` beside what the file
         said (``file_units``); the Volume panel shows and edits them.
     **reader_options
-        Passed to :func:`volumeevm_addon.read_volume` (raw: ``shape``, ``dtype``, ...).
+        Passed to :func:`volumeevm_addon.read_volume` (raw: ``shape``, ``dtype``, ...; OME-Zarr:
+        ``level`` (the level to build, default 0, stored as ``obj.volumeevm.level``),
+        ``channel``, ``time``).
 
     Returns
     -------
@@ -212,13 +264,14 @@ def build_job(obj, threshold=None, upper=None):
                       built_upper=upper if upper is not None else 0.0,
                       voxel_count=vevm.voxel_count, ev_count=len(vevm.evm),
                       vevm_bytes=report["total_bytes"], dense_bytes=report["dense_bytes"],
-                      vevm_path=str(file))
+                      vevm_path=str(file), built_level=options.get("level", 0))
         if upper is not None:
             values["upper"] = upper
         jobs.assign(target.volumeevm, **values)
         jobs.on_undo(functools.partial(runtime.set_status, uid, runtime.status(uid)))
         runtime.set_status(uid, "")
-        runtime.put_volume(uid, vol)
+        if "level" not in options:  # a store's level is read chunk by chunk, never kept
+            runtime.put_volume(uid, vol)
         return vevm
 
     return jobs.Job(f"Build VolumeEVM of {name}",
