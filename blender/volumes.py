@@ -22,6 +22,9 @@ Whatever the error, they leave the scene as it was.
 import dataclasses
 import functools
 import json
+import math
+import queue
+import threading
 from pathlib import Path
 
 import bpy
@@ -31,6 +34,7 @@ from ..volumeevm_addon import (
     BLENDER_UNITS_PER_MM,
     VolumeEVM,
     VolumeEVMError,
+    chunked_build_memory,
     density_histogram,
     index_to_physical,
     otsu_threshold,
@@ -127,6 +131,9 @@ def _zarr_import_steps(path, options, units):
     file_units = vol.units
     if units is not None:
         vol = dataclasses.replace(vol, units=str(units))
+    for level in levels:
+        folder = Path(path) / level["path"]
+        level["disk_bytes"] = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     coarsest = levels[-1]["level"]
     yield 0.3, f"histogram of level {coarsest}"
     options = dict(options, level=coarsest)
@@ -228,11 +235,87 @@ def import_volume(path, *, name=None, units=None, **reader_options):
     return jobs.run(import_job(bpy.context, path, name=name, units=units, **reader_options))
 
 
+def region_fraction(settings):
+    """The share of voxels in the object's density interval, by its stored histogram (bins'
+    counts taken in proportion to their overlap with the interval); an estimate."""
+    counts = np.asarray(settings.histogram, np.float64)
+    if counts.sum() == 0:
+        return 1.0
+    upper = settings.upper if settings.use_upper else np.inf
+    edges = np.linspace(settings.value_min, settings.value_max, len(counts) + 1)
+    if edges[-1] == edges[0]:
+        return float(settings.threshold <= edges[0] <= upper)
+    overlap = (np.minimum(edges[1:], upper) - np.maximum(edges[:-1], settings.threshold))
+    share = np.clip(overlap / (edges[1] - edges[0]), 0.0, 1.0)
+    return float((counts * share).sum() / counts.sum())
+
+
+def zarr_levels(obj):
+    """The OME-Zarr levels of a store's volume object (empty for other sources), finest first:
+    dicts of :func:`volumeevm_addon.volume_levels` with ``disk_bytes`` (its chunk files) and
+    ``build_bytes``, the core's estimate of what building it needs
+    (:func:`volumeevm_addon.chunked_build_memory`), the region's voxels estimated from the
+    coarsest level's histogram at the object's threshold."""
+    s = volume_object(obj).volumeevm
+    levels = json.loads(s.zarr_levels or "[]")
+    fraction = region_fraction(s)
+    for level in levels:
+        voxels = round(fraction * math.prod(level["shape"]))
+        level["build_bytes"] = chunked_build_memory(level["chunks"], level["dtype"], voxels)
+    return levels
+
+
 # ---------------------------------------------------------------------------- build
-def _build_steps(uid, path, options, threshold, upper):
+class _Cancelled(Exception):
+    """Raised in a build's progress callback once its steps were closed (Esc)."""
+
+
+def _chunk_steps(vol, threshold, upper, start, end, every_chunk):
+    """Steps of ``VolumeEVM.from_volume`` run in a helper thread: ``(fraction, "building EVM:
+    chunk n of N")`` as each chunk ends (an in-memory volume is one chunk), fractions from
+    ``start`` to ``end``; returns the VolumeEVM, or raises the build's error.
+
+    With ``every_chunk`` (under ``--background``, one progress line each) every chunk is a step;
+    otherwise a step shows the latest chunk ended (the UI's timer takes one step per tick, and
+    must not lag behind a fast build). Closing the generator (Esc) stops the build at its next
+    chunk and waits for it: nothing of it is left running.
+    """
+    events = queue.Queue()
+    closed = threading.Event()
+
+    def progress(done, total):
+        if closed.is_set():
+            raise _Cancelled
+        events.put(("chunk", (done, total)))
+
+    def build():
+        try:
+            events.put(("done", VolumeEVM.from_volume(vol, threshold, upper, progress=progress)))
+        except BaseException as error:  # noqa: BLE001 - handed to the steps' thread
+            events.put(("error", error))
+
+    helper = threading.Thread(target=build, name="volumeevm-build", daemon=True)
+    helper.start()
+    try:
+        while True:
+            kind, value = events.get()
+            while not every_chunk and kind == "chunk" and not events.empty():
+                kind, value = events.get()
+            if kind == "done":
+                return value
+            if kind == "error":
+                raise value
+            done, total = value
+            yield start + (end - start) * done / total, f"building EVM: chunk {done} of {total}"
+    finally:
+        closed.set()
+        helper.join()
+
+
+def _build_steps(uid, path, options, threshold, upper, every_chunk):
     vol = yield from read_steps(uid, path, options)
     yield 0.3, "building EVM"
-    vevm = VolumeEVM.from_volume(vol, threshold, upper)
+    vevm = yield from _chunk_steps(vol, threshold, upper, 0.3, 0.9, every_chunk)
     yield 0.9, "saving VolumeEVM"
     return vol, vevm
 
@@ -274,8 +357,10 @@ def build_job(obj, threshold=None, upper=None):
             runtime.put_volume(uid, vol)
         return vevm
 
-    return jobs.Job(f"Build VolumeEVM of {name}",
-                    _build_steps(uid, path, options, threshold, upper), commit)
+    at = f" (level {options['level']})" if "level" in options else ""
+    return jobs.Job(f"Build VolumeEVM of {name}{at}",
+                    _build_steps(uid, path, options, threshold, upper, bpy.app.background),
+                    commit)
 
 
 def build(obj, threshold=None, upper=None):
@@ -289,6 +374,9 @@ def build(obj, threshold=None, upper=None):
         In the data's own units; default: the object's ``volumeevm.threshold`` (and ``upper``
         when ``use_upper`` is set). Stored on the object.
 
+    The build runs chunk by chunk for a lazy volume (an OME-Zarr store's object builds its
+    ``volumeevm.level``, never reading the store whole), a progress step after each chunk.
+
     Returns
     -------
     VolumeEVM
@@ -298,7 +386,8 @@ def build(obj, threshold=None, upper=None):
     ------
     VolumeEVMError
         Not a volume object, an upper bound below the threshold, an empty region, a source
-        file that is gone, not enough memory.
+        file that is gone, a store's chunk that cannot be read (naming store, level and
+        chunk), not enough memory.
     """
     return jobs.run(build_job(obj, threshold, upper))
 
