@@ -44,6 +44,7 @@ from ..volumeevm_addon import (
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object
+from .preview import Preview
 from .tool_stack import refresh_quietly
 
 _COMPOUND_ENDINGS = (".nii.gz",)
@@ -312,7 +313,27 @@ def _chunk_steps(vol, threshold, upper, start, end, every_chunk):
         helper.join()
 
 
-def _build_steps(uid, path, options, threshold, upper, every_chunk):
+def _preview_steps(name, path, options, coarsest, threshold, upper):
+    """While a job runs from the UI and a store's level finer than its coarsest builds, build
+    the coarsest level (in memory: it is small) and hand its surface's edges to the viewport
+    (:mod:`.preview`). No preview when its region is empty or its chunks cannot be read (the
+    build itself then says what is wrong)."""
+    if coarsest is None or options["level"] >= coarsest or not jobs.wants_preview():
+        return
+    yield 0.05, f"preview from level {coarsest}"
+    try:
+        coarse = read_volume(path, **dict(options, level=coarsest))
+        vevm = VolumeEVM.from_volume(dataclasses.replace(coarse, array=np.asarray(coarse.array)),
+                                     threshold, upper)
+    except VolumeEVMError:
+        return
+    vertices, polygons = vevm.mesh()
+    co = (vertices * BLENDER_UNITS_PER_MM).astype(np.float32)
+    jobs.show_preview(Preview(name, coarsest, co, polygons.unique_edges()[0]))
+
+
+def _build_steps(uid, path, options, threshold, upper, every_chunk, preview):
+    yield from preview
     vol = yield from read_steps(uid, path, options)
     yield 0.3, "building EVM"
     vevm = yield from _chunk_steps(vol, threshold, upper, 0.3, 0.9, every_chunk)
@@ -358,9 +379,10 @@ def build_job(obj, threshold=None, upper=None):
         return vevm
 
     at = f" (level {options['level']})" if "level" in options else ""
-    return jobs.Job(f"Build VolumeEVM of {name}{at}",
-                    _build_steps(uid, path, options, threshold, upper, bpy.app.background),
-                    commit)
+    coarsest = len(json.loads(s.zarr_levels)) - 1 if s.zarr_levels else None
+    preview = _preview_steps(name, path, options, coarsest, threshold, upper)
+    steps = _build_steps(uid, path, options, threshold, upper, bpy.app.background, preview)
+    return jobs.Job(f"Build VolumeEVM of {name}{at}", steps, commit)
 
 
 def build(obj, threshold=None, upper=None):
@@ -376,6 +398,8 @@ def build(obj, threshold=None, upper=None):
 
     The build runs chunk by chunk for a lazy volume (an OME-Zarr store's object builds its
     ``volumeevm.level``, never reading the store whole), a progress step after each chunk.
+    Run from the UI (the Build button), a store's level finer than its coarsest shows the
+    coarsest level's surface edges in the viewport until the build ends (:mod:`.preview`).
 
     Returns
     -------

@@ -83,8 +83,9 @@ def test_import_picks_level_channel_and_time_and_a_file_inside_names_the_store(s
     assert tuple(s.spacing) == pytest.approx((1.914, 1.914, 3.0))
     assert json.loads(s.reader_options) == {}
     # The file browser may hand over a file in the store, or a folder of one level.
-    for picked in (store / ".zattrs", store / "0"):
-        assert bpy.ops.volumeevm.import_volume(filepath=str(picked)) == {"FINISHED"}
+    for picked in (dict(filepath=str(store / ".zattrs")), dict(filepath=str(store / "0")),
+                   dict(directory=f"{store}/")):  # inside the store, nothing selected
+        assert bpy.ops.volumeevm.import_volume(**picked) == {"FINISHED"}
         assert bpy.context.active_object.volumeevm.source_path == str(store)
 
 
@@ -264,3 +265,103 @@ def test_escape_stops_the_build_at_the_next_chunk_nothing_changed(store, api, ex
     assert scene_state(api) == before
     assert ({"WARNING"}, "Build VolumeEVM of head.ome (level 0): cancelled, nothing changed") \
         in op.reports
+
+
+# ---------------------------------------------------------------------------- preview
+def test_the_viewport_preview_is_the_coarsest_level_while_a_finer_one_builds(store, api, core,
+                                                                              ext):
+    from test_blender_ui import _Context, _driver, _Event, _ticks
+
+    jobs, preview = ext.blender.jobs, ext.blender.preview
+    obj = api.import_volume(store)
+    coarse = _dense_build(core, store, LEVELS - 1, CT_BONE_HU)
+    vertices, polygons = coarse.mesh()
+    seen = []
+    for level in (0, LEVELS - 1):
+        obj.volumeevm.level = level
+        op = _driver(ext, lambda: ext.blender.volumes.build_job(obj, CT_BONE_HU))
+        context = _Context()
+        assert op.start(context) == {"RUNNING_MODAL"}
+        for _ in range(1000):
+            result = op.modal(context, _Event("TIMER"))
+            if result != {"RUNNING_MODAL"}:
+                break
+            if jobs.CURRENT.text.startswith("building EVM"):
+                seen.append(preview.current())
+            time.sleep(0.01)
+        if result == {"RUNNING_MODAL"}:
+            result = _ticks(op, context)
+        assert result == {"FINISHED"} and preview.current() is None  # gone with the job
+        assert obj.volumeevm.built_level == level
+    shown = [p for p in seen if p is not None]
+    assert shown and len(shown) == len(seen[:len(shown)])  # only while level 0 built
+    first = shown[0]
+    assert (first.name, first.level) == (obj.name, LEVELS - 1)
+    np.testing.assert_array_equal(first.co, (vertices * 0.001).astype(np.float32))
+    np.testing.assert_array_equal(first.edges, polygons.unique_edges()[0])
+    assert all(p is first for p in shown)
+
+
+DRAW_SCRIPT = """
+import sys
+sys.path[:0] = [{repo!r}, {tests!r}]
+import bpy, gpu
+import numpy as np
+from mathutils import Matrix
+from blender_helpers import addon
+
+import importlib
+ext = addon()
+try:
+    ext.blender.gpu_dvr.ensure_context()
+except ext.blender.gpu_dvr.GPUUnavailable as error:
+    print("no GPU context:", error)
+    sys.exit(0)
+api = importlib.import_module(ext.__name__ + ".blender.api")
+ext.register()
+jobs, preview = ext.blender.jobs, ext.blender.preview
+obj = api.import_volume({store!r})
+co = np.array([[0.01, 0.01, 0.01], [0.12, 0.12, 0.05]], np.float32)
+counts = []
+for job in (jobs.Progress("build", preview=preview.Preview(obj.name, 2, co,
+                                                           np.array([[0, 1]], np.int32))),
+            None):
+    jobs.CURRENT = job
+    off = gpu.types.GPUOffScreen(64, 64, format="RGBA32F")
+    with off.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
+        with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+            gpu.matrix.load_identity()
+            gpu.matrix.load_projection_matrix(Matrix.Translation((-1.0, -1.0, 0.0))
+                                              @ Matrix.Diagonal((2 / 0.13, 2 / 0.13, 4.0, 1.0)))
+            preview.draw()
+        rgba = np.array(fb.read_color(0, 0, 64, 64, 4, 0, "FLOAT").to_list())
+    off.free()
+    lit = np.all(np.abs(rgba - preview.COLOR) < 0.01, axis=-1)
+    counts.append(int(lit.sum()))
+    if job is not None:
+        diagonal = [bool(lit[i, i]) for i in range(10, 55)]
+        print("diagonal", all(diagonal))
+jobs.CURRENT = None
+print("lit", counts)
+ext.unregister()
+"""
+
+
+def test_preview_draws_its_edges_in_the_viewport_and_nothing_once_the_job_ends(store):
+    """The draw handler's drawing over an offscreen (a process of its own, as the GPU tests)."""
+    import subprocess
+    import sys
+
+    from blender_helpers import REPO
+
+    script = DRAW_SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests"), store=str(store))
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    if "no GPU context" in done.stdout:  # no viewport without one either
+        pytest.skip(done.stdout.strip())
+    assert "diagonal True" in done.stdout
+    lit = json.loads(done.stdout.split("lit ")[1].splitlines()[0])
+    assert lit[0] >= 45 and lit[1] == 0
