@@ -75,7 +75,8 @@ def zarr_store(path):
 
 
 def get_volume(obj):
-    """The dense volume of a volume object (runtime cache, else re-read from its source)."""
+    """The dense volume of a volume object (runtime cache, else re-read from its source); for an
+    OME-Zarr store's object, its picked level as a lazy volume (nothing read yet)."""
     obj = volume_object(obj)
     return jobs.drain(read_steps(obj.volumeevm.uid, *source_of(obj)), verbose=False)
 

@@ -154,6 +154,8 @@ def test_volume_panel_lists_the_levels_and_the_picked_one_is_built(store, crop, 
     shown = texts(draw_all(ext, bpy.context))
     assert "Size: 64 × 64 × 25 voxels" in shown and "Spacing: 1.914 × 1.914 × 3 mm" in shown
     assert ext.blender.volumes.source_of(obj) == (str(store), {"level": 1})
+    lazy = api.get_volume(obj)
+    assert lazy.shape == (64, 64, 25) and not isinstance(lazy.array, np.ndarray)
     s.level = 7  # beyond the pyramid: the coarsest
     assert s.level == 2 and tuple(s.shape) == (32, 32, 13)
 
