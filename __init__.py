@@ -16,8 +16,8 @@ import atexit
 import bpy
 
 from . import operators, ui
-from .blender import (compositor, gpu_viewport, handlers, kernels, native_volume, sidecar,
-                      tool_stack)
+from .blender import (compositor, gpu_viewport, handlers, kernels, native_volume, preview,
+                      sidecar, tool_stack)
 from .operators import import_volume
 from .ui import panels, props
 
@@ -44,6 +44,7 @@ def register():
     handlers.install(compositor.HANDLERS + sidecar.HANDLERS + tool_stack.HANDLERS
                      + native_volume.HANDLERS + gpu_viewport.HANDLERS)
     gpu_viewport.register()
+    preview.register()
     atexit.register(unregister)
     _registered.append(True)
 
@@ -53,6 +54,7 @@ def unregister():
     if not _registered:
         return
     _registered.clear()
+    preview.unregister()
     gpu_viewport.unregister()
     handlers.uninstall()
     bpy.types.STATUSBAR_HT_header.remove(panels.draw_status)

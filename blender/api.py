@@ -8,6 +8,8 @@
     api.build(vol, threshold=300.0)                 # data units (HU for CT)
     surface = api.make_mesh(vol)
     labels = api.make_label_meshes(api.import_volume("/data/seg.seg.nrrd"))  # one per label
+    big = api.import_volume("/data/cells.ome.zarr")  # OME-Zarr: metadata, coarsest level
+    big.volumeevm.level = 1                         # the level Build reads, chunk by chunk
 
 Importing the API of an installed extension that is not enabled (a new session of the bpy module,
 or a Blender whose preferences leave it off) enables it, as Preferences > Add-ons does.

@@ -57,6 +57,7 @@ class Progress:
     label: str
     fraction: float = 0.0
     text: str = ""
+    preview: Any = None  # what the viewport draws while the job runs (:func:`show_preview`)
 
 
 #: The job running in the UI, if any (one at a time).
@@ -66,6 +67,22 @@ CURRENT = None
 #: existing data, and callables that drop what it replaced once the job succeeded.
 _undo = None
 _on_success = None
+
+
+def show_preview(preview):
+    """Hand the job running from the UI a preview that the viewport draws until the job ends
+    (:mod:`.preview`); called from the job's steps (any thread). Returns False, doing nothing,
+    when no job runs from the UI (a script, ``--background``: no viewport to draw it)."""
+    job = CURRENT
+    if job is None:
+        return False
+    job.preview = preview
+    return True
+
+
+def wants_preview():
+    """Whether a job runs from the UI, whose viewport would draw a preview."""
+    return CURRENT is not None
 
 
 def progress_line(fraction, text):

@@ -7,6 +7,10 @@ button give the same objects.
 - ``import_volume`` makes a *volume object*: a wire box around the grid, in physical
   millimetres scaled by :data:`BLENDER_UNITS_PER_MM` (1 mm = 0.001 BU), LPS axes = Blender X, Y, Z,
   object matrix identity. The dense array stays in a runtime cache (not in the .blend).
+  An OME-Zarr store (a ``*.zarr`` folder) is never read whole: import reads its metadata and
+  its coarsest level (for the histogram and the suggested threshold); the object keeps the
+  store's path, its levels (``zarr_levels``, JSON) and the level, channel and time to build
+  (``level`` and ``reader_options``), all saved in the .blend.
 - ``build`` makes the VolumeEVM of ``threshold <= density (<= upper)`` and keeps it in a sidecar
   ``.vevm`` file (see :mod:`.sidecar`).
 - ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
@@ -18,6 +22,9 @@ Whatever the error, they leave the scene as it was.
 import dataclasses
 import functools
 import json
+import math
+import queue
+import threading
 from pathlib import Path
 
 import bpy
@@ -27,14 +34,17 @@ from ..volumeevm_addon import (
     BLENDER_UNITS_PER_MM,
     VolumeEVM,
     VolumeEVMError,
+    chunked_build_memory,
     density_histogram,
     index_to_physical,
     otsu_threshold,
     read_volume,
+    volume_levels,
 )
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object
+from .preview import Preview
 from .tool_stack import refresh_quietly
 
 _COMPOUND_ENDINGS = (".nii.gz",)
@@ -55,15 +65,30 @@ def default_name(path):
     return (path.stem if path.suffix else name) or "Volume"
 
 
+def zarr_store(path):
+    """The OME-Zarr store (a folder named ``*.zarr``) ``path`` is or lies in, else None (a file
+    picked inside a store in the file browser names the store)."""
+    if not isinstance(path, (str, Path)) or not str(path):
+        return None
+    path = Path(path)
+    return next((p for p in (path, *path.parents) if p.name.lower().endswith(".zarr")), None)
+
+
 def get_volume(obj):
-    """The dense volume of a volume object (runtime cache, else re-read from its source)."""
+    """The dense volume of a volume object (runtime cache, else re-read from its source); for an
+    OME-Zarr store's object, its picked level as a lazy volume (nothing read yet)."""
     obj = volume_object(obj)
     return jobs.drain(read_steps(obj.volumeevm.uid, *source_of(obj)), verbose=False)
 
 
 def source_of(obj):
+    """The path and reader options a volume object is read with (an OME-Zarr store's with the
+    level picked on the object)."""
     settings = obj.volumeevm
-    return settings.source_path, json.loads(settings.reader_options or "{}")
+    options = json.loads(settings.reader_options or "{}")
+    if settings.zarr_levels:
+        options["level"] = settings.level
+    return settings.source_path, options
 
 
 def _grid_box(shape, spacing, origin, orientation):
@@ -100,9 +125,31 @@ def _import_steps(path, options, units):
     return vol, file_units, counts, lo, hi, threshold
 
 
+def _zarr_import_steps(path, options, units):
+    """An OME-Zarr store's levels, geometry (metadata only) and its coarsest level's histogram."""
+    yield 0.0, f"reading the levels of {default_name(path)}"
+    levels = volume_levels(path)
+    vol = read_volume(path, **options)  # lazy: metadata only
+    file_units = vol.units
+    if units is not None:
+        vol = dataclasses.replace(vol, units=str(units))
+    for level in levels:
+        folder = Path(path) / level["path"]
+        level["disk_bytes"] = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+    coarsest = levels[-1]["level"]
+    yield 0.3, f"histogram of level {coarsest}"
+    options = dict(options, level=coarsest)
+    coarse = np.asarray(read_volume(path, **options).array)
+    counts, lo, hi = density_histogram(coarse, bins=HISTOGRAM_BINS)
+    return vol, file_units, counts, lo, hi, otsu_threshold(coarse), levels
+
+
 def import_job(context, path, *, name=None, units=None, **reader_options):
     """The import job: read ``path`` and make a volume object (see :func:`import_volume`)."""
     require_enabled()
+    store = zarr_store(path)
+    if store is not None:
+        path = store
     if isinstance(path, (str, Path)):
         source = str(Path(path))
     else:
@@ -112,9 +159,10 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         path, source = files, str(Path(files[0]).parent)
     json.dumps(reader_options)  # options must be plain values (they are stored as JSON)
     name = name or default_name(path)
+    level = reader_options.pop("level", 0) if store is not None else 0
 
     def commit(result):
-        vol, file_units, counts, lo, hi, threshold = result
+        vol, file_units, counts, lo, hi, threshold, *levels = result
         mesh = bpy.data.meshes.new(name)
         wire_mesh(mesh, *_grid_box(vol.shape, vol.spacing, vol.origin, vol.orientation))
         obj = bpy.data.objects.new(name, mesh)
@@ -125,6 +173,9 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         s.uid = runtime.new_uid()
         s.source_path = source
         s.reader_options = json.dumps(reader_options)
+        if levels:
+            s.zarr_levels = json.dumps(levels[0])
+            s.level = level
         s.shape = vol.shape
         s.spacing = vol.spacing
         s.origin = vol.origin
@@ -139,11 +190,16 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         s.threshold = threshold
         s.upper = hi
         link(context, obj)
-        runtime.put_volume(s.uid, vol)
+        if not levels:  # a store's levels are read chunk by chunk when built, never kept
+            runtime.put_volume(s.uid, vol)
         runtime.forget_except({o.volumeevm.uid for o in bpy.data.objects})
         return obj
 
-    return jobs.Job(f"Import {name}", _import_steps(path, reader_options, units), commit)
+    if store is not None:
+        steps = _zarr_import_steps(path, dict(reader_options, level=level), units)
+    else:
+        steps = _import_steps(path, reader_options, units)
+    return jobs.Job(f"Import {name}", steps, commit)
 
 
 def import_volume(path, *, name=None, units=None, **reader_options):
@@ -152,7 +208,10 @@ def import_volume(path, *, name=None, units=None, **reader_options):
     Parameters
     ----------
     path : str, Path or sequence of str
-        A file with a supported extension, a DICOM folder, or the files of one DICOM series.
+        A file with a supported extension, a DICOM folder, the files of one DICOM series, or an
+        OME-Zarr store (a ``*.zarr`` / ``*.ome.zarr`` folder, or a file in it): only its
+        metadata and coarsest level are read; Build reads the object's ``level`` chunk by
+        chunk.
     name : str, optional
         Object name (default: the file's stem).
     units : str, optional
@@ -160,7 +219,9 @@ def import_volume(path, *, name=None, units=None, **reader_options):
         (default: as the file says). Stored as ``obj.volumeevm.units`` beside what the file
         said (``file_units``); the Volume panel shows and edits them.
     **reader_options
-        Passed to :func:`volumeevm_addon.read_volume` (raw: ``shape``, ``dtype``, ...).
+        Passed to :func:`volumeevm_addon.read_volume` (raw: ``shape``, ``dtype``, ...; OME-Zarr:
+        ``level`` (the level to build, default 0, stored as ``obj.volumeevm.level``),
+        ``channel``, ``time``).
 
     Returns
     -------
@@ -176,11 +237,107 @@ def import_volume(path, *, name=None, units=None, **reader_options):
     return jobs.run(import_job(bpy.context, path, name=name, units=units, **reader_options))
 
 
+def region_fraction(settings):
+    """The share of voxels in the object's density interval, by its stored histogram (bins'
+    counts taken in proportion to their overlap with the interval); an estimate."""
+    counts = np.asarray(settings.histogram, np.float64)
+    if counts.sum() == 0:
+        return 1.0
+    upper = settings.upper if settings.use_upper else np.inf
+    edges = np.linspace(settings.value_min, settings.value_max, len(counts) + 1)
+    if edges[-1] == edges[0]:
+        return float(settings.threshold <= edges[0] <= upper)
+    overlap = (np.minimum(edges[1:], upper) - np.maximum(edges[:-1], settings.threshold))
+    share = np.clip(overlap / (edges[1] - edges[0]), 0.0, 1.0)
+    return float((counts * share).sum() / counts.sum())
+
+
+def zarr_levels(obj):
+    """The OME-Zarr levels of a store's volume object (empty for other sources), finest first:
+    dicts of :func:`volumeevm_addon.volume_levels` with ``disk_bytes`` (its chunk files) and
+    ``build_bytes``, the core's estimate of what building it needs
+    (:func:`volumeevm_addon.chunked_build_memory`), the region's voxels estimated from the
+    coarsest level's histogram at the object's threshold."""
+    s = volume_object(obj).volumeevm
+    levels = json.loads(s.zarr_levels or "[]")
+    fraction = region_fraction(s)
+    for level in levels:
+        voxels = round(fraction * math.prod(level["shape"]))
+        level["build_bytes"] = chunked_build_memory(level["chunks"], level["dtype"], voxels)
+    return levels
+
+
 # ---------------------------------------------------------------------------- build
-def _build_steps(uid, path, options, threshold, upper):
+class _Cancelled(Exception):
+    """Raised in a build's progress callback once its steps were closed (Esc)."""
+
+
+def _chunk_steps(vol, threshold, upper, start, end, every_chunk):
+    """Steps of ``VolumeEVM.from_volume`` run in a helper thread: ``(fraction, "building EVM:
+    chunk n of N")`` as each chunk ends (an in-memory volume is one chunk), fractions from
+    ``start`` to ``end``; returns the VolumeEVM, or raises the build's error.
+
+    With ``every_chunk`` (under ``--background``, one progress line each) every chunk is a step;
+    otherwise a step shows the latest chunk ended (the UI's timer takes one step per tick, and
+    must not lag behind a fast build). Closing the generator (Esc) stops the build at its next
+    chunk and waits for it: nothing of it is left running.
+    """
+    events = queue.Queue()
+    closed = threading.Event()
+
+    def progress(done, total):
+        if closed.is_set():
+            raise _Cancelled
+        events.put(("chunk", (done, total)))
+
+    def build():
+        try:
+            events.put(("done", VolumeEVM.from_volume(vol, threshold, upper, progress=progress)))
+        except BaseException as error:  # noqa: BLE001 - handed to the steps' thread
+            events.put(("error", error))
+
+    helper = threading.Thread(target=build, name="volumeevm-build", daemon=True)
+    helper.start()
+    try:
+        while True:
+            kind, value = events.get()
+            while not every_chunk and kind == "chunk" and not events.empty():
+                kind, value = events.get()
+            if kind == "done":
+                return value
+            if kind == "error":
+                raise value
+            done, total = value
+            yield start + (end - start) * done / total, f"building EVM: chunk {done} of {total}"
+    finally:
+        closed.set()
+        helper.join()
+
+
+def _preview_steps(name, path, options, coarsest, threshold, upper):
+    """While a job runs from the UI and a store's level finer than its coarsest builds, build
+    the coarsest level (in memory: it is small) and hand its surface's edges to the viewport
+    (:mod:`.preview`). No preview when its region is empty or its chunks cannot be read (the
+    build itself then says what is wrong)."""
+    if coarsest is None or options["level"] >= coarsest or not jobs.wants_preview():
+        return
+    yield 0.05, f"preview from level {coarsest}"
+    try:
+        coarse = read_volume(path, **dict(options, level=coarsest))
+        vevm = VolumeEVM.from_volume(dataclasses.replace(coarse, array=np.asarray(coarse.array)),
+                                     threshold, upper)
+    except VolumeEVMError:
+        return
+    vertices, polygons = vevm.mesh()
+    co = (vertices * BLENDER_UNITS_PER_MM).astype(np.float32)
+    jobs.show_preview(Preview(name, coarsest, co, polygons.unique_edges()[0]))
+
+
+def _build_steps(uid, path, options, threshold, upper, every_chunk, preview):
+    yield from preview
     vol = yield from read_steps(uid, path, options)
     yield 0.3, "building EVM"
-    vevm = VolumeEVM.from_volume(vol, threshold, upper)
+    vevm = yield from _chunk_steps(vol, threshold, upper, 0.3, 0.9, every_chunk)
     yield 0.9, "saving VolumeEVM"
     return vol, vevm
 
@@ -212,17 +369,21 @@ def build_job(obj, threshold=None, upper=None):
                       built_upper=upper if upper is not None else 0.0,
                       voxel_count=vevm.voxel_count, ev_count=len(vevm.evm),
                       vevm_bytes=report["total_bytes"], dense_bytes=report["dense_bytes"],
-                      vevm_path=str(file))
+                      vevm_path=str(file), built_level=options.get("level", 0))
         if upper is not None:
             values["upper"] = upper
         jobs.assign(target.volumeevm, **values)
         jobs.on_undo(functools.partial(runtime.set_status, uid, runtime.status(uid)))
         runtime.set_status(uid, "")
-        runtime.put_volume(uid, vol)
+        if "level" not in options:  # a store's level is read chunk by chunk, never kept
+            runtime.put_volume(uid, vol)
         return vevm
 
-    return jobs.Job(f"Build VolumeEVM of {name}",
-                    _build_steps(uid, path, options, threshold, upper), commit)
+    at = f" (level {options['level']})" if "level" in options else ""
+    coarsest = len(json.loads(s.zarr_levels)) - 1 if s.zarr_levels else None
+    preview = _preview_steps(name, path, options, coarsest, threshold, upper)
+    steps = _build_steps(uid, path, options, threshold, upper, bpy.app.background, preview)
+    return jobs.Job(f"Build VolumeEVM of {name}{at}", steps, commit)
 
 
 def build(obj, threshold=None, upper=None):
@@ -236,6 +397,11 @@ def build(obj, threshold=None, upper=None):
         In the data's own units; default: the object's ``volumeevm.threshold`` (and ``upper``
         when ``use_upper`` is set). Stored on the object.
 
+    The build runs chunk by chunk for a lazy volume (an OME-Zarr store's object builds its
+    ``volumeevm.level``, never reading the store whole), a progress step after each chunk.
+    Run from the UI (the Build button), a store's level finer than its coarsest shows the
+    coarsest level's surface edges in the viewport until the build ends (:mod:`.preview`).
+
     Returns
     -------
     VolumeEVM
@@ -245,7 +411,8 @@ def build(obj, threshold=None, upper=None):
     ------
     VolumeEVMError
         Not a volume object, an upper bound below the threshold, an empty region, a source
-        file that is gone, not enough memory.
+        file that is gone, a store's chunk that cannot be read (naming store, level and
+        chunk), not enough memory.
     """
     return jobs.run(build_job(obj, threshold, upper))
 

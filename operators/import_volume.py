@@ -24,8 +24,9 @@ def _is_raw(path):
 
 
 class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHelper):
-    """Import a volume (NumPy, raw, NRRD, NIfTI, DICOM series, TIFF stack, VolPack .den) as a
-    VolumeEVM volume object. For DICOM pick one file of the series or the folder"""
+    """Import a volume (NumPy, raw, NRRD, NIfTI, DICOM series, TIFF stack, VolPack .den,
+    OME-Zarr store) as a VolumeEVM volume object. For DICOM pick one file of the series or the
+    folder; for OME-Zarr open the store's folder (or pick any file in it)"""
 
     bl_idname = "volumeevm.import_volume"
     bl_label = "Import Volume"
@@ -73,8 +74,11 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
                 body.prop(self, prop)
 
     def _source(self):
-        """The path (or list of DICOM files) the user picked."""
+        """The path (or list of DICOM files, or the OME-Zarr store) the user picked."""
         names = [f.name for f in self.files if f.name]
+        store = volumes.zarr_store(self.filepath or self.directory)
+        if store is not None:
+            return str(store)
         if self.directory and len(names) > 1:
             return [os.path.join(self.directory, n) for n in names]
         if self.filepath and not os.path.isdir(self.filepath):

@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 from zarr_files import pyramid, write_store
 
-from volumeevm_addon import Volume, VolumeEVM, VolumeEVMError, otsu_threshold, read_volume
+from volumeevm_addon import (
+    Volume,
+    VolumeEVM,
+    VolumeEVMError,
+    chunked_build_memory,
+    otsu_threshold,
+    read_volume,
+)
 
 VOLUMES = ("ct_head_invesalius", "ct_skull_cgal", "seg_liver_cgal", "mr_t1_itk_kmeans",
            "mr_brainsmall_volpack", "micro_nuclei3d_stardist")
@@ -197,3 +204,42 @@ def test_memory_checked_before_and_during_the_build(data_dir, monkeypatch):
           f"result {result / 2**20:.2f} MiB, chunk {16 * 256 * 108 * 2 / 2**20:.2f} MiB")
     # One chunk in flight and the result, a few times over: far below the grid.
     assert peak < 4 * 16 * 256 * 108 * 2 + 4 * result < array.nbytes / 2
+
+
+def test_progress_after_each_chunk_and_an_exception_in_it_stops_the_build(data_dir):
+    array = np.load(data_dir / "ct_head_invesalius.npy")
+    volume = lazy(array, (64, 100, 50))  # 4 x 3 x 3 chunks
+    calls = []
+    built = VolumeEVM.from_volume(volume, 300, progress=lambda *args: calls.append(args))
+    assert calls == [(n, 36) for n in range(1, 37)]
+    assert_identical(built, VolumeEVM.from_array(array, 300))
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_five(done, _total):
+        calls.append(done)
+        if done == 5:
+            raise Stop
+
+    calls.clear()
+    with pytest.raises(Stop):
+        VolumeEVM.from_volume(volume, 300, progress=stop_at_five)
+    assert calls == [1, 2, 3, 4, 5]
+    calls.clear()
+    VolumeEVM.from_volume(Volume(array), 300, progress=lambda *args: calls.append(args))
+    assert calls == [(1, 1)]
+
+
+def test_memory_estimate_is_what_the_build_checks(data_dir, monkeypatch):
+    array = np.load(data_dir / "ct_head_invesalius.npy")
+    checked = []
+    monkeypatch.setattr("volumeevm_addon.model._chunked.check_memory",
+                        lambda needed, *a, **k: checked.append(needed))
+    with dask.config.set(num_workers=3):
+        region = VolumeEVM.from_volume(lazy(array, (64, 100, 50)), 300)
+    held = chunked_build_memory((64, 100, 50), array.dtype, 0, workers=3)
+    assert checked[0] == held == 3 * (3 * 64 * 100 * 50 * 2 + 10 * 64 * 100 * 50)
+    # After the last batch: the whole table held twice (keys add a little), chunks in flight.
+    assert checked[-1] >= chunked_build_memory((64, 100, 50), array.dtype, region.voxel_count,
+                                               workers=3)

@@ -8,7 +8,7 @@ import textwrap
 import bpy
 import numpy as np
 
-from ..blender import framing, jobs, labels, runtime, tool_stack
+from ..blender import framing, jobs, labels, runtime, tool_stack, volumes
 from ..blender.objects import active_volume
 
 #: Histogram rows drawn in the Histogram panel (the stored bins are summed in groups).
@@ -106,7 +106,9 @@ class VOLUMEEVM_PT_volume(_VolumeSubpanel, bpy.types.Panel):
         col.prop(s, "units")
         col.label(text=units_source(s), icon="INFO")
         col.label(text=f"Type: {s.dtype}, dense {human_bytes(s.dense_bytes or _dense(s))}")
-        if runtime.volume(s.uid) is None:
+        if s.zarr_levels:
+            draw_levels(col, active_volume(context))
+        elif runtime.volume(s.uid) is None:
             col.label(text="Not in memory: Build re-reads the source", icon="FILE_REFRESH")
         col.prop(s, "source_path", text="")
         layout = self.layout
@@ -117,6 +119,24 @@ class VOLUMEEVM_PT_volume(_VolumeSubpanel, bpy.types.Panel):
             box = layout.box()
             box.label(text=f"Hidden inside {', '.join(o.name for o in enclosing)}", icon="ERROR")
             box.operator("volumeevm.hide_enclosing", icon="HIDE_ON")
+
+
+def draw_levels(layout, obj):
+    """An OME-Zarr store's levels (size, spacing, bytes on disk and in memory, what building
+    each needs) and the level Build reads."""
+    box = layout.box()
+    box.label(text="OME-Zarr levels (Build reads the picked one chunk by chunk):")
+    picked = obj.volumeevm.level
+    for level in volumes.zarr_levels(obj):
+        x, y, z = level["shape"]
+        sx, sy, sz = level["spacing"]
+        icon = "RADIOBUT_ON" if level["level"] == picked else "RADIOBUT_OFF"
+        col = box.column(align=True)
+        col.label(text=f"{level['level']}: {x} × {y} × {z}, {sx:.3g} × {sy:.3g} × {sz:.3g} mm",
+                  icon=icon)
+        col.label(text=f"Disk {human_bytes(level['disk_bytes'])}, memory "
+                       f"{human_bytes(level['bytes'])}, build ~{human_bytes(level['build_bytes'])}")
+    box.prop(obj.volumeevm, "level")
 
 
 def units_source(s):

@@ -12,6 +12,8 @@ tool stack's ``TOOL_KINDS`` (only shear-warp's two classifications are listed he
 and descriptions shown in the sidebar are written here.
 """
 
+import json
+
 import bpy
 from bpy.props import (
     BoolProperty,
@@ -118,6 +120,19 @@ class VolumeEVMLabelMeasurement(bpy.types.PropertyGroup):
     components: IntProperty(name="Parts", description="Face-connected parts")
 
 
+def _level_picked(settings, context):
+    """A new OME-Zarr level: the object's size and spacing become that level's."""
+    levels = json.loads(settings.zarr_levels or "[]")
+    if not levels:
+        return
+    if settings.level >= len(levels):
+        settings.level = len(levels) - 1  # calls this again
+        return
+    picked = levels[settings.level]
+    settings.shape = picked["shape"]
+    settings.spacing = picked["spacing"]
+
+
 class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     """Per-object VolumeEVM state (``Object.volumeevm``).
 
@@ -153,6 +168,15 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
         description="Options the reader was given (JSON), used again when re-reading",
         default="{}",
     )
+    zarr_levels: StringProperty(
+        name="OME-Zarr Levels",
+        description="An OME-Zarr store's pyramid levels (JSON, from its metadata); empty for "
+                    "other sources")
+    level: IntProperty(
+        name="Level", min=0, default=0, update=_level_picked,
+        description="The OME-Zarr level Build reads, chunk by chunk (0 = full resolution)")
+    built_level: IntProperty(name="Built Level", min=0,
+                             description="The OME-Zarr level the VolumeEVM was built from")
     # --- grid geometry and data (small values only)
     shape: IntVectorProperty(name="Size", size=3, min=0, description="Voxels along x, y, z")
     spacing: FloatVectorProperty(name="Spacing", size=3, default=(1.0, 1.0, 1.0),

@@ -25,6 +25,7 @@ from ._memory import LIMIT_VARIABLE, available_memory, check_memory
 from ._voxelize import (MeshCheck, box_evm, check_closed_mesh, tool_to_grid, voxelize_mesh,
                         voxelize_mesh_evm)
 from .model._cache import DerivedCache
+from .model._chunked import chunked_build_memory
 from .model._evm import EVM
 from .model._histogram import density_histogram, otsu_threshold
 from .model._label_set import LabelSet
@@ -84,6 +85,7 @@ __all__ = [
     "camera_from_viewport",
     "check_closed_mesh",
     "check_memory",
+    "chunked_build_memory",
     "composite_over",
     "density_histogram",
     "exr_channels",

@@ -18,6 +18,7 @@ derives from it) plus the result (table and vertices) plus one batch of slabs, c
 starting and after every batch (:func:`volumeevm_addon.check_memory`).
 """
 
+import math
 import os
 import sys
 
@@ -78,9 +79,49 @@ def chunk_region(block, offset, threshold, upper, source):
     return keys, block[selected], np.count_nonzero(selected, axis=2), block.min(), block.max()
 
 
-def build_chunked(array, threshold, upper, source):
+def chunked_build_memory(chunks, dtype, voxel_count, *, workers=None):
+    """Estimated peak bytes of :meth:`VolumeEVM.from_volume` on a lazy volume.
+
+    The chunks in flight (each scheduler worker holds its chunk, a contiguous copy, the mask,
+    the chunk's densities and vertex keys) plus twice the region's densities table (the result
+    so far and the next batch's, as the build checks after every batch). The region's extreme
+    vertices are not counted: a region's vertices are few beside its voxels.
+
+    Parameters
+    ----------
+    chunks : tuple of 3 int
+        The largest chunk's shape.
+    dtype : numpy dtype or str
+        The densities' type.
+    voxel_count : int
+        Voxels in the region (an estimate before building, e.g. from a coarser level).
+    workers : int, optional
+        Chunks computed at once; default: what the Dask scheduler runs (a ``dask.distributed``
+        cluster's threads when a ``Client`` exists, else the local threads).
+
+    Returns
+    -------
+    int
+        Bytes.
+
+    Examples
+    --------
+    >>> chunked_build_memory((64, 64, 64), "uint16", 10**6, workers=2)
+    12388608
+    """
+    if workers is None:
+        import dask
+
+        workers = _workers(dask)
+    chunk_voxels = math.prod(chunks)
+    in_flight = workers * (3 * chunk_voxels * np.dtype(dtype).itemsize + 10 * chunk_voxels)
+    return int(in_flight + 2 * voxel_count * np.dtype(dtype).itemsize)
+
+
+def build_chunked(array, threshold, upper, source, progress=None):
     """The sorted vertex keys and the densities table (order "xyz") of the region of a lazy
-    ``(X, Y, Z)`` Dask array, chunk by chunk.
+    ``(X, Y, Z)`` Dask array, chunk by chunk; ``progress(done, total)`` after each chunk (see
+    :meth:`VolumeEVM.from_volume`).
 
     Returns
     -------
@@ -97,10 +138,8 @@ def build_chunked(array, threshold, upper, source):
     import dask
 
     workers = _workers(dask)
-    chunk_voxels = int(np.prod([max(c) for c in array.chunks]))
-    chunk_bytes = chunk_voxels * array.dtype.itemsize
-    # A worker holds its chunk, a contiguous copy, the mask, the densities and the keys.
-    in_flight = workers * (3 * chunk_bytes + 2 * chunk_voxels + 8 * chunk_voxels)
+    in_flight = chunked_build_memory([max(c) for c in array.chunks], array.dtype, 0,
+                                     workers=workers)
     check_memory(in_flight, f"building the VolumeEVM with {workers} chunks in flight",
                  source=source, advice=_ADVICE)
     starts = [np.r_[0, np.cumsum(c)] for c in array.chunks]
@@ -109,12 +148,14 @@ def build_chunked(array, threshold, upper, source):
     per_batch = max(1, (TASKS_PER_WORKER * workers) // (blocks.shape[1] * blocks.shape[2]))
     keys, tables = [], []
     low = high = None
+    done = 0
     for first in range(0, blocks.shape[0], per_batch):
         slabs = range(first, min(first + per_batch, blocks.shape[0]))
         tasks = [task(blocks[i, j, k], (int(starts[0][i]), int(starts[1][j]), int(starts[2][k])),
                       threshold, upper, source)
                  for i in slabs for j in range(blocks.shape[1]) for k in range(blocks.shape[2])]
-        results = dask.compute(*tasks)
+        results = _computed(dask, tasks, progress, done, blocks.size)
+        done += len(tasks)
         per_slab = blocks.shape[1] * blocks.shape[2]
         for n, _ in enumerate(slabs):
             slab = results[n * per_slab:(n + 1) * per_slab]
@@ -130,6 +171,29 @@ def build_chunked(array, threshold, upper, source):
                      source=source, advice=_ADVICE)
     keys = _sweep.parity(np.concatenate(keys), runs=True)
     return keys, _concatenated(tables, array.dtype), low, high
+
+
+def _computed(dask, tasks, progress, done, total):
+    """``dask.compute(*tasks)``, calling ``progress(done + n, total)`` as the n-th task ends.
+
+    The local schedulers call back on this thread as each chunk's task ends; a distributed
+    cluster does not call back, so the calls come when the batch ends."""
+    if progress is None:
+        return dask.compute(*tasks)
+    from dask.callbacks import Callback
+
+    ended = [done]
+
+    def task_ended(key, *_):
+        if str(key[0] if isinstance(key, tuple) else key).startswith("chunk_region-"):
+            ended[0] += 1
+            progress(ended[0], total)
+
+    with Callback(posttask=task_ended):
+        results = dask.compute(*tasks)
+    for n in range(ended[0] + 1, done + len(tasks) + 1):
+        progress(n, total)
+    return results
 
 
 def _workers(dask):

@@ -213,7 +213,7 @@ class VolumeEVM:
                    orientation=orientation, units=units, threshold=threshold, upper=upper)
 
     @classmethod
-    def from_volume(cls, volume, threshold, upper=None):
+    def from_volume(cls, volume, threshold, upper=None, *, progress=None):
         """Build from a :class:`Volume` (a reader's result), keeping its geometry and units.
 
         A lazy volume (its ``array`` a Dask array: an OME-Zarr store, ``read_volume(path,
@@ -228,6 +228,12 @@ class VolumeEVM:
             As :func:`volumeevm_addon.read_volume` returns it.
         threshold, upper : real number
             The density interval that selects the region, as for :meth:`from_array`.
+        progress : callable, optional
+            Called as ``progress(done, total)`` after each chunk of a lazy volume (``total``
+            chunks in all), on the calling thread (on a ``dask.distributed`` cluster, when
+            each batch of chunks ends); an in-memory volume is one chunk, ``(1, 1)`` once
+            built. An exception it raises stops the build and comes out of this call (a
+            caller cancels so).
 
         Returns
         -------
@@ -253,13 +259,16 @@ class VolumeEVM:
         if not isinstance(volume, Volume):
             raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got {type(volume).__name__}")
         if is_lazy(volume.array):
-            return cls._from_lazy(volume, threshold, upper)
-        return cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
-                              origin=volume.origin, orientation=volume.orientation,
-                              units=volume.units, source=volume.source or "volume")
+            return cls._from_lazy(volume, threshold, upper, progress)
+        built = cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
+                               origin=volume.origin, orientation=volume.orientation,
+                               units=volume.units, source=volume.source or "volume")
+        if progress is not None:
+            progress(1, 1)
+        return built
 
     @classmethod
-    def _from_lazy(cls, volume, threshold, upper):
+    def _from_lazy(cls, volume, threshold, upper, progress):
         """:meth:`from_volume` of a lazy volume, checked as :meth:`from_array` checks."""
         source = volume.source or "volume"
         array = volume.array
@@ -274,7 +283,7 @@ class VolumeEVM:
         if not isinstance(volume.units, str):
             raise VolumeEVMError(
                 f"{source}: units must be a string (such as 'HU'), got {volume.units!r}")
-        keys, table, low, high = build_chunked(array, threshold, upper, source)
+        keys, table, low, high = build_chunked(array, threshold, upper, source, progress)
         if len(table) == 0:
             band = f">= {threshold}" if upper is None else f"in [{threshold}, {upper}]"
             raise VolumeEVMError(f"{source}: the region is empty: no density is {band} "
