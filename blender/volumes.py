@@ -24,14 +24,13 @@ import bpy
 import numpy as np
 
 from ..volumeevm_addon import (
-    BLENDER_UNITS_PER_MM,
     VolumeEVM,
     VolumeEVMError,
     density_histogram,
-    index_to_physical,
     otsu_threshold,
     read_volume,
 )
+from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM, index_to_physical
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object
