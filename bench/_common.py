@@ -12,7 +12,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from volumeevm_addon import render_options, write_atomically  # noqa: E402
+from volumeevm_addon.rendering import render_options  # noqa: E402
+from volumeevm_addon.system import write_atomically  # noqa: E402
 
 
 def best_time(function, repeat, setup=None):
@@ -63,7 +64,7 @@ def write_json(path, data):
 
 def non_default(method, options):
     """``options`` without the entries equal to the method's own defaults
-    (:func:`volumeevm_addon.render_options`; so a swept setting that is the default is
+    (:func:`volumeevm_addon.rendering.render_options`; so a swept setting that is the default is
     recognised as it)."""
     defaults = render_options(method)
     return {k: v for k, v in options.items() if k not in defaults or defaults[k] != v}

@@ -77,7 +77,7 @@ def world_at(core, vol_obj, vevm, fraction):
 
 def extent_bu(core, vevm):
     """The grid's size along x, y, z in Blender units."""
-    return np.asarray(vevm.shape) * np.asarray(vevm.spacing) * core.BLENDER_UNITS_PER_MM
+    return np.asarray(vevm.shape) * np.asarray(vevm.spacing) * core.model.BLENDER_UNITS_PER_MM
 
 
 def add_tools(core, api, vol, vevm):
@@ -112,7 +112,7 @@ def check_surface(core, surface, result):
     mesh.vertices.foreach_get("co", co)
     loops = np.empty(len(mesh.loops), np.int32)
     mesh.loops.foreach_get("vertex_index", loops)
-    expected = (np.asarray(verts_mm) * core.BLENDER_UNITS_PER_MM).astype(np.float32).ravel()
+    expected = (np.asarray(verts_mm) * core.model.BLENDER_UNITS_PER_MM).astype(np.float32).ravel()
     if not (np.array_equal(co, expected) and np.array_equal(loops, polys.indices)):
         raise AssertionError("the surface mesh differs from the core's mesh of the stack")
 
@@ -196,8 +196,8 @@ def main():
         tools = add_tools(core, api, vol, vevm)
         results["add_three_tools_s"] = round(time.perf_counter() - start, 3)
         check_surface(core, vol.volumeevm.surface, api.stack_state(vol).result)
-        core.set_kernel_compile_hook(FIRST_USE.append)  # here: each job puts its own back
-        step_bu = args.step_mm * core.BLENDER_UNITS_PER_MM
+        core.system.set_kernel_compile_hook(FIRST_USE.append)  # here: each job puts its own back
+        step_bu = args.step_mm * core.model.BLENDER_UNITS_PER_MM
         run_number = 0
         for threads in args.threads:
             core.set_kernel_threads(threads)

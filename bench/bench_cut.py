@@ -51,16 +51,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench._common import best_time, run_facts, write_json  # noqa: E402
-from volumeevm_addon import (  # noqa: E402
-    EVM,
-    EditStack,
-    ToolOperation,
-    VolumeEVM,
-    VolumeEVMError,
-    check_closed_mesh,
-    voxelize_mesh,
-    voxelize_mesh_evm,
-)
+from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError, voxelize_mesh  # noqa: E402
+from volumeevm_addon.model import EditStack, ToolOperation, check_closed_mesh, voxelize_mesh_evm  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 THRESHOLD = 300.0

@@ -81,7 +81,6 @@ sys.path.insert(0, str(REPO / "bench" / "peers"))
 
 from bench._common import accepts, non_default, run_facts, write_json  # noqa: E402
 from volumeevm_addon import (  # noqa: E402
-    BLENDER_UNITS_PER_MM,
     METHODS,
     Camera,
     TransferFunction,
@@ -90,9 +89,10 @@ from volumeevm_addon import (  # noqa: E402
     kernel_threads,
     phantoms,
     render,
-    write_atomically,
 )
 from volumeevm_addon.metrics import image_errors  # noqa: E402
+from volumeevm_addon.model import BLENDER_UNITS_PER_MM  # noqa: E402
+from volumeevm_addon.system import write_atomically  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 OURS = tuple(m for m in METHODS if m != "reference")
@@ -306,7 +306,7 @@ FIRST_USE = """
 import json, sys, time
 sys.path.insert(0, sys.argv[1])
 import volumeevm_addon
-volumeevm_addon.set_kernel_cache_dir(sys.argv[2])
+volumeevm_addon.system.set_kernel_cache_dir(sys.argv[2])
 from bench.bench_dvr import scene
 vevm, cam, tf = scene(sys.argv[3], "ortho")
 times = []

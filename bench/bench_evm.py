@@ -46,7 +46,7 @@ start = time.perf_counter()
 sys.path.insert(0, sys.argv[1])
 import numpy as np
 import volumeevm_addon
-volumeevm_addon.set_kernel_cache_dir(sys.argv[2])
+volumeevm_addon.system.set_kernel_cache_dir(sys.argv[2])
 mask = np.load(sys.argv[3]) >= 300
 ready = time.perf_counter()
 volumeevm_addon.EVM.from_mask(mask).mesh()

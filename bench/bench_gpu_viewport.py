@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._common import REPO, run_facts, write_json  # noqa: E402
 from bench.bench_dvr import scene  # noqa: E402
-from volumeevm_addon import method_options  # noqa: E402
+from volumeevm_addon.rendering import method_options
 
 SIZES = ((256, 256), (512, 512), (1280, 720))
 """Image sizes (width, height)."""
@@ -76,6 +76,7 @@ def main():
 
     import bpy  # noqa: F401  (it makes the gpu module importable)
     import gpu
+
     from sample_blends.make_demo import load_extension
 
     load_extension()

@@ -41,16 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench._common import accepts, run_facts, write_json  # noqa: E402
-from volumeevm_addon import (  # noqa: E402
-    Camera,
-    TransferFunction,
-    VolumeEVM,
-    grid_to_world,
-    phantoms,
-    render,
-    write_atomically,
-)
-from volumeevm_addon import BLENDER_UNITS_PER_MM as BU  # noqa: E402
+from volumeevm_addon import Camera, TransferFunction, VolumeEVM, grid_to_world, phantoms, render  # noqa: E402
 from volumeevm_addon.metrics import (  # noqa: E402
     bias_jump,
     popping_index,
@@ -58,6 +49,8 @@ from volumeevm_addon.metrics import (  # noqa: E402
     spectral_peak,
     temporal_errors,
 )
+from volumeevm_addon.model import BLENDER_UNITS_PER_MM as BU  # noqa: E402
+from volumeevm_addon.system import write_atomically  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 # Each method at its default and at the settings meant to fix its failure modes.

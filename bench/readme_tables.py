@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.bench_dvr import groups, read_csv, time_table  # noqa: E402
-from volumeevm_addon import write_atomically  # noqa: E402
+from volumeevm_addon.system import write_atomically  # noqa: E402
 
 BLOCK = re.compile(r"(<!-- bench:(?P<name>[\w:]+) -->\n)(?P<body>.*?)(<!-- /bench:(?P=name) -->)",
                    re.DOTALL)

@@ -39,17 +39,10 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import (
-    METHODS as CORE_METHODS,
-    TransferFunction,
-    VolumeEVMError,
-    atomic_target,
-    composite_over,
-    method_options,
-    output_depth,
-    render,
-    render_options,
-)
+from ..volumeevm_addon import METHODS as CORE_METHODS
+from ..volumeevm_addon import TransferFunction, VolumeEVMError, render
+from ..volumeevm_addon.rendering import composite_over, method_options, output_depth, render_options
+from ..volumeevm_addon.system import atomic_target
 from . import exr, gpu_dvr, images, jobs
 from .camera import camera_from_blender
 from .objects import get_vevm, own_surface, render_volume, volume_object

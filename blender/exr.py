@@ -8,6 +8,8 @@ import numpy as np
 
 from .. import volumeevm_addon as core
 from ..volumeevm_addon import VolumeEVMError
+from ..volumeevm_addon.rendering import exr_channels, openexr_module
+from ..volumeevm_addon.system import write_atomically
 
 __all__ = ["write_exr", "read_exr"]
 
@@ -27,11 +29,11 @@ def _oiio():
 
 def write_exr(path, rgba, depth=None, *, overwrite=False):
     """:func:`volumeevm_addon.write_exr`, through OpenImageIO without OpenEXR."""
-    if core.openexr_module() is not None:
+    if openexr_module() is not None:
         return core.write_exr(path, rgba, depth, overwrite=overwrite)
-    channels = core.exr_channels(rgba, depth)
-    return core.write_atomically(path, lambda temporary: _write_oiio(temporary, channels),
-                                 overwrite=overwrite)
+    channels = exr_channels(rgba, depth)
+    return write_atomically(path, lambda temporary: _write_oiio(temporary, channels),
+                            overwrite=overwrite)
 
 
 def _write_oiio(path, channels):
@@ -55,7 +57,7 @@ def _write_oiio(path, channels):
 
 def read_exr(path):
     """:func:`volumeevm_addon.read_exr`, through OpenImageIO without OpenEXR."""
-    if core.openexr_module() is not None:
+    if openexr_module() is not None:
         return core.read_exr(path)
     oiio = _oiio()
     channels = {}

@@ -48,7 +48,8 @@ import gpu
 import numpy as np
 from bpy.app.handlers import persistent
 
-from ..volumeevm_addon import VolumeEVMError, axial_from_window, camera_from_viewport
+from ..volumeevm_addon import VolumeEVMError
+from ..volumeevm_addon.rendering import axial_from_window, camera_from_viewport
 from . import display_lut, gpu_dvr, runtime
 from .dvr import settings_options
 from .objects import get_vevm, volume_object

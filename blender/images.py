@@ -14,7 +14,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import VolumeEVMError, write_atomically
+from ..volumeevm_addon import VolumeEVMError
+from ..volumeevm_addon.system import write_atomically
 from . import jobs
 from .scene import changed
 

@@ -1,7 +1,7 @@
 """The core's compiled kernels inside Blender: their cache folder, their threads, their first use.
 
 The core compiles its hot loops with Numba the first time each runs, and keeps the machine code
-on disk (``volumeevm_addon.set_kernel_cache_dir``). Blender's side decides three things:
+on disk (``volumeevm_addon.system.set_kernel_cache_dir``). Blender's side decides three things:
 
 - **Where the cache lives**: :func:`register` puts it in the extension's user folder,
   ``bpy.utils.extension_path_user(<package>, path="numba")``, which Blender keeps across
@@ -25,7 +25,8 @@ from contextlib import contextmanager
 
 import bpy
 
-from ..volumeevm_addon import set_kernel_cache_dir, set_kernel_compile_hook, set_kernel_threads
+from ..volumeevm_addon import set_kernel_threads
+from ..volumeevm_addon.system import set_kernel_cache_dir, set_kernel_compile_hook
 
 #: The progress text while kernels are loaded or compiled for the first time in a session.
 FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"

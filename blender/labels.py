@@ -21,7 +21,8 @@ it was (:func:`.jobs.transaction`).
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import Polygons, VolumeEVM, VolumeEVMError
+from ..volumeevm_addon import VolumeEVM, VolumeEVMError
+from ..volumeevm_addon.model import Polygons
 from . import jobs, tool_stack
 from .meshes import Faces, fill_mesh, surface_geometry
 from .objects import volume_object

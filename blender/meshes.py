@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..volumeevm_addon import BLENDER_UNITS_PER_MM, BoundaryMesh, Polygons
+from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM, BoundaryMesh, Polygons
 from . import jobs
 
 #: Outward triangles of the box whose corner (i, j, k) in {0, 1}^3 is vertex 4 i + 2 j + k.

@@ -48,7 +48,9 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import BLENDER_UNITS_PER_MM, VolumeEVMError, check_memory, write_atomically
+from ..volumeevm_addon import VolumeEVMError
+from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM
+from ..volumeevm_addon.system import check_memory, write_atomically
 from . import jobs, runtime, sidecar
 from .objects import get_vevm, link, volume_object
 from .transfer import ensure_ramp, transfer_function

@@ -14,7 +14,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import BACKGROUND_DEPTH, VolumeEVMError
+from ..volumeevm_addon import VolumeEVMError
+from ..volumeevm_addon.rendering import BACKGROUND_DEPTH
 from . import exr
 
 

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import bpy
 
-from ..volumeevm_addon import VolumeEVM, VolumeEVMError, write_atomically
+from ..volumeevm_addon import VolumeEVM, VolumeEVMError
+from ..volumeevm_addon.system import write_atomically
 from . import runtime
 
 _session_dir = None

@@ -48,21 +48,25 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import (
-    EVM,
+from ..volumeevm_addon import EVM, LabelSet, VolumeEVM, VolumeEVMError
+from ..volumeevm_addon.model import (
     EditStack,
-    LabelSet,
     Polygons,
     ToolOperation,
-    VolumeEVM,
-    VolumeEVMError,
     box_evm,
     tool_to_grid,
     voxelize_mesh_evm,
 )
 from . import jobs, runtime, sidecar, volumes
-from .meshes import (BOX_FACES, Faces, fill_mesh, refill_mesh, sizes, surface_geometry,
-                     tool_triangles)
+from .meshes import (
+    BOX_FACES,
+    Faces,
+    fill_mesh,
+    refill_mesh,
+    sizes,
+    surface_geometry,
+    tool_triangles,
+)
 from .objects import attach_surface, own_surface, volume_object
 
 

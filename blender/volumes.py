@@ -30,17 +30,10 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import (
-    BLENDER_UNITS_PER_MM,
-    VolumeEVM,
-    VolumeEVMError,
-    chunked_build_memory,
-    density_histogram,
-    index_to_physical,
-    otsu_threshold,
-    read_volume,
-    volume_levels,
-)
+from ..volumeevm_addon import (VolumeEVM, VolumeEVMError, density_histogram, otsu_threshold,
+                               read_volume, volume_levels)
+from ..volumeevm_addon.model import chunked_build_memory
+from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM, index_to_physical
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object
@@ -256,7 +249,7 @@ def zarr_levels(obj):
     """The OME-Zarr levels of a store's volume object (empty for other sources), finest first:
     dicts of :func:`volumeevm_addon.volume_levels` with ``disk_bytes`` (its chunk files) and
     ``build_bytes``, the core's estimate of what building it needs
-    (:func:`volumeevm_addon.chunked_build_memory`), the region's voxels estimated from the
+    (:func:`volumeevm_addon.model.chunked_build_memory`), the region's voxels estimated from the
     coarsest level's histogram at the object's threshold."""
     s = volume_object(obj).volumeevm
     levels = json.loads(s.zarr_levels or "[]")

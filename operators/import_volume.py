@@ -14,7 +14,7 @@ from bpy.props import (
 from bpy_extras.io_utils import ImportHelper
 
 from ..blender import framing, jobs, volumes
-from ..volumeevm_addon import SUPPORTED_EXTENSIONS
+from ..volumeevm_addon.readers import SUPPORTED_EXTENSIONS
 
 _RAW_ENDINGS = (".raw", ".bin")
 

@@ -145,7 +145,7 @@ def stage(scene, centre, radius, view, size):
 def render_png(scene, path):
     """Render to ``path`` atomically (a temporary file in the same folder, then a rename)."""
 
-    from volumeevm.volumeevm_addon import write_atomically
+    from volumeevm.volumeevm_addon.system import write_atomically
 
     def render(temporary):
         scene.render.filepath = str(temporary)
@@ -179,7 +179,7 @@ def turntable(scene, pivot, frames):
 def movie(frames_pattern, frames, path, fps):
     """The PNG frames as an H.264 MP4, by Blender's own FFmpeg: an image-sequence strip in the
     sequencer of a scene of its own, rendered as an animation."""
-    from volumeevm.volumeevm_addon import write_atomically
+    from volumeevm.volumeevm_addon.system import write_atomically
 
     first = Path(frames_pattern.replace("####", "0001"))
     scene = bpy.data.scenes.new("Turntable movie")

@@ -9,9 +9,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from volumeevm_addon import (EVM, Volume, VolumeEVM, VolumeEVMError, voxelize_mesh,
-                             voxelize_mesh_evm)
-from volumeevm_addon.model import _volumeevm
+from volumeevm_addon import EVM, Volume, VolumeEVM, VolumeEVMError, voxelize_mesh
+from volumeevm_addon.model import _volumeevm, voxelize_mesh_evm
 
 ONES = np.ones((3, 3, 3), np.int16)
 ROTATION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

@@ -14,6 +14,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 import pytest
+
 from blender_helpers import api, core, ct_crop_npy, ext, fresh  # noqa: F401 (fixtures)
 
 BONE_HU = 150.0  # ct_bone turns opaque from 150 HU: the region is what the preset shows
@@ -81,7 +82,7 @@ def test_voxel_centres_land_where_the_mesh_puts_them(core, nv):
     transform = nv.region_grid(vevm).transform
     for ijk in [(1, 2, 1), (3, 3, 2), (2, 2, 1)]:
         corners = np.array([np.add(ijk, c) for c in np.ndindex(2, 2, 2)], np.float64)
-        centre = vevm.corner_positions(corners).mean(axis=0) * core.BLENDER_UNITS_PER_MM
+        centre = vevm.corner_positions(corners).mean(axis=0) * core.model.BLENDER_UNITS_PER_MM
         np.testing.assert_allclose(transform.indexToWorld(ijk), centre, rtol=0, atol=1e-12)
 
 
@@ -98,7 +99,7 @@ def test_volume_object_grid_placement_and_file(api, core, nv, bone):
     matrix = np.array(grid.matrix_object, np.float64)
     ijk = np.array([5.0, 7.0, 3.0])
     corners = np.array([ijk + c for c in np.ndindex(2, 2, 2)])
-    centre = vevm.corner_positions(corners).mean(axis=0) * core.BLENDER_UNITS_PER_MM
+    centre = vevm.corner_positions(corners).mean(axis=0) * core.model.BLENDER_UNITS_PER_MM
     np.testing.assert_allclose(matrix[:3, :3] @ ijk + matrix[:3, 3], centre, atol=1e-7)
     # Moving the volume object moves the native volume with it, as the surface.
     bone.location, bone.rotation_euler = (0.1, -0.2, 0.05), (0.3, 0.0, 1.0)
@@ -202,7 +203,7 @@ def test_no_openvdb_module_is_a_clear_error(api, core, nv, bone, monkeypatch):
 
 
 def test_too_large_for_memory_is_refused_before_writing(api, core, nv, bone, monkeypatch):
-    monkeypatch.setenv(core.LIMIT_VARIABLE, "64K")
+    monkeypatch.setenv(core.system.LIMIT_VARIABLE, "64K")
     files = set(nv.sidecar.session_dir().glob("*.vdb"))
     with pytest.raises(core.VolumeEVMError, match="OpenVDB grid|region's box"):
         api.make_volume_object(bone)

@@ -11,8 +11,9 @@ import bpy
 import numpy as np
 import OpenEXR
 import pytest
-from blender_helpers import REPO, ext, fresh  # noqa: F401 (fixtures)
 from mathutils import Vector
+
+from blender_helpers import REPO, ext, fresh  # noqa: F401 (fixtures)
 
 SKULL = REPO / "sample_blends" / "data" / "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9
@@ -235,7 +236,7 @@ def test_operator_end_to_end(ext, dvr, skull, tmp_path):
     assert np.isfinite(composite).all()
     # Equal to the core render over the scene render (rays stopped at the scene depth).
     tf = ext.blender.transfer.transfer_function(s)
-    options = ext.volumeevm_addon.method_options("raycast", 1.0, skull.volumeevm.spacing)
+    options = ext.volumeevm_addon.rendering.method_options("raycast", 1.0, skull.volumeevm.spacing)
     expected = dvr.render_dvr(skull, tf, method="raycast", image_name="check", options=options)
     from volumeevm.volumeevm_addon import render
 
@@ -598,7 +599,7 @@ def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dv
     assert levels() == [2]
     images = {}
     for level in ("full", "auto"):
-        options = ext.volumeevm_addon.method_options("raycast", 1.0, spacing, level=level)
+        options = ext.volumeevm_addon.rendering.method_options("raycast", 1.0, spacing, level=level)
         images[level] = dvr.render_dvr(skull, bone_tf(), options=options).dvr_rgba
     assert levels() == [2]
     assert vevm.level(2).voxel_count < vevm.voxel_count / 4
@@ -607,7 +608,7 @@ def test_resolution_setting_renders_a_minified_view_from_a_coarser_level(ext, dv
     error = rmse(images["auto"], images["full"])
     assert 1e-4 < error < 0.14, error
     with pytest.raises(ext.volumeevm_addon.VolumeEVMError, match="level"):
-        ext.volumeevm_addon.method_options("raycast", 1.0, spacing, level="half")
+        ext.volumeevm_addon.rendering.method_options("raycast", 1.0, spacing, level="half")
 
 
 def test_method_settings_reach_the_core(ext, dvr, skull, tmp_path):
@@ -627,8 +628,8 @@ def test_method_settings_reach_the_core(ext, dvr, skull, tmp_path):
     assert "slices_per_voxel" not in options
     spacing = skull.volumeevm.spacing
     # quality = sub-slabs
-    assert ext.volumeevm_addon.method_options("splat", 3.0, spacing)["substeps"] == 3
-    assert ext.volumeevm_addon.method_options("splat", 0.5, spacing)["substeps"] == 1
+    assert ext.volumeevm_addon.rendering.method_options("splat", 3.0, spacing)["substeps"] == 3
+    assert ext.volumeevm_addon.rendering.method_options("splat", 0.5, spacing)["substeps"] == 1
     images = []
     for on in (True, False):
         s.jitter = s.preintegrate = on

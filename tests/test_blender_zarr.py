@@ -144,7 +144,7 @@ def test_volume_panel_lists_the_levels_and_the_picked_one_is_built(store, crop, 
     s.threshold = s.value_min
     full = [lv["build_bytes"] for lv in ext.blender.volumes.zarr_levels(obj)]
     for level, none, everything in zip(levels, empty, full):
-        assert none == core.chunked_build_memory(level["chunks"], level["dtype"], 0)
+        assert none == core.model.chunked_build_memory(level["chunks"], level["dtype"], 0)
         assert everything - none == 2 * level["bytes"]
     s.threshold = CT_BONE_HU
     assert ext.blender.volumes.region_fraction(s) == pytest.approx(

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volumeevm_addon import BACKGROUND_DEPTH, Camera, VolumeEVMError
+from volumeevm_addon import Camera, VolumeEVMError
+from volumeevm_addon.rendering import BACKGROUND_DEPTH
 
 
 # ---------------------------------------------------------------------------- core rules

@@ -4,7 +4,8 @@
 import numpy as np
 import pytest
 
-from volumeevm_addon import BACKGROUND_DEPTH, VolumeEVMError, composite_over, output_depth
+from volumeevm_addon import VolumeEVMError
+from volumeevm_addon.rendering import BACKGROUND_DEPTH, composite_over, output_depth
 
 
 def test_over_is_dvr_plus_the_scene_through_what_the_dvr_lets_pass():

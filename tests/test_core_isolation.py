@@ -163,9 +163,11 @@ def core_imports():
             if isinstance(node, ast.ImportFrom) and node.level:
                 base = ".".join(package[:len(package) - node.level + 1]
                                 + ([node.module] if node.module else []))
-                for candidate in [base] + [f"{base}.{alias.name}" for alias in node.names]:
-                    if candidate in names and candidate != name:
-                        targets.add(candidate)
+                submodules = [f"{base}.{alias.name}" for alias in node.names]
+                # ``from . import _sweep`` takes a sibling module, not the package's own names:
+                # the package (whose ``__init__`` may import its modules) is no dependency then.
+                wanted = submodules if all(m in names for m in submodules) else [base, *submodules]
+                targets.update(m for m in wanted if m in names and m != name)
             elif isinstance(node, (ast.Import, ast.ImportFrom)):
                 modules = ([alias.name for alias in node.names] if isinstance(node, ast.Import)
                            else [node.module])

@@ -18,10 +18,14 @@ import numpy as np
 import pytest
 
 import gpu_cases
-from volumeevm_addon import (BACKGROUND_DEPTH, TransferFunction, VolumeEVM, axial_from_window,
-                             camera_from_viewport, composite_over, grid_to_world, phantoms,
-                             render)
+from volumeevm_addon import TransferFunction, VolumeEVM, grid_to_world, phantoms, render
 from volumeevm_addon.metrics import rmse
+from volumeevm_addon.rendering import (
+    BACKGROUND_DEPTH,
+    axial_from_window,
+    camera_from_viewport,
+    composite_over,
+)
 
 RUNNER = Path(__file__).resolve().parent / "gpu_runner.py"
 REQUIRE = "VOLUMEEVM_REQUIRE_GPU"

@@ -11,9 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volumeevm_addon import (VolumeEVMError, kernel_threads, set_kernel_cache_dir,
-                             set_kernel_compile_hook, set_kernel_threads)
-from volumeevm_addon import _jit
+from volumeevm_addon import VolumeEVMError, _jit, kernel_threads, set_kernel_threads
+from volumeevm_addon.system import set_kernel_cache_dir, set_kernel_compile_hook
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -114,7 +113,7 @@ def test_kernels_are_cached_in_the_chosen_folder(tmp_path):
         def cube(x):
             return x * x * x
 
-        volumeevm_addon.set_kernel_cache_dir(sys.argv[2])
+        volumeevm_addon.system.set_kernel_cache_dir(sys.argv[2])
         assert cube(np.int64(3)) == 27
         stats = cube.dispatcher.stats
         print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))

@@ -10,8 +10,16 @@ import math
 import numpy as np
 import pytest
 
-from volumeevm_addon import (EVM, LabelInfo, LabelSet, Volume, VolumeEVM, VolumeEVMError,
-                             box_evm, phantoms, set_kernel_threads)
+from volumeevm_addon import (
+    EVM,
+    LabelSet,
+    Volume,
+    VolumeEVM,
+    VolumeEVMError,
+    phantoms,
+    set_kernel_threads,
+)
+from volumeevm_addon.model import LabelInfo, box_evm
 
 
 @pytest.fixture(scope="module")

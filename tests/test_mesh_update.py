@@ -4,7 +4,8 @@ array (vertices, polygons, Blender's edges), and carries per-vertex values to th
 import numpy as np
 import pytest
 
-from volumeevm_addon import EVM, BoundaryMesh, VolumeEVM, box_evm
+from volumeevm_addon import EVM, VolumeEVM
+from volumeevm_addon.model import BoundaryMesh, box_evm
 
 
 def _ball(shape, centre, radius):

@@ -1,15 +1,16 @@
 """The public API documents itself: numpydoc sections that match the code, keyword-only options.
 
 Walks every callable a user reaches without a private name: the names of
-``volumeevm_addon.__all__``, the public methods and properties of its classes, and the functions
-of ``volumeevm_addon.phantoms`` and ``volumeevm_addon.metrics``. Each must have a docstring
+``volumeevm_addon.__all__`` and of its public sub-packages' ``__all__`` (``model``,
+``rendering``, ``readers``, ``system``, ``phantoms``, ``metrics``), and the public methods and
+properties of their classes. Each must have a docstring
 whose "Parameters" section names every parameter (a class's constructor parameters in the class
 docstring; a record's fields may be its "Attributes"), a "Returns" section when its body
 returns a value ("Yields" for a generator) and a "Raises" section naming every exception its
 body raises itself. The rules read the code (the signature and the body's
 ``return``/``yield``/``raise`` statements), so the documentation cannot drift from it.
 :func:`~volumeevm_addon.render`'s "Other Parameters" must list exactly the options
-:func:`~volumeevm_addon.render_options` gives for each method, with the same defaults.
+:func:`~volumeevm_addon.rendering.render_options` gives for each method, with the same defaults.
 """
 
 import ast
@@ -22,14 +23,33 @@ import textwrap
 import pytest
 
 import volumeevm_addon
-from volumeevm_addon import (METHODS, Camera, Shading, ToolOperation, TransferFunction, Volume,
-                             metrics, phantoms, render, render_options)
+from volumeevm_addon import (
+    METHODS,
+    Camera,
+    Shading,
+    TransferFunction,
+    Volume,
+    metrics,
+    model,
+    phantoms,
+    readers,
+    render,
+    rendering,
+    system,
+)
+from volumeevm_addon.model import ToolOperation
+from volumeevm_addon.rendering import render_options
+
+#: The public sub-packages and modules, each with the prefix its names are reached by.
+MODULES = ((volumeevm_addon, ""), (model, "model."), (rendering, "rendering."),
+           (readers, "readers."), (system, "system."), (phantoms, "phantoms."),
+           (metrics, "metrics."))
 
 
 def _public_callables():
     """``{name: (owner class or None, object)}``; properties are their ``property`` object."""
     found = {}
-    for module, prefix in ((volumeevm_addon, ""), (phantoms, "phantoms."), (metrics, "metrics.")):
+    for module, prefix in MODULES:
         for name in module.__all__:
             obj = getattr(module, name)
             if not (inspect.isclass(obj) or inspect.isfunction(obj)):
@@ -225,3 +245,22 @@ def test_render_documents_every_methods_options():
         have = {name: methods[method] for name, methods in documented.items() if method in methods}
         assert have == render_options(method), method
     assert set().union(*documented.values()) <= set(METHODS)
+
+
+def test_top_level_is_the_users_and_moved_names_still_work_with_a_warning():
+    """About 20 names a user calls at the top; the sub-packages' names do not overlap; a name
+    moved to a sub-package still works from the top with a DeprecationWarning naming its new
+    place."""
+    assert 15 <= len(volumeevm_addon.__all__) <= 25
+    places = {}
+    for module, prefix in MODULES[1:]:
+        for name in module.__all__:
+            places.setdefault(name, []).append(prefix)
+    assert {name: where for name, where in places.items() if len(where) > 1} == {}
+    for name, place in volumeevm_addon._MOVED.items():
+        assert name not in volumeevm_addon.__all__ and name in getattr(volumeevm_addon, place).__all__
+        with pytest.warns(DeprecationWarning, match=f"volumeevm_addon.{place}.{name}"):
+            old = getattr(volumeevm_addon, name)
+        assert old is getattr(getattr(volumeevm_addon, place), name)
+    with pytest.raises(AttributeError, match="no_such_name"):
+        getattr(volumeevm_addon, "no_such_name")

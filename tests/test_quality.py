@@ -4,7 +4,8 @@ method that takes it."""
 import numpy as np
 import pytest
 
-from volumeevm_addon import LEVELS, METHODS, VolumeEVMError, method_options, render_options
+from volumeevm_addon import LEVELS, METHODS, VolumeEVMError
+from volumeevm_addon.rendering import method_options, render_options
 
 SPACING = (0.8, 0.5, 1.25)
 

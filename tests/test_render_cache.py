@@ -11,8 +11,16 @@ import weakref
 import numpy as np
 import pytest
 
-from volumeevm_addon import (Camera, DerivedCache, TransferFunction, VolumeEVM, VolumeEVMError,
-                             grid_to_world, phantoms, render)
+from volumeevm_addon import (
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    grid_to_world,
+    phantoms,
+    render,
+)
+from volumeevm_addon.model import DerivedCache
 from volumeevm_addon.model._cache import held_bytes
 from volumeevm_addon.rendering._render import _tables_to_build
 

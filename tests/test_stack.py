@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from volumeevm_addon import EVM, EditStack, ToolOperation, VolumeEVM, box_evm
+from volumeevm_addon import EVM, VolumeEVM
+from volumeevm_addon.model import EditStack, ToolOperation, box_evm
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests of the exact mesh voxelization (volumeevm_addon/_voxelize.py).
+"""Tests of the exact mesh voxelization (volumeevm_addon/model/_voxelize.py).
 
 The oracle is the generalized winding number (sum of the triangles' solid angles, Van
 Oosterom & Strackee 1983), evaluated by brute force over all triangles. It is exactly 0 or 1
@@ -7,10 +7,17 @@ away from the surface of a closed mesh, independent of rays and tie rules.
 
 import numpy as np
 import pytest
-from conftest import DATA
 
-from volumeevm_addon import (EVM, MeshCheck, VolumeEVMError, _voxelize, box_evm, check_closed_mesh,
-                             grid_to_world, tool_to_grid, voxelize_mesh, voxelize_mesh_evm)
+from conftest import DATA
+from volumeevm_addon import EVM, VolumeEVMError, grid_to_world, voxelize_mesh
+from volumeevm_addon.model import (
+    MeshCheck,
+    _voxelize,
+    box_evm,
+    check_closed_mesh,
+    tool_to_grid,
+    voxelize_mesh_evm,
+)
 
 CLOSED_MESHES = [
     "mesh_tool_fandisk",

@@ -1,6 +1,10 @@
 """The model: a voxel region as an Extreme Vertices Model, and the VolumeEVM built on it.
 
-One module per concept (private; the public names are imported from ``volumeevm_addon``):
+The names users need (:class:`~volumeevm_addon.EVM`, :class:`~volumeevm_addon.VolumeEVM`,
+:class:`~volumeevm_addon.LabelSet`, ...) are imported from ``volumeevm_addon``; this package
+exports what the Blender side and the tool-stack scripts need beyond them: the edit stack and
+its caches, the mesh records, the CAD tools' voxelization on a box, and where a grid sits in
+Blender's units. One private module per concept:
 
 - ``_evm.py``: the Extreme Vertices Model of a voxel region (:class:`~volumeevm_addon.EVM`).
 - ``_sweep.py``: plane sweeps over sorted extreme vertices (compiled kernels): Booleans, boxes.
@@ -14,7 +18,7 @@ One module per concept (private; the public names are imported from ``volumeevm_
 - ``_vevm_file.py``: reading and checking a ``.vevm`` file before anything is built.
 - ``_levels.py``: coarser resolution levels of a VolumeEVM (no more than a view needs).
 - ``_cache.py``: what is derived from a VolumeEVM on first use (the renderers' tables, its
-  levels), kept in its :class:`~volumeevm_addon.DerivedCache`: counted, bounded, clearable.
+  levels), kept in its :class:`~volumeevm_addon.model.DerivedCache`: counted, bounded, clearable.
 - ``_stack.py``: the non-destructive stack of tool operations on a VolumeEVM.
 - ``_volume.py``: the volume record every reader returns, and where its grid sits.
 - ``_histogram.py``: a volume's densities histogram and Otsu's threshold.
@@ -22,4 +26,18 @@ One module per concept (private; the public names are imported from ``volumeevm_
 - ``_measure.py``: exact measurements of regions and label sets (volume, area, shared faces).
 - ``_label_table.py``: label names and colours from segmentation files, and a fixed palette.
 - ``_label_set.py``: a label map's regions as one mapping, edited and measured together.
+- ``_voxelize.py``: a closed triangle mesh (a CAD tool) as the voxels whose centres it holds,
+  with exact predicates; the mesh checks that come first.
 """
+
+from ._cache import DerivedCache
+from ._chunked import chunked_build_memory
+from ._label_table import LabelInfo
+from ._mesh import BoundaryMesh, Polygons
+from ._stack import EditStack, ToolOperation
+from ._volume import BLENDER_UNITS_PER_MM, index_to_physical
+from ._voxelize import MeshCheck, box_evm, check_closed_mesh, tool_to_grid, voxelize_mesh_evm
+
+__all__ = ["BLENDER_UNITS_PER_MM", "BoundaryMesh", "DerivedCache", "EditStack", "LabelInfo",
+           "MeshCheck", "Polygons", "ToolOperation", "box_evm", "check_closed_mesh",
+           "chunked_build_memory", "index_to_physical", "tool_to_grid", "voxelize_mesh_evm"]

@@ -15,7 +15,7 @@ same data in memory, for any chunk shape.
 
 Memory: the chunks in flight (the scheduler's workers, each holding one chunk and what it
 derives from it) plus the result (table and vertices) plus one batch of slabs, checked before
-starting and after every batch (:func:`volumeevm_addon.check_memory`).
+starting and after every batch (:func:`volumeevm_addon.system.check_memory`).
 """
 
 import math

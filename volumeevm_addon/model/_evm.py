@@ -285,8 +285,8 @@ class EVM:
 
     Immutable. ``vertices`` is ``(n, 3)``, sorted lexicographically in x, y, z order, in the
     smallest signed integer type that holds them. Convert to ``np.int64`` before arithmetic.
-    Usually built with :meth:`from_mask` (or :func:`volumeevm_addon.voxelize_mesh_evm`,
-    :func:`volumeevm_addon.box_evm`); the operators ``|``, ``&``, ``-`` and ``^`` are
+    Usually built with :meth:`from_mask` (or :func:`volumeevm_addon.model.voxelize_mesh_evm`,
+    :func:`volumeevm_addon.model.box_evm`); the operators ``|``, ``&``, ``-`` and ``^`` are
     :meth:`union`, :meth:`intersection`, :meth:`difference` and :meth:`xor`.
 
     Parameters

@@ -42,7 +42,8 @@ class LabelSet(Mapping):
     Examples
     --------
     >>> import numpy as np
-    >>> from volumeevm_addon import VolumeEVM, box_evm
+    >>> from volumeevm_addon import VolumeEVM
+    >>> from volumeevm_addon.model import box_evm
     >>> array = np.zeros((6, 6, 6), np.uint8); array[:3] = 1; array[3:] = 2
     >>> regions = VolumeEVM.from_labels(array)
     >>> {label: r.voxel_count for label, r in regions.cut(box_evm((0, 0, 0), (4, 6, 6), (6, 6, 6))).items()}

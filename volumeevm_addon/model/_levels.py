@@ -63,7 +63,7 @@ def coarsen(vevm, factor):
     ------
     VolumeEVMError
         For a factor that is not such an integer, or when the level would need more memory
-        than is available (:func:`volumeevm_addon.check_memory`).
+        than is available (:func:`volumeevm_addon.system.check_memory`).
     """
     f = checked_factor(factor, vevm.shape)
     fine = np.array(vevm.shape)

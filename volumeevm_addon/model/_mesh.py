@@ -25,7 +25,7 @@ mesh is the exact boundary of the voxel region, and Blender shows such edges and
 non-manifold (Select > Select All by Trait > Non Manifold). :mod:`._manifold` splits them, for
 3D printing.
 
-Memory is checked (:func:`volumeevm_addon.check_memory`) after each axis's sweep, whose own
+Memory is checked (:func:`volumeevm_addon.system.check_memory`) after each axis's sweep, whose own
 working set is a few arrays the size of its vertices: the rectangles found so far give the peak
 of making the polygon mesh from them, :data:`_BYTES_PER_RECTANGLE` each. That figure is the
 tracemalloc peak (which sees the kernels' arrays too) measured on real and synthetic regions

@@ -268,7 +268,8 @@ class EditStack:
     Examples
     --------
     >>> import numpy as np
-    >>> from volumeevm_addon import VolumeEVM, box_evm
+    >>> from volumeevm_addon import VolumeEVM
+    >>> from volumeevm_addon.model import box_evm
     >>> region = VolumeEVM.from_array(np.ones((16, 4, 4)), 1.0)
     >>> drill = box_evm((0, 0, 0), (2, 4, 4), region.shape)
     >>> stack = EditStack(region)

@@ -20,7 +20,7 @@ A file comes from outside, so :func:`read_vevm` trusts nothing in it:
    fit each other: equal for a stored member; for a deflated one, no larger than deflate's
    maximum expansion (a "zip bomb" declaring a huge array) and no smaller than the compressed
    data could hold (a stream that would inflate beyond its declared size). The arrays' total is
-   checked against the free memory (:func:`~volumeevm_addon.check_memory`) before any is read. The
+   checked against the free memory (:func:`~volumeevm_addon.system.check_memory`) before any is read. The
    ZIP reader never inflates beyond the declared size and verifies each member's CRC.
 2. The metadata must have every key with the right type: shape 3 positive integers, spacing 3
    finite positive numbers, origin 3 finite numbers, orientation an orthonormal 3x3 matrix (the

@@ -33,8 +33,14 @@ from ._labels import layered_regions
 from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
-from ._volume import (Volume, checked_densities, checked_geometry, index_to_physical, is_lazy,
-                      transform)
+from ._volume import (
+    Volume,
+    checked_densities,
+    checked_geometry,
+    index_to_physical,
+    is_lazy,
+    transform,
+)
 
 
 class VolumeEVM:
@@ -146,7 +152,7 @@ class VolumeEVM:
         VolumeEVMError
             For any input above that is not as described, naming ``source`` and the parameter;
             for an empty region; and when the build would need more memory than is available
-            (:func:`volumeevm_addon.check_memory`).
+            (:func:`volumeevm_addon.system.check_memory`).
 
         Notes
         -----
@@ -702,7 +708,7 @@ class VolumeEVM:
         Returns
         -------
         (4, 4) ndarray of np.float64
-            :func:`volumeevm_addon.index_to_physical` of this grid's geometry.
+            :func:`volumeevm_addon.model.index_to_physical` of this grid's geometry.
         """
         return index_to_physical(self.spacing, self.origin, self.orientation)
 
@@ -815,7 +821,7 @@ class VolumeEVM:
         }
 
     def save(self, path, *, overwrite=False):
-        """Write one ``.vevm`` file atomically (:func:`volumeevm_addon.write_atomically`).
+        """Write one ``.vevm`` file atomically (:func:`volumeevm_addon.system.write_atomically`).
 
         Parameters
         ----------

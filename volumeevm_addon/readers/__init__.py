@@ -17,7 +17,7 @@ to the library's own error if any:
 - every reader checks its header before reading data: the data must be exactly as long as the
   header announces (uncompressed files by their length, compressed streams by inflating no
   further and by their checksums), and the peak memory of the read must fit
-  (:func:`~volumeevm_addon.check_memory`), so a corrupt or hostile header costs neither a huge
+  (:func:`~volumeevm_addon.system.check_memory`), so a corrupt or hostile header costs neither a huge
   allocation nor silently different voxels.
 """
 
@@ -86,9 +86,11 @@ def read_volume(path, *, units=None, labels=None, **options):
         - raw (``.raw``, ``.bin``): ``shape=(X, Y, Z)`` and ``dtype`` (required),
           ``byte_order="little"`` or ``"big"``, ``header_bytes=0``, ``spacing=(sx, sy, sz)``
           in mm;
-        - ``.npy`` and raw: ``lazy=True`` maps the file read-only and returns a lazy Dask
-          array (a file larger than memory opens; :meth:`VolumeEVM.from_volume` builds it
-          chunk by chunk);
+        - ``.npy``, raw, ``.den``, uncompressed NIfTI (``.nii``), raw-encoded NRRD and
+          TIFF: ``lazy=True`` returns a lazy Dask array (memory-mapped where the samples lie
+          uncompressed in the file, read page by page from a compressed TIFF), so a file
+          larger than memory opens and :meth:`VolumeEVM.from_volume` builds it chunk by chunk;
+          compressed NIfTI and NRRD are refused with ``lazy=True`` (a stream is read whole);
         - DICOM (folder, list, ``.dcm``): ``series_uid=`` to pick one series of several;
         - OME-Zarr (a ``.zarr`` / ``.ome.zarr`` folder, NGFF 0.4 or 0.5): ``level=0`` (the
           pyramid level, :func:`volume_levels` lists them), ``channel=0`` and ``time=0``; the

@@ -25,20 +25,23 @@ import os
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import check_read_memory, checked_volume, open_file, read_payload
+from ._checks import check_read_memory, checked_volume, lazy_mapped, open_file, read_payload
 
 _HEADER_BYTES = 62
 _VERSION = 1
 _MAP_LEN = slice(25, 28)
 
 
-def read_den(path):
+def read_den(path, lazy=False):
     """Read a VolPack ``.den`` file.
 
     Parameters
     ----------
     path : str or Path
         The ``.den`` file.
+    lazy : bool
+        Map the file read-only and return its array as a lazy Dask array (nothing is read
+        until a chunk is computed).
 
     Returns
     -------
@@ -81,6 +84,9 @@ def read_den(path):
                 f"{path}: file has {size} bytes but its header announces "
                 f"{_HEADER_BYTES} + {map_length}; the file is truncated or corrupt"
             )
+        if lazy:
+            return checked_volume(lazy_mapped(path, _HEADER_BYTES, map_len, np.dtype(np.uint8),
+                                              fortran_order=True), path)
         check_read_memory(path, map_len, np.dtype(np.uint8), copies=2)  # bytes, then C order
         buffer = read_payload(f, map_length, path, "density data")
     flat = np.frombuffer(buffer, dtype=np.uint8)

@@ -27,6 +27,10 @@ are dropped.
 Data units: the NIfTI header has no field for them (``xyzt_units`` are space and time,
 ``intent_*`` the statistic, ``descrip`` free text), so the volume's ``units`` are "" and the
 caller says them (``read_volume(path, units="HU")``).
+
+``lazy=True`` on an uncompressed ``.nii`` maps the voxel data read-only after the same header and
+length checks (:func:`._checks.lazy_mapped`) and scales chunk by chunk, so a file larger than
+memory opens; a ``.nii.gz`` stream can only be read whole, and is refused with that said.
 """
 
 import gzip
@@ -43,6 +47,7 @@ from ._checks import (
     check_read_memory,
     checked_volume,
     import_reader_package,
+    lazy_mapped,
     mm_per_unit,
     open_file,
     read_payload,
@@ -54,13 +59,16 @@ _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 _VERSIONS = {348: ("Nifti1Header", b"n+1"), 540: ("Nifti2Header", b"n+2")}
 
 
-def read_nifti(path):
+def read_nifti(path, lazy=False):
     """Read a 3-D NIfTI image.
 
     Parameters
     ----------
     path : str or Path
         The ``.nii`` or ``.nii.gz`` file.
+    lazy : bool
+        Map an uncompressed ``.nii`` read-only and return its array as a lazy Dask array
+        (nothing is read until a chunk is computed; scaling applied per chunk).
 
     Returns
     -------
@@ -73,10 +81,13 @@ def read_nifti(path):
     VolumeEVMError
         If nibabel is missing, the file is not a readable single-file NIfTI (corrupt header,
         a length other than the header announces, a corrupt compressed stream), the image is
-        not 3-D, or it would not fit in memory.
+        not 3-D, it would not fit in memory, or ``lazy`` is asked of a ``.nii.gz``.
     """
     nib = import_reader_package("nibabel", "nibabel", path)
     compressed = str(path).lower().endswith(".gz")
+    if lazy and compressed:
+        raise VolumeEVMError(f"{path}: lazy=True needs uncompressed data (a gzip stream is read "
+                             f"whole); decompress it to a .nii first, or read it without lazy")
     with open_file(path) as raw, (gzip.GzipFile(fileobj=raw) if compressed else raw) as stream:
         what = "gzip-compressed NIfTI data" if compressed else "NIfTI voxel data"
         header, header_bytes = _read_header(nib, stream, path, what)
@@ -92,6 +103,8 @@ def read_nifti(path):
             )
         slope, inter = _scaling(header, path)
         scaled = slope is not None and (slope, inter) != (1.0, 0.0)
+        if lazy:
+            return _lazy(nib, path, header, offset, shape, dtype, (slope, inter) if scaled else None)
         # The buffer and its C-ordered copy; when scaled, later the C-ordered copy and two
         # float64 arrays at once (the product and the sum nibabel's scaling makes).
         check_read_memory(path, shape, dtype, copies=1,
@@ -103,6 +116,19 @@ def read_nifti(path):
     del buffer
     if scaled:
         array = nib.volumeutils.apply_read_scaling(array, slope, inter)
+    spacing, origin, orientation = _geometry(header, path)
+    return checked_volume(array, path, spacing=spacing, origin=origin, orientation=orientation)
+
+
+def _lazy(nib, path, header, offset, shape, dtype, scaling):
+    """The image over a read-only memory map; ``scaling`` ``(slope, inter)`` applied per chunk
+    with nibabel's own function, to the dtype it gives a whole array (the eager result's)."""
+    array = lazy_mapped(path, offset, shape, dtype, fortran_order=True)
+    if scaling is not None:
+        native = dtype.newbyteorder("=")
+        scaled = nib.volumeutils.apply_read_scaling(np.zeros(1, native), *scaling).dtype
+        array = array.map_blocks(lambda block: nib.volumeutils.apply_read_scaling(
+            np.ascontiguousarray(block, native), *scaling), dtype=scaled)
     spacing, origin, orientation = _geometry(header, path)
     return checked_volume(array, path, spacing=spacing, origin=origin, orientation=orientation)
 

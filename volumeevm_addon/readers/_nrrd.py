@@ -13,7 +13,8 @@ The data (raw, gzip, bzip2 or ASCII encoding, attached or in the one ``data file
 sizes and type announce: a raw file of another length, a compressed stream that inflates to
 another size (it is never inflated past the announced size) or fails its checksum, and an ASCII
 section with another count of numbers are refused. The first NRRD axis is the fastest in the
-file, so the array is indexed ``[x, y, z]``.
+file, so the array is indexed ``[x, y, z]``. ``lazy=True`` maps raw data read-only after the
+same checks (:func:`._checks.lazy_mapped`); compressed and ASCII data can only be read whole.
 
 Geometry: the NRRD ``space directions`` give one vector per axis (voxel step in ``space``
 coordinates, its length is the spacing) and ``space origin`` is the centre of the first voxel.
@@ -57,6 +58,7 @@ from ._checks import (
     import_reader_package,
     UNKNOWN_LENGTH_UNITS,
     data_units,
+    lazy_mapped,
     mm_per_unit,
     open_file,
     read_payload,
@@ -119,7 +121,7 @@ _MAX_HEADER_BYTES = 1 << 20
 _ASCII_BYTES_PER_VALUE = 64
 
 
-def read_nrrd(path):
+def read_nrrd(path, lazy=False):
     """Read a 3-D scalar NRRD file (a 3D Slicer ``.seg.nrrd`` as a label map with its segments'
     names and colours; a segmentation in several layers with every segment a label of its own,
     ``layers`` holding each layer, see :func:`_layered_segmentation`).
@@ -128,6 +130,9 @@ def read_nrrd(path):
     ----------
     path : str or Path
         The ``.nrrd`` file or ``.nhdr`` header.
+    lazy : bool
+        Map raw-encoded data read-only and return its array as a lazy Dask array (nothing is
+        read until a chunk is computed).
 
     Returns
     -------
@@ -142,7 +147,8 @@ def read_nrrd(path):
         misspelt field, a value that does not parse, a required field missing), the data does
         not hold exactly what the header announces (truncated, padded, a corrupt compressed
         stream), the space is not 3-D or not one listed above, the data is not a 3-D scalar
-        grid, or it would not fit in memory.
+        grid, it would not fit in memory, or ``lazy`` is asked of data that is not raw or of a
+        segmentation in layers.
     """
     nrrd = import_reader_package("nrrd", "pynrrd", path)
     path = Path(path)
@@ -151,14 +157,18 @@ def read_nrrd(path):
         segments = slicer_segments(header, path)
         layered = bool(segments) and _is_layered(header)
         sizes, dtype, encoding = _layout(header, path, layered)
+        if lazy and (layered or encoding != "raw"):
+            what = "a segmentation in layers" if layered else f"{encoding}-encoded data"
+            raise VolumeEVMError(f"{path}: lazy=True needs raw data in one layer, this file holds "
+                                 f"{what} (read whole); read it without lazy")
         data_file = _data_file(header, path)
         if data_file is None:
-            data = _read_data(f, header, sizes, dtype, encoding, path, str(path))
+            data = _read_data(f, header, sizes, dtype, encoding, path, str(path), lazy)
         else:
             require_regular_file(data_file)
             with open_file(data_file) as g:
                 data = _read_data(g, header, sizes, dtype, encoding, path,
-                                  f"{path}: data file {data_file}")
+                                  f"{path}: data file {data_file}", lazy)
     if layered:
         header = {**header, "space directions": np.asarray(header["space directions"])[1:]}
     spacing, origin, orientation = _geometry(header, path)
@@ -374,8 +384,9 @@ def _skips(header, encoding, path):
     return line_skip, byte_skip
 
 
-def _read_data(f, header, sizes, dtype, encoding, path, where):
-    """The samples as an ``(X, Y, Z)`` array, from ``f`` positioned after the header (if any).
+def _read_data(f, header, sizes, dtype, encoding, path, where, lazy=False):
+    """The samples as an ``(X, Y, Z)`` array, from ``f`` positioned after the header (if any);
+    ``lazy``: raw samples as a lazy Dask array over a read-only map of ``f``'s file.
 
     ``path`` is the file the user opened (the header), ``where`` how messages name the data: the
     header file, and for a detached header also the data file ``f`` reads.
@@ -402,6 +413,8 @@ def _read_data(f, header, sizes, dtype, encoding, path, where):
                 f"but sizes {list(sizes)} of {dtype.name} need exactly {nbytes}); the file is "
                 f"truncated or its header is corrupt"
             )
+        if lazy:
+            return lazy_mapped(Path(f.name), start, sizes, dtype, fortran_order=True)
         check_read_memory(path, sizes, dtype, copies=2)  # the file's bytes, then C order
         f.seek(start)
         buffer = read_payload(f, nbytes, where, "NRRD raw data")

@@ -21,20 +21,29 @@ compression; every page's pixel data lies inside the file, without overlapping a
 data or the directories and tag values; uncompressed pages hold exactly the bytes their size
 needs; the ImageJ description is plain ASCII text; its ``images=`` count and the OME
 ``SizeX/Y/Z/C/T`` and ``Type`` match the pages found; resolutions, ImageJ ``spacing`` and OME
-physical sizes are positive finite numbers; and the decoded stack fits in the memory available. Any damage tifffile reports while reading (a broken
-page chain, missing OME frames it would fill with zeros, invalid metadata it would ignore)
-is an error too, not a warning.
+physical sizes are positive finite numbers; and the decoded stack fits in the memory
+available. Any damage tifffile reports while reading (a broken page chain, missing OME frames
+it would fill with zeros, invalid metadata it would ignore) is an error too, not a warning.
+
+``lazy=True`` makes the same checks of the structure, then returns a lazy Dask array whose
+chunks are runs of whole pages (:data:`._checks.LAZY_CHUNK_BYTES` each), each decoded when a
+chunk is computed by a task that opens the file itself (so it runs on a cluster's workers too);
+damage found then is an error naming the file and the pages.
 """
 
 import logging
 import math
+import os
 import xml.etree.ElementTree as ET
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from .._errors import VolumeEVMError
 from .._memory import check_memory
 from ._checks import (
+    LAZY_CHUNK_BYTES,
     UNKNOWN_LENGTH_UNITS,
     check_ndim,
     checked_volume,
@@ -57,13 +66,15 @@ _OME_PIXELS_ATTRIBUTES = frozenset(
 _OME_TYPES = {"float": "float32", "double": "float64"}
 
 
-def read_tiff(path):
+def read_tiff(path, lazy=False):
     """Read a grey 3-D TIFF page stack.
 
     Parameters
     ----------
     path : str or Path
         The ``.tif`` / ``.tiff`` file (ImageJ, OME or plain multi-page).
+    lazy : bool
+        Return the stack as a lazy Dask array of page runs, decoded when computed.
 
     Returns
     -------
@@ -77,7 +88,7 @@ def read_tiff(path):
         If tifffile is missing, the file is not a readable regular TIFF file, its structure or
         metadata is inconsistent (see the module notes), the first series is not a grey 3-D
         stack holding every page, its metadata holds an unknown length unit or a non-positive
-        size, or the stack would not fit in memory.
+        size, or the stack would not fit in memory (not checked with ``lazy``).
     """
     tifffile = import_reader_package("tifffile", "tifffile", path)
     require_regular_file(Path(path))
@@ -95,6 +106,10 @@ def read_tiff(path):
                 )
             check_ndim(series.shape, path)
             _check_series_covers_file(tif, series, path)
+            spacing = _imagej_spacing(tif, series, path) or _ome_spacing(tif, series, path)
+            if lazy:
+                stack = _lazy_pages(path, series.shape, series.dtype)
+                return checked_volume(stack.transpose(), path, spacing=spacing)
             float_mask = series.size if series.dtype.kind == "f" else 0
             check_memory(  # the stack, its transposed copy, a mask if float, pages decoding
                 2 * series.nbytes + float_mask + 2 * series.keyframe.nbytes,
@@ -103,7 +118,6 @@ def read_tiff(path):
                 advice="crop the stack or free memory",
             )
             stack = series.asarray()
-            spacing = _imagej_spacing(tif, series, path) or _ome_spacing(tif, series, path)
             _check_damage(damage, path)
     except VolumeEVMError:
         raise
@@ -112,6 +126,47 @@ def read_tiff(path):
             f"{path}: not a readable TIFF file ({type(exc).__name__}: {exc})"
         ) from exc
     return checked_volume(stack.transpose(), path, spacing=spacing)
+
+
+class _PageRuns:
+    """A TIFF stack as Dask reads it: ``[z0:z1, ...]`` opens the file and decodes those pages.
+
+    Picklable (a path and the stack's shape), so a cluster's workers read their own pages.
+    """
+
+    def __init__(self, path, shape, dtype):
+        self.path, self.shape, self.dtype, self.ndim = str(path), tuple(shape), dtype, 3
+
+    def __getitem__(self, slices):
+        pages = range(*slices[0].indices(self.shape[0]))
+        if not pages:
+            return np.empty((0, *self.shape[1:]), self.dtype)[(slice(None), *slices[1:])]
+        tifffile = import_reader_package("tifffile", "tifffile", self.path)
+        where = f"{self.path}: pages {pages.start}-{pages.stop - 1}"
+        try:
+            with _damage_reports(tifffile) as damage, tifffile.TiffFile(self.path) as tif:
+                planes = tif.series[0].asarray(key=slice(pages.start, pages.stop))
+                _check_damage(damage, where)
+        except VolumeEVMError:
+            raise
+        except Exception as exc:  # a file damaged or changed since it was opened
+            raise VolumeEVMError(f"{where}: not readable ({type(exc).__name__}: {exc})") from exc
+        planes = planes.reshape((len(pages), *self.shape[1:]))
+        if planes.dtype != self.dtype:
+            raise VolumeEVMError(f"{where}: the file changed since it was opened "
+                                 f"({planes.dtype} samples, not {self.dtype})")
+        return planes[(slice(None), *slices[1:])]
+
+
+def _lazy_pages(path, shape, dtype):
+    """The ``(Z, Y, X)`` stack as a lazy Dask array of page runs (:class:`_PageRuns`), named by
+    the file's path and modification time so Dask never mixes two versions."""
+    da = import_reader_package("dask.array", "dask", path)
+    plane = math.prod(shape[1:]) * dtype.itemsize
+    chunks = (max(1, min(shape[0], LAZY_CHUNK_BYTES // plane)), -1, -1)
+    name = f"tiff-{Path(path).resolve()}-{os.stat(path).st_mtime_ns}"
+    return da.from_array(_PageRuns(path, shape, dtype), chunks=chunks, name=name, asarray=False,
+                         fancy=False, meta=np.empty((0, 0, 0), dtype))
 
 
 @contextmanager

@@ -1,8 +1,10 @@
 """Direct volume rendering of a VolumeEVM: camera, transfer functions, the methods, images.
 
-Private modules; the public names (:func:`~volumeevm_addon.render`, ``Camera``,
-``TransferFunction``, ``METHODS``, ...) are imported from ``volumeevm_addon``. One module per
-method; ``_render.py`` is the entry point that checks the inputs and dispatches to them:
+The names users need (:func:`~volumeevm_addon.render`, ``Camera``, ``TransferFunction``,
+``METHODS``, ...) are imported from ``volumeevm_addon``; this package exports what the Blender
+side needs beyond them: the quality setting as options, compositing over a scene render and its
+depth, EXR channels, and the NumPy half of the GPU method. One private module per method;
+``_render.py`` is the entry point that checks the inputs and dispatches to them:
 
 - ``_render.py``: :func:`~volumeevm_addon.render`, whatever the method (checks, memory, levels).
 - ``_shear_warp.py``: shear-warp (Lacroute & Levoy), parallel and perspective.
@@ -31,3 +33,28 @@ here, with the signature of the others and built on the shared pieces above, the
 ``_render.py``: ``METHODS``, ``_renderers()``, ``_tables_to_build()`` and the memory model
 (``_GRID_BYTES`` and the tables beside it, measured with ``bench/bench_memory.py``).
 """
+
+from ._camera import BACKGROUND_DEPTH
+from ._compositing import composite_over, output_depth
+from ._depth import VISIBLE_ALPHA
+from ._gpu_inputs import (
+                          GPU_UNIFORMS_GLSL,
+                          GPUFrame,
+                          axial_from_window,
+                          camera_from_viewport,
+                          gpu_frame,
+                          gpu_gradients,
+                          gpu_occupancy,
+                          gpu_region,
+                          gpu_transfer_table,
+                          window_from_axial,
+)
+from ._images import exr_channels, openexr_module
+from ._quality import method_options
+from ._render import MAX_SAMPLES, render_options
+
+__all__ = ["BACKGROUND_DEPTH", "GPUFrame", "GPU_UNIFORMS_GLSL", "MAX_SAMPLES", "VISIBLE_ALPHA",
+           "axial_from_window", "camera_from_viewport", "composite_over", "exr_channels",
+           "gpu_frame", "gpu_gradients", "gpu_occupancy", "gpu_region", "gpu_transfer_table",
+           "method_options", "openexr_module", "output_depth", "render_options",
+           "window_from_axial"]

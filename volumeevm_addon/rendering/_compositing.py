@@ -38,7 +38,7 @@ def composite_over(dvr_rgba, scene_rgba):
     Examples
     --------
     >>> import numpy as np
-    >>> from volumeevm_addon import composite_over
+    >>> from volumeevm_addon.rendering import composite_over
     >>> half_red = np.array([[[0.5, 0.0, 0.0, 0.5]]])
     >>> blue = np.array([[[0.0, 0.0, 1.0, 1.0]]])
     >>> composite_over(half_red, blue)
@@ -59,7 +59,7 @@ def output_depth(dvr_depth, scene_depth):
     ----------
     dvr_depth : (H, W) array_like
         Axial depth of the volume's first visible sample (Blender units),
-        :data:`~volumeevm_addon.BACKGROUND_DEPTH` where it saw nothing.
+        :data:`~volumeevm_addon.rendering.BACKGROUND_DEPTH` where it saw nothing.
     scene_depth : (H, W) array_like
         The scene's axial depth, the same shape.
 
@@ -74,7 +74,7 @@ def output_depth(dvr_depth, scene_depth):
 
     Examples
     --------
-    >>> from volumeevm_addon import BACKGROUND_DEPTH, output_depth
+    >>> from volumeevm_addon.rendering import BACKGROUND_DEPTH, output_depth
     >>> output_depth([[2.0, BACKGROUND_DEPTH]], [[5.0, 7.0]])
     array([[2., 7.]], dtype=float32)
     """

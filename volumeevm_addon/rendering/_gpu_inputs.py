@@ -53,15 +53,27 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import kernel
 from .._memory import check_memory
-from ._levels import level_factor
 from ..model._volume import grid_to_world
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera
-from ._checks import (RAY_STEPS_PER_VOXEL, categorical, check_camera, check_mode,
-                      check_transfer_function, check_volumeevm, checked_affine,
-                      checked_categorical_level, checked_step_mm, checked_view,
-                      checked_xray, flag, positive_integer, positive_number)
+from ._checks import (
+    RAY_STEPS_PER_VOXEL,
+    categorical,
+    check_camera,
+    check_mode,
+    check_transfer_function,
+    check_volumeevm,
+    checked_affine,
+    checked_categorical_level,
+    checked_step_mm,
+    checked_view,
+    checked_xray,
+    flag,
+    positive_integer,
+    positive_number,
+)
 from ._gradients import region_gradients
+from ._levels import level_factor
 from ._render import check_samples
 from ._shading import Lighting, checked_shading
 
@@ -226,7 +238,7 @@ def axial_from_window(window_depth, camera):
 
     Window depth is what a depth buffer holds: ``(z_ndc + 1) / 2``, 0 on the near clip plane and
     1 on the far one. A depth buffer's 1 (nothing drawn) becomes
-    :data:`~volumeevm_addon.BACKGROUND_DEPTH`, as in a render's Z pass.
+    :data:`~volumeevm_addon.rendering.BACKGROUND_DEPTH`, as in a render's Z pass.
 
     Parameters
     ----------
@@ -264,7 +276,7 @@ def axial_from_window(window_depth, camera):
 def window_from_axial(axial_depth, camera):
     """Window depth (``[0, 1]``, what a depth buffer holds) of axial depths, for ``camera``.
 
-    Depths beyond the far clip plane (:data:`~volumeevm_addon.BACKGROUND_DEPTH` included) give
+    Depths beyond the far clip plane (:data:`~volumeevm_addon.rendering.BACKGROUND_DEPTH` included) give
     1, depths before the near one 0.
 
     Parameters

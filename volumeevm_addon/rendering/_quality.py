@@ -63,7 +63,7 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
 
     Examples
     --------
-    >>> from volumeevm_addon import method_options
+    >>> from volumeevm_addon.rendering import method_options
     >>> method_options("raycast", 2.0, (0.5, 0.5, 1.0))
     {'termination': 0.99, 'level': 'auto', 'step_mm': 0.125, 'jitter': False, 'preintegrate': False}
     >>> method_options("splat", 3.0, (1.0, 1.0, 1.0))["substeps"]

@@ -18,7 +18,7 @@ itself.
 Before anything is allocated, :func:`render` checks its inputs (every error a
 :class:`VolumeEVMError` naming the parameter), bounds the work (:data:`MAX_SAMPLES`) and checks
 the memory the render needs (:func:`render_memory`) against what is available
-(:func:`volumeevm_addon.check_memory`).
+(:func:`volumeevm_addon.system.check_memory`).
 """
 
 import functools
@@ -30,13 +30,20 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ._levels import level_factor
 from ..model._volume import grid_to_world
 from ._camera import Camera
-from ._checks import (RAY_STEPS_PER_VOXEL, REFERENCE_STEPS_PER_VOXEL, check_mode,
-                      check_volumeevm, checked_affine, checked_categorical_level,
-                      checked_step_mm, positive_number)
+from ._checks import (
+    RAY_STEPS_PER_VOXEL,
+    REFERENCE_STEPS_PER_VOXEL,
+    check_mode,
+    check_volumeevm,
+    checked_affine,
+    checked_categorical_level,
+    checked_step_mm,
+    positive_number,
+)
 from ._depth import checked_depth_in
+from ._levels import level_factor
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
 
@@ -247,7 +254,7 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         more than :data:`MAX_SAMPLES` samples (the message says which ``step_mm`` or
         ``substeps`` would do); and when the image or the render's estimated peak memory
         (:func:`render_memory`) exceeds the memory available
-        (:func:`volumeevm_addon.available_memory`; the message suggests a coarser level, a smaller
+        (:func:`volumeevm_addon.system.available_memory`; the message suggests a coarser level, a smaller
         image or another method).
     TypeError
         For an option the method does not take.
@@ -435,7 +442,7 @@ def render_options(method):
 
     Examples
     --------
-    >>> from volumeevm_addon import render_options
+    >>> from volumeevm_addon.rendering import render_options
     >>> render_options("splat")["substeps"]
     1
     >>> sorted(render_options("raycast"))[:4]

@@ -247,7 +247,7 @@ class TransferFunction:
         ----------
         colors : mapping of int to tuple or LabelInfo
             Label to ``(r, g, b)`` (opacity ``opacity``), ``(r, g, b, alpha)``, or a
-            :class:`~volumeevm_addon.LabelInfo` (its colour, opacity ``opacity``), as in
+            :class:`~volumeevm_addon.model.LabelInfo` (its colour, opacity ``opacity``), as in
             ``Volume.labels``; straight colour in ``[0, 1]``, alpha per ``unit_length_mm``.
         opacity : float, optional
             Opacity per ``unit_length_mm`` of labels given without one (default 0.5).

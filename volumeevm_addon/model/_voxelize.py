@@ -18,12 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._errors import VolumeEVMError
-from ._jit import kernel
-from ._memory import check_memory
-from .model import _sweep
-from .model._evm import EVM, check_lattice_range
-from .model._volume import grid_to_world, transform
+from .._errors import VolumeEVMError
+from .._jit import kernel
+from .._memory import check_memory
+from . import _sweep
+from ._evm import EVM, check_lattice_range
+from ._volume import grid_to_world, transform
 
 __all__ = ["MeshCheck", "box_evm", "check_closed_mesh", "tool_to_grid", "voxelize_memory",
            "voxelize_mesh", "voxelize_mesh_evm"]
@@ -865,7 +865,7 @@ def tool_to_grid(tool_matrix, spacing, origin, orientation=None, *, matrix_world
     Examples
     --------
     >>> import numpy as np
-    >>> from volumeevm_addon import tool_to_grid
+    >>> from volumeevm_addon.model import tool_to_grid
     >>> moved = np.eye(4)
     >>> moved[:3, 3] = (0.004, 0.0, 0.0)  # the tool 4 mm along x (Blender units)
     >>> tool_to_grid(moved, (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)) @ (0.0, 0.0, 0.0, 1.0)
