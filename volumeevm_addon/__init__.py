@@ -31,6 +31,8 @@ move. The layout, by concept:
 import importlib
 import warnings
 
+# system loads with the package, as model, rendering and readers do
+from . import system as system
 from ._errors import VolumeEVMError
 from ._jit import kernel_threads, set_kernel_threads
 from .model._evm import EVM
