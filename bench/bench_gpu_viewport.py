@@ -76,6 +76,7 @@ def main():
 
     import bpy  # noqa: F401  (it makes the gpu module importable)
     import gpu
+
     from sample_blends.make_demo import load_extension
 
     load_extension()

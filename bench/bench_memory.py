@@ -42,8 +42,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench._common import run_facts, write_json  # noqa: E402
 import volumeevm_addon  # noqa: E402
+from bench._common import run_facts, write_json  # noqa: E402
 from bench.bench_dvr import cameras  # noqa: E402
 from volumeevm_addon import (  # noqa: E402
     LIMIT_VARIABLE,

@@ -41,6 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench._common import accepts, run_facts, write_json  # noqa: E402
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU  # noqa: E402
 from volumeevm_addon import (  # noqa: E402
     Camera,
     TransferFunction,
@@ -50,7 +51,6 @@ from volumeevm_addon import (  # noqa: E402
     render,
     write_atomically,
 )
-from volumeevm_addon import BLENDER_UNITS_PER_MM as BU  # noqa: E402
 from volumeevm_addon.metrics import (  # noqa: E402
     bias_jump,
     popping_index,

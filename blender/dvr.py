@@ -41,6 +41,8 @@ import numpy as np
 
 from ..volumeevm_addon import (
     METHODS as CORE_METHODS,
+)
+from ..volumeevm_addon import (
     TransferFunction,
     VolumeEVMError,
     atomic_target,

@@ -55,8 +55,16 @@ import gpu
 import numpy as np
 from gpu_extras.batch import batch_for_shader
 
-from ..volumeevm_addon import (BACKGROUND_DEPTH, GPU_UNIFORMS_GLSL, VolumeEVMError, gpu_frame,
-                               gpu_gradients, gpu_occupancy, gpu_region, gpu_transfer_table)
+from ..volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    GPU_UNIFORMS_GLSL,
+    VolumeEVMError,
+    gpu_frame,
+    gpu_gradients,
+    gpu_occupancy,
+    gpu_region,
+    gpu_transfer_table,
+)
 from . import display_lut
 
 #: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).

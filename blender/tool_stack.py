@@ -61,8 +61,15 @@ from ..volumeevm_addon import (
     voxelize_mesh_evm,
 )
 from . import jobs, runtime, sidecar, volumes
-from .meshes import (BOX_FACES, Faces, fill_mesh, refill_mesh, sizes, surface_geometry,
-                     tool_triangles)
+from .meshes import (
+    BOX_FACES,
+    Faces,
+    fill_mesh,
+    refill_mesh,
+    sizes,
+    surface_geometry,
+    tool_triangles,
+)
 from .objects import attach_surface, own_surface, volume_object
 
 

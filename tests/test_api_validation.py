@@ -9,8 +9,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from volumeevm_addon import (EVM, Volume, VolumeEVM, VolumeEVMError, voxelize_mesh,
-                             voxelize_mesh_evm)
+from volumeevm_addon import EVM, Volume, VolumeEVM, VolumeEVMError, voxelize_mesh, voxelize_mesh_evm
 from volumeevm_addon.model import _volumeevm
 
 ONES = np.ones((3, 3, 3), np.int16)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from blender_helpers import REPO
 
 MANIFEST = tomllib.loads((REPO / "blender_manifest.toml").read_text())

@@ -10,10 +10,17 @@ import json
 
 import numpy as np
 import pytest
-from render_helpers import camera
 
-from volumeevm_addon import (Camera, LabelInfo, TransferFunction, VolumeEVM, VolumeEVMError,
-                             grid_to_world, render)
+from render_helpers import camera
+from volumeevm_addon import (
+    Camera,
+    LabelInfo,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    grid_to_world,
+    render,
+)
 
 RED_GREEN_BLUE = {1: (1.0, 0.0, 0.0, 0.6), 2: (0.0, 1.0, 0.0, 0.6), 3: (0.0, 0.0, 1.0, 0.6)}
 LIVER_COLOURS = {84: (1.0, 0.0, 0.0, 0.3), 85: (0.0, 1.0, 0.0, 0.6), 127: (0.0, 0.0, 1.0, 0.2),

@@ -11,15 +11,21 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM as BU, TransferFunction,
-                             VISIBLE_ALPHA, VolumeEVM, grid_to_world)
+from render_helpers import MODES, camera, const_tf, reference
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    VISIBLE_ALPHA,
+    TransferFunction,
+    VolumeEVM,
+    grid_to_world,
+)
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon.phantoms import box
 from volumeevm_addon.rendering._depth import VISIBLE_OPTICAL_DEPTH, attenuates, visible
 from volumeevm_addon.rendering._raycast import render_raycast, render_raycast_navigate
 from volumeevm_addon.rendering._shear_warp import render_shear_warp
 from volumeevm_addon.rendering._splat import render_splat
 from volumeevm_addon.rendering._transfer import opacity_correction
-from render_helpers import MODES, camera, const_tf, reference
 
 METHODS = {
     "reference": lambda vevm, cam, tf, g, **kw: reference(vevm, cam, tf, g, **kw),

@@ -36,8 +36,8 @@ import typing
 
 import numpy as np
 import pytest
-from reader_files import patch_nifti, write_den, write_nrrd
 
+from reader_files import patch_nifti, write_den, write_nrrd
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
 

@@ -21,9 +21,19 @@ import zipfile
 import zlib
 
 import numpy as np
-from vevm_helpers import (crafted_npy, ct_crop, deflate_zeros, members_of, npy_bytes, raw_entries,
-                          raw_zip, region_change, synthetic, write_vevm_members)
 
+from vevm_helpers import (
+    crafted_npy,
+    ct_crop,
+    deflate_zeros,
+    members_of,
+    npy_bytes,
+    raw_entries,
+    raw_zip,
+    region_change,
+    synthetic,
+    write_vevm_members,
+)
 from volumeevm_addon import VolumeEVM, VolumeEVMError
 
 SEED = 20261124

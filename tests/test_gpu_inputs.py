@@ -8,14 +8,29 @@ import re
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BACKGROUND_DEPTH, EVM, GPU_UNIFORMS_GLSL, Camera, TransferFunction,
-                             VolumeEVM, VolumeEVMError, axial_from_window, camera_from_viewport,
-                             gpu_frame, gpu_gradients, gpu_occupancy, gpu_region,
-                             gpu_transfer_table, grid_to_world, phantoms, window_from_axial)
+from render_helpers import camera, const_tf
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    EVM,
+    GPU_UNIFORMS_GLSL,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    axial_from_window,
+    camera_from_viewport,
+    gpu_frame,
+    gpu_gradients,
+    gpu_occupancy,
+    gpu_region,
+    gpu_transfer_table,
+    grid_to_world,
+    phantoms,
+    window_from_axial,
+)
 from volumeevm_addon.rendering._gpu_inputs import _FIELDS, GPU_BLOCK, GPU_TABLE_ROWS
 from volumeevm_addon.rendering._rays import camera_rays
 from volumeevm_addon.rendering._reference import _Sampler
-from render_helpers import camera, const_tf
 
 
 def scene(seed=3, shape=(13, 11, 9), spacing=(0.8, 1.0, 1.3)):

@@ -18,9 +18,17 @@ import numpy as np
 import pytest
 
 import gpu_cases
-from volumeevm_addon import (BACKGROUND_DEPTH, TransferFunction, VolumeEVM, axial_from_window,
-                             camera_from_viewport, composite_over, grid_to_world, phantoms,
-                             render)
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    TransferFunction,
+    VolumeEVM,
+    axial_from_window,
+    camera_from_viewport,
+    composite_over,
+    grid_to_world,
+    phantoms,
+    render,
+)
 from volumeevm_addon.metrics import rmse
 
 RUNNER = Path(__file__).resolve().parent / "gpu_runner.py"

@@ -11,9 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volumeevm_addon import (VolumeEVMError, kernel_threads, set_kernel_cache_dir,
-                             set_kernel_compile_hook, set_kernel_threads)
-from volumeevm_addon import _jit
+from volumeevm_addon import (
+    VolumeEVMError,
+    _jit,
+    kernel_threads,
+    set_kernel_cache_dir,
+    set_kernel_compile_hook,
+    set_kernel_threads,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 

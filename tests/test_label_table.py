@@ -10,8 +10,13 @@ import pytest
 
 from reader_files import write_nrrd
 from volumeevm_addon import LabelInfo, VolumeEVM, VolumeEVMError, read_volume
-from volumeevm_addon.model._label_table import (default_label_info, label_table_for, palette_color,
-                                                read_label_table, slicer_segments)
+from volumeevm_addon.model._label_table import (
+    default_label_info,
+    label_table_for,
+    palette_color,
+    read_label_table,
+    slicer_segments,
+)
 
 ITKSNAP = '''################################################
 # ITK-SnAP Label Description File

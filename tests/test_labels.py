@@ -10,8 +10,17 @@ import math
 import numpy as np
 import pytest
 
-from volumeevm_addon import (EVM, LabelInfo, LabelSet, Volume, VolumeEVM, VolumeEVMError,
-                             box_evm, phantoms, set_kernel_threads)
+from volumeevm_addon import (
+    EVM,
+    LabelInfo,
+    LabelSet,
+    Volume,
+    VolumeEVM,
+    VolumeEVMError,
+    box_evm,
+    phantoms,
+    set_kernel_threads,
+)
 
 
 @pytest.fixture(scope="module")

@@ -4,12 +4,12 @@ level's rule, and render(level=...) against the full level."""
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, Camera, VolumeEVM, VolumeEVMError,
-                             grid_to_world, render)
+from render_helpers import camera, const_tf
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon import Camera, VolumeEVM, VolumeEVMError, grid_to_world, render
 from volumeevm_addon.metrics import rmse
 from volumeevm_addon.model._levels import coarsen
 from volumeevm_addon.rendering._levels import auto_factor, level_factor
-from render_helpers import camera, const_tf
 
 
 def blocks(array, f):

@@ -22,8 +22,18 @@ import textwrap
 import pytest
 
 import volumeevm_addon
-from volumeevm_addon import (METHODS, Camera, Shading, ToolOperation, TransferFunction, Volume,
-                             metrics, phantoms, render, render_options)
+from volumeevm_addon import (
+    METHODS,
+    Camera,
+    Shading,
+    ToolOperation,
+    TransferFunction,
+    Volume,
+    metrics,
+    phantoms,
+    render,
+    render_options,
+)
 
 
 def _public_callables():

@@ -7,14 +7,22 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM as BU, Camera, EVM,
-                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world,
-                             set_kernel_threads)
+from render_helpers import MODES, XRAY, camera, const_tf, reference
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    EVM,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    grid_to_world,
+    set_kernel_threads,
+)
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon.phantoms import box_chords_mm
 from volumeevm_addon.rendering import _ray_march, _raycast
 from volumeevm_addon.rendering._raycast import _Blocks, render_raycast, render_raycast_navigate
 from volumeevm_addon.rendering._rays import camera_rays
-from render_helpers import MODES, XRAY, camera, const_tf, reference
 
 
 @pytest.fixture(scope="module")

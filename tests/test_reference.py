@@ -6,8 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, Shading,
-                             TransferFunction, VolumeEVMError, index_to_physical)
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    BLENDER_UNITS_PER_MM,
+    Camera,
+    Shading,
+    TransferFunction,
+    VolumeEVMError,
+    index_to_physical,
+)
 from volumeevm_addon.rendering._reference import render_reference
 
 BU = BLENDER_UNITS_PER_MM

@@ -11,10 +11,16 @@ import json
 
 import numpy as np
 import pytest
-from render_helpers import MODES, XRAY, camera, centre, const_tf, reference
 
-from volumeevm_addon import (BACKGROUND_DEPTH, Camera, EVM, TransferFunction, VolumeEVM,
-                             grid_to_world)
+from render_helpers import MODES, XRAY, camera, centre, const_tf, reference
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    EVM,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    grid_to_world,
+)
 from volumeevm_addon.phantoms import box_chords_mm
 from volumeevm_addon.rendering._raycast import render_raycast, render_raycast_navigate
 from volumeevm_addon.rendering._shear_warp import render_shear_warp

@@ -7,12 +7,23 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from volumeevm_addon import (Camera, EVM, METHODS, TransferFunction, VolumeEVM, VolumeEVMError,
-                             grid_to_world, openexr_module, render, write_exr, write_png)
+from render_helpers import camera, const_tf
+from volumeevm_addon import (
+    EVM,
+    METHODS,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    grid_to_world,
+    openexr_module,
+    render,
+    write_exr,
+    write_png,
+)
 from volumeevm_addon._memory import format_bytes
 from volumeevm_addon.rendering._raycast import _Blocks, _dense_table
 from volumeevm_addon.rendering._render import check_samples, render_memory
-from render_helpers import camera, const_tf
 
 
 @pytest.fixture(scope="module")

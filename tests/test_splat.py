@@ -6,14 +6,28 @@ import json
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM as BU, Camera, EVM,
-                             TransferFunction, VolumeEVM, VolumeEVMError, grid_to_world, phantoms,
-                             set_kernel_threads)
+from render_helpers import camera, centre, const_tf, reference
+from volumeevm_addon import (
+    BACKGROUND_DEPTH,
+    EVM,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    grid_to_world,
+    phantoms,
+    set_kernel_threads,
+)
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon.metrics import popping_index, rmse, temporal_errors
 from volumeevm_addon.rendering import _splat
-from volumeevm_addon.rendering._splat import (_family_weights, _sheets, _slices_dense,
-                                              _slices_evm, render_splat)
-from render_helpers import camera, centre, const_tf, reference
+from volumeevm_addon.rendering._splat import (
+    _family_weights,
+    _sheets,
+    _slices_dense,
+    _slices_evm,
+    render_splat,
+)
 
 
 @pytest.fixture(scope="module")

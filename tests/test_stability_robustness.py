@@ -15,10 +15,19 @@ Bounds are measured values with modest headroom; the comment by each says what w
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, Camera, METHODS, TransferFunction,
-                             VolumeEVM, VolumeEVMError, grid_to_world, phantoms as ph, render)
-from volumeevm_addon.rendering._reference import render_reference
 from render_helpers import MODES, const_tf
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon import (
+    METHODS,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    VolumeEVMError,
+    grid_to_world,
+    render,
+)
+from volumeevm_addon import phantoms as ph
+from volumeevm_addon.rendering._reference import render_reference
 
 RENDERERS = tuple(m for m in METHODS if m != "reference")
 XRAY = {"xray_scale": 0.1, "xray_offset": 0.0}  # phantoms hold densities in [0, 1]

@@ -15,10 +15,10 @@ each). ``raycast_navigate`` renders the same image as ``raycast`` and is not rep
 import numpy as np
 import pytest
 
-from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, Camera, TransferFunction, VolumeEVM,
-                             grid_to_world, phantoms, render)
-from volumeevm_addon.metrics import bias_jump, popping_index, rmse, temporal_errors
 from render_helpers import centre, reference
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon import Camera, TransferFunction, VolumeEVM, grid_to_world, phantoms, render
+from volumeevm_addon.metrics import bias_jump, popping_index, rmse, temporal_errors
 
 RES = 48
 # Shear-warp's default (VolPack's one sample per slice, pre-classified) and the setting that

@@ -5,14 +5,13 @@ measured error); moiré while panning by quarter-pixel steps (temporal error aga
 reference's). Fixed 24×24 images: the orthographic scale sets the zoom, so every zoom costs
 about the same."""
 
-import numpy as np
 import pytest
 
-from volumeevm_addon import (BLENDER_UNITS_PER_MM as BU, TransferFunction, VolumeEVM,
-                             grid_to_world, phantoms, render)
+from render_helpers import camera, reference
+from volumeevm_addon import BLENDER_UNITS_PER_MM as BU
+from volumeevm_addon import TransferFunction, VolumeEVM, grid_to_world, phantoms, render
 from volumeevm_addon.metrics import rmse, temporal_errors
 from volumeevm_addon.rendering._levels import auto_factor
-from render_helpers import camera, reference
 
 TF = TransferFunction([(0.0, 1.0, 0.8, 0.5, 0.0), (1.0, 1.0, 0.9, 0.7, 0.4)])
 ZOOMS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)

@@ -16,10 +16,22 @@ import zlib
 
 import numpy as np
 import pytest
-from vevm_helpers import (assert_same, crafted_npy, ct_crop, deflate_zeros, members_of, npy_bytes,
-                          raw_entries, raw_zip, refused, region_change, sha, synthetic,
-                          write_vevm_members)
 
+from vevm_helpers import (
+    assert_same,
+    crafted_npy,
+    ct_crop,
+    deflate_zeros,
+    members_of,
+    npy_bytes,
+    raw_entries,
+    raw_zip,
+    refused,
+    region_change,
+    sha,
+    synthetic,
+    write_vevm_members,
+)
 from volumeevm_addon import VolumeEVM, VolumeEVMError, write_atomically, write_png
 from volumeevm_addon.model import _volumeevm
 

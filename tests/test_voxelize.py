@@ -7,10 +7,20 @@ away from the surface of a closed mesh, independent of rays and tie rules.
 
 import numpy as np
 import pytest
-from conftest import DATA
 
-from volumeevm_addon import (EVM, MeshCheck, VolumeEVMError, _voxelize, box_evm, check_closed_mesh,
-                             grid_to_world, tool_to_grid, voxelize_mesh, voxelize_mesh_evm)
+from reader_files import DATA
+from volumeevm_addon import (
+    EVM,
+    MeshCheck,
+    VolumeEVMError,
+    _voxelize,
+    box_evm,
+    check_closed_mesh,
+    grid_to_world,
+    tool_to_grid,
+    voxelize_mesh,
+    voxelize_mesh_evm,
+)
 
 CLOSED_MESHES = [
     "mesh_tool_fandisk",

@@ -22,8 +22,14 @@ from ._errors import VolumeEVMError
 from ._files import atomic_target, write_atomically
 from ._jit import kernel_threads, set_kernel_cache_dir, set_kernel_compile_hook, set_kernel_threads
 from ._memory import LIMIT_VARIABLE, available_memory, check_memory
-from ._voxelize import (MeshCheck, box_evm, check_closed_mesh, tool_to_grid, voxelize_mesh,
-                        voxelize_mesh_evm)
+from ._voxelize import (
+                        MeshCheck,
+                        box_evm,
+                        check_closed_mesh,
+                        tool_to_grid,
+                        voxelize_mesh,
+                        voxelize_mesh_evm,
+)
 from .model._cache import DerivedCache
 from .model._evm import EVM
 from .model._histogram import density_histogram, otsu_threshold
@@ -37,10 +43,18 @@ from .readers import SUPPORTED_EXTENSIONS, read_volume, volume_levels
 from .rendering._camera import BACKGROUND_DEPTH, Camera
 from .rendering._compositing import composite_over, output_depth
 from .rendering._depth import VISIBLE_ALPHA
-from .rendering._gpu_inputs import (GPU_UNIFORMS_GLSL, GPUFrame, axial_from_window,
-                                    camera_from_viewport, gpu_frame, gpu_gradients, gpu_occupancy,
-                                    gpu_region,
-                                    gpu_transfer_table, window_from_axial)
+from .rendering._gpu_inputs import (
+                        GPU_UNIFORMS_GLSL,
+                        GPUFrame,
+                        axial_from_window,
+                        camera_from_viewport,
+                        gpu_frame,
+                        gpu_gradients,
+                        gpu_occupancy,
+                        gpu_region,
+                        gpu_transfer_table,
+                        window_from_axial,
+)
 from .rendering._images import exr_channels, openexr_module, read_exr, write_exr, write_png
 from .rendering._levels import LEVELS
 from .rendering._modes import MODES

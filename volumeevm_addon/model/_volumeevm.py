@@ -33,8 +33,14 @@ from ._labels import layered_regions
 from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
-from ._volume import (Volume, checked_densities, checked_geometry, index_to_physical, is_lazy,
-                      transform)
+from ._volume import (
+    Volume,
+    checked_densities,
+    checked_geometry,
+    index_to_physical,
+    is_lazy,
+    transform,
+)
 
 
 class VolumeEVM:

@@ -53,15 +53,27 @@ import numpy as np
 from .._errors import VolumeEVMError
 from .._jit import kernel
 from .._memory import check_memory
-from ._levels import level_factor
 from ..model._volume import grid_to_world
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera
-from ._checks import (RAY_STEPS_PER_VOXEL, categorical, check_camera, check_mode,
-                      check_transfer_function, check_volumeevm, checked_affine,
-                      checked_categorical_level, checked_step_mm, checked_view,
-                      checked_xray, flag, positive_integer, positive_number)
+from ._checks import (
+    RAY_STEPS_PER_VOXEL,
+    categorical,
+    check_camera,
+    check_mode,
+    check_transfer_function,
+    check_volumeevm,
+    checked_affine,
+    checked_categorical_level,
+    checked_step_mm,
+    checked_view,
+    checked_xray,
+    flag,
+    positive_integer,
+    positive_number,
+)
 from ._gradients import region_gradients
+from ._levels import level_factor
 from ._render import check_samples
 from ._shading import Lighting, checked_shading
 

@@ -30,13 +30,20 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ._levels import level_factor
 from ..model._volume import grid_to_world
 from ._camera import Camera
-from ._checks import (RAY_STEPS_PER_VOXEL, REFERENCE_STEPS_PER_VOXEL, check_mode,
-                      check_volumeevm, checked_affine, checked_categorical_level,
-                      checked_step_mm, positive_number)
+from ._checks import (
+    RAY_STEPS_PER_VOXEL,
+    REFERENCE_STEPS_PER_VOXEL,
+    check_mode,
+    check_volumeevm,
+    checked_affine,
+    checked_categorical_level,
+    checked_step_mm,
+    positive_number,
+)
 from ._depth import checked_depth_in
+from ._levels import level_factor
 
 METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
 

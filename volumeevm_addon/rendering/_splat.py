@@ -115,8 +115,7 @@ from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
-from ._splat_kernels import (Crossings, Footprint, Image, Optics, Slab, Voxels,
-                             splat_rows)
+from ._splat_kernels import Crossings, Footprint, Image, Optics, Slab, Voxels, splat_rows
 
 __all__ = ["render_splat"]
 

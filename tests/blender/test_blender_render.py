@@ -11,8 +11,9 @@ import bpy
 import numpy as np
 import OpenEXR
 import pytest
-from blender_helpers import REPO, ext, fresh  # noqa: F401 (fixtures)
 from mathutils import Vector
+
+from blender_helpers import REPO
 
 SKULL = REPO / "sample_blends" / "data" / "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9

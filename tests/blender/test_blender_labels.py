@@ -8,7 +8,8 @@ Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import api, assert_surface_is, core, ext, fresh, mesh_arrays  # noqa: F401
+
+from blender_helpers import assert_surface_is, mesh_arrays
 
 
 @pytest.fixture
