@@ -21,9 +21,9 @@ compression; every page's pixel data lies inside the file, without overlapping a
 data or the directories and tag values; uncompressed pages hold exactly the bytes their size
 needs; the ImageJ description is plain ASCII text; its ``images=`` count and the OME
 ``SizeX/Y/Z/C/T`` and ``Type`` match the pages found; resolutions, ImageJ ``spacing`` and OME
-physical sizes are positive finite numbers; and the decoded stack fits in the memory available. Any damage tifffile reports while reading (a broken
-page chain, missing OME frames it would fill with zeros, invalid metadata it would ignore)
-is an error too, not a warning.
+physical sizes are positive finite numbers; and the decoded stack fits in the memory available. Any
+damage tifffile reports while reading (a broken page chain, missing OME frames it would fill with
+zeros, invalid metadata it would ignore) is an error too, not a warning.
 """
 
 import logging
