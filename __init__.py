@@ -16,8 +16,16 @@ import atexit
 import bpy
 
 from . import operators, ui
-from .blender import (compositor, gpu_viewport, handlers, kernels, native_volume, preview,
-                      sidecar, tool_stack)
+from .blender import (
+    compositor,
+    gpu_viewport,
+    handlers,
+    kernels,
+    native_volume,
+    preview,
+    sidecar,
+    tool_stack,
+)
 from .operators import import_volume
 from .ui import panels, props
 

@@ -1,4 +1,5 @@
-"""What every benchmark shares: best-of-N timing, the run's facts, JSON results written atomically."""
+"""What every benchmark shares: best-of-N timing, the run's facts, JSON results written
+atomically."""
 
 import json
 import os
@@ -35,7 +36,8 @@ def run_facts():
     import numpy as np
 
     git = ["git", "-C", str(REPO)]
-    commit = subprocess.run(git + ["rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = subprocess.run(git + ["rev-parse", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
     modified = subprocess.run(git + ["status", "--porcelain", "--untracked-files=no"],
                               capture_output=True, text=True).stdout.splitlines()
     return {
@@ -55,7 +57,8 @@ def write_json(path, data):
     A list of numbers (a curve, a matrix row, a shape) stays on one line, so that a result
     file reads (and diffs) by entry rather than by number. Only a list that ``json.dumps`` spread
     over lines is joined: a string never holds a newline, so its text is never touched."""
-    text = json.dumps(data, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    text = json.dumps(data, indent=1,
+                      default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     text = re.sub(r"\[\n[-+.\deE,\s]*\]",
                   lambda m: "[" + " ".join(m.group()[1:-1].split()) + "]", text)
     write_atomically(path, lambda temporary: temporary.write_text(text), overwrite=True)

@@ -206,7 +206,8 @@ def main():
                 run_number += 1
                 check_surface(core, vol.volumeevm.surface, api.stack_state(vol).result)
                 run = {"tool": name, "entry": list(tools).index(name) + 1, "threads": threads,
-                       **summary(records), "steps_ms": [round(1000 * r["step_s"], 1) for r in records]}
+                       **summary(records),
+                       "steps_ms": [round(1000 * r["step_s"], 1) for r in records]}
                 results["runs"].append(run)
                 print(f"{threads} thr  drag {name:4s} (entry {run['entry']})  "
                       f"cold {run['cold_ms']['step_s']:7.1f} ms  "

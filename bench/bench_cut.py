@@ -32,8 +32,8 @@ plus one rotated placement), side by side in one run:
 Every timing is the best of N runs: ``--repeat`` for the Blender evaluations (seconds each) and
 ``--evm-repeat`` for the EVM side and the stack (the machine is shared: best-of-N filters out other
 people's load; the load average is recorded). ``evm_total_s`` is voxelize + cut + mesh timed end to
-end (the figure the ratios use); ``evm_parts_sum_s`` is the sum of the parts' best times. Prints a table and writes JSON (with versions and
-commit) atomically to ``--out/bench_cut.json``.
+end (the figure the ratios use); ``evm_parts_sum_s`` is the sum of the parts' best times. Prints a
+table and writes JSON (with versions and commit) atomically to ``--out/bench_cut.json``.
 
 Usage: ``.venv/py313/bin/python bench/bench_cut.py --repeat 5 --out bench/results`` (about 6 min)
 """
@@ -91,7 +91,8 @@ def place_tool(name, centre_index, degrees, size_mm, index_to_mm):
 
 def box_mesh(lo, hi):
     """Closed outward triangle mesh of the box ``[lo, hi]``."""
-    corners = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])],
+    corners = np.array([[x, y, z]
+                        for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])],
                        np.float64)
     quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
     faces = [(a, b, c) for a, b, c, d in quads] + [(a, c, d) for a, b, c, d in quads]
@@ -133,14 +134,16 @@ class BlenderBench:
         self.bpy = bpy
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
-        self.head_mesh = blender_mesh(bpy, "head", head_vertices, head_polygons.indices, head_polygons.starts)
+        self.head_mesh = blender_mesh(bpy, "head", head_vertices, head_polygons.indices,
+                                      head_polygons.starts)
         solvers = bpy.types.BooleanModifier.bl_rna.properties["solver"].enum_items.keys()
         self.solvers = [s for s in ("EXACT", "MANIFOLD") if s in solvers]
         self.version = bpy.app.version_string
 
     def add_tool(self, name, vertices, faces):
         bpy = self.bpy
-        mesh = blender_mesh(bpy, name, vertices, faces.ravel(), np.arange(len(faces), dtype=np.int32) * 3)
+        mesh = blender_mesh(bpy, name, vertices, faces.ravel(),
+                            np.arange(len(faces), dtype=np.int32) * 3)
         tool = bpy.data.objects.new(name, mesh)
         self.scene.collection.objects.link(tool)
         tool.display_type = "WIRE"
@@ -264,7 +267,8 @@ def run(repeat, evm_repeat, tool_size, skip_blender):
     head_vertices, head_polygons = vevm.mesh()
     input_volume = vevm.voxel_count * voxel_mm3
     print(f"[bench] CT head {shape}, bone >= {THRESHOLD} HU: {vevm.voxel_count:,} voxels, "
-          f"{len(vevm.evm):,} EVs, mesh {len(head_vertices):,} vertices / {len(head_polygons):,} polygons, "
+          f"{len(vevm.evm):,} EVs, mesh {len(head_vertices):,} vertices / "
+          f"{len(head_polygons):,} polygons, "
           f"{len(vevm.evm.components())} components", flush=True)
 
     components = vevm.evm.components()
@@ -299,7 +303,8 @@ def run(repeat, evm_repeat, tool_size, skip_blender):
     for label, name, centre, degrees in PLACEMENTS:
         vertices, faces = place_tool(name, centre, degrees, tool_size, index_to_mm)
         tools[label] = (vertices, faces)
-        voxelize_s, tool = best_time(lambda: voxelize_mesh_evm(vertices, faces, shape, to_grid), evm_repeat)
+        voxelize_s, tool = best_time(lambda: voxelize_mesh_evm(vertices, faces, shape, to_grid),
+                                     evm_repeat)
         mask = voxelize_mesh(vertices, faces, shape, to_grid)  # the whole-grid oracle, untimed
         assert tool == EVM.from_mask(mask), "tool EVM on its box differs from the whole grid"
         cut_s, cut = best_time(lambda: vevm.cut(tool), evm_repeat)
@@ -325,7 +330,8 @@ def run(repeat, evm_repeat, tool_size, skip_blender):
             "evm_parts_sum_s": voxelize_s + cut_s + mesh_s,
             "evm_total_s": total_s,
         }
-        print(f"[bench] {label}: EVM cut {total_s:.3f} s ({row['removed_voxels']:,} voxels removed)", flush=True)
+        print(f"[bench] {label}: EVM cut {total_s:.3f} s ({row['removed_voxels']:,} voxels "
+              f"removed)", flush=True)
         if blender is not None:
             tool_object = blender.add_tool(label, vertices, faces)
             for key, (solver, mesh, region, noop) in inputs.items():
@@ -334,7 +340,8 @@ def run(repeat, evm_repeat, tool_size, skip_blender):
                     tool_object, solver, repeat, mesh=mesh, apply=apply)
                 row[f"{key}_s"] = seconds
                 row[f"{key}_speedup_vs_evm_cut"] = seconds / total_s
-                row[key] = compare_with_blender(result, noop, region, mask, shape, to_grid, voxel_mm3)
+                row[key] = compare_with_blender(result, noop, region, mask, shape, to_grid,
+                                                voxel_mm3)
                 if apply:
                     row[f"{key}_apply_s"] = apply_seconds
                     row[key]["apply_status"] = status
@@ -403,7 +410,8 @@ def stack_bench(vevm, tools, repeat, shape, to_grid, index_to_mm):
             "result_voxels": result.voxel_count,
             "result_polygons": len(polygons),
         })
-        print(f"[bench] stack, moving the {name} tool: {seconds:.3f} s (+ mesh {mesh_s:.3f} s)", flush=True)
+        print(f"[bench] stack, moving the {name} tool: {seconds:.3f} s (+ mesh {mesh_s:.3f} s)",
+              flush=True)
     return rows
 
 
@@ -417,11 +425,14 @@ def print_table(rows, stack):
             columns += [(f"{solver}_s", "{:.3f}"), (f"{solver}_apply_s", "{:.3f}"),
                         (f"{solver}_speedup_vs_evm_cut", "{:.1f}x"),
                         (f"{solver}.polygons", "{:,}"), (f"{solver}.closed", "{}"),
-                        (f"{solver}.nonmanifold_edges", "{:,}"), (f"{solver}.volume_mm3", "{:,.1f}"),
+                        (f"{solver}.nonmanifold_edges", "{:,}"),
+                        (f"{solver}.volume_mm3", "{:,.1f}"),
                         (f"{solver}.our_volume_mm3", "{:,.1f}"),
                         (f"{solver}.volume_difference_voxels", "{:+,.1f}"),
-                        (f"{solver}.voxels_only_ours", "{:,}"), (f"{solver}.voxels_only_blender", "{:,}"),
-                        (f"{solver}.removed_mm3", "{:,.1f}"), (f"{solver}.our_removed_mm3", "{:,.1f}"),
+                        (f"{solver}.voxels_only_ours", "{:,}"),
+                        (f"{solver}.voxels_only_blender", "{:,}"),
+                        (f"{solver}.removed_mm3", "{:,.1f}"),
+                        (f"{solver}.our_removed_mm3", "{:,.1f}"),
                         (f"{solver}.removed_difference_voxels", "{:+,.1f}"),
                         (f"{solver}.noop_voxels_differing", "{:,}"),
                         (f"{solver}.cut_voxels_differing", "{:,}")]
@@ -440,23 +451,27 @@ def print_table(rows, stack):
         print(f"{name:36s}" + "".join(f"{'-' if c is None else fmt.format(c):>18s}" for c in cells))
     print()
     columns = [("moved", "{}"), ("recomputed_entries", "{}"), ("voxelize_s", "{:.4f}"),
-               ("reevaluate_s", "{:.4f}"), ("mesh_refresh_s", "{:.4f}"), ("total_with_mesh_s", "{:.4f}"),
-               ("result_polygons", "{:,}")]
+               ("reevaluate_s", "{:.4f}"), ("mesh_refresh_s", "{:.4f}"),
+               ("total_with_mesh_s", "{:.4f}"), ("result_polygons", "{:,}")]
     for name, fmt in columns:
         print(f"{name:36s}" + "".join(f"{fmt.format(r[name]):>18s}" for r in stack))
     print()
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     parser.add_argument("--repeat", type=int, default=3, help="runs per Blender timing (best of)")
-    parser.add_argument("--evm-repeat", type=int, default=15, help="runs per EVM and stack timing (best of)")
-    parser.add_argument("--tool-size", type=float, default=75.0, help="largest extent of each tool, mm")
+    parser.add_argument("--evm-repeat", type=int, default=15,
+                        help="runs per EVM and stack timing (best of)")
+    parser.add_argument("--tool-size", type=float, default=75.0,
+                        help="largest extent of each tool, mm")
     parser.add_argument("--skip-blender", action="store_true", help="EVM side and stack only")
     args = parser.parse_args()
     load_before = os.getloadavg()
-    versions, info, rows, stack = run(args.repeat, args.evm_repeat, args.tool_size, args.skip_blender)
+    versions, info, rows, stack = run(args.repeat, args.evm_repeat, args.tool_size,
+                                      args.skip_blender)
     print_table(rows, stack)
     checks = {"stack_reevaluate_s": max(r["reevaluate_s"] for r in stack)}
     if any("exact_s" in r for r in rows):
@@ -478,8 +493,9 @@ def main():
         "load_average_after": os.getloadavg(),
         "repeat": args.repeat,
         "evm_repeat": args.evm_repeat,
-        "timing": (f"best of {args.repeat} runs (Blender) and of {args.evm_repeat} runs (EVM, stack); setup "
-                   "(mesh and object building, stack cache warm-up, reading Blender's result) untimed"),
+        "timing": (f"best of {args.repeat} runs (Blender) and of {args.evm_repeat} runs (EVM, "
+                   "stack); setup (mesh and object building, stack cache warm-up, reading "
+                   "Blender's result) untimed"),
         **info,
         "targets": TARGETS,
         "measured": checks,

@@ -706,7 +706,8 @@ def summary(rows, info, checks, facts):
                          f"{p['peak_alloc_mb']:.0f} MB |")
     lines += ["", "## Kernels' first use (fresh processes, orthographic view)", "",
               "| method | dataset | first call, empty kernel cache (compiling) "
-              "| first call, kernels loaded from the cache | second call |", "|---|---|---|---|---|"]
+              "| first call, kernels loaded from the cache | second call |",
+              "|---|---|---|---|---|"]
     for method, f in facts.get("first_use", {}).items():
         lines.append(f"| {method} | {f['dataset']} | {_ms(f['compiling_first_call_s'])} | "
                      f"{_ms(f['loading_first_call_s'])} | {_ms(f['second_call_s'])} |")

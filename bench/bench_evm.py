@@ -37,7 +37,8 @@ from bench._common import best_time, run_facts, write_json  # noqa: E402
 from volumeevm_addon import EVM, VolumeEVM, kernel_threads, set_kernel_threads  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
-TARGETS = {"extract_mesh_speedup_vs_marching_cubes": 3.0, "extract_mesh_speedup_vs_vtk_flying_edges": 1.0,
+TARGETS = {"extract_mesh_speedup_vs_marching_cubes": 3.0,
+           "extract_mesh_speedup_vs_vtk_flying_edges": 1.0,
            "mesh_faces_per_unit_face_bone": 0.4, "bytes_vs_dense_bone": 0.35}
 MRIS = [("mr_brainsmall_volpack", 60.0), ("mr_t1_itk_kmeans", 50.0)]
 FIRST_USE = """
@@ -108,13 +109,15 @@ def surface_row(array, spacing, threshold, repeat):
                 lambda: EVM.from_mask(array >= threshold).mesh(), repeat)
         finally:
             set_kernel_threads(previous)
-        row[f"vtk_flying_edges{label}_s"], vtk_triangles = best_time(lambda: vtk_run(threshold, count),
-                                                                     repeat)
+        row[f"vtk_flying_edges{label}_s"], vtk_triangles = best_time(
+            lambda: vtk_run(threshold, count), repeat)
     row["marching_cubes_s"], (_, mc_faces, _, _) = best_time(
         lambda: marching_cubes(as_float, level=threshold, spacing=spacing), repeat)
     row.update({
-        "extract_mesh_speedup_vs_marching_cubes": row["marching_cubes_s"] / row["evm_extract_mesh_s"],
-        "extract_mesh_speedup_vs_vtk_flying_edges": row["vtk_flying_edges_s"] / row["evm_extract_mesh_s"],
+        "extract_mesh_speedup_vs_marching_cubes":
+            row["marching_cubes_s"] / row["evm_extract_mesh_s"],
+        "extract_mesh_speedup_vs_vtk_flying_edges":
+            row["vtk_flying_edges_s"] / row["evm_extract_mesh_s"],
         "extract_mesh_1thread_speedup_vs_vtk_flying_edges_1thread":
             row["vtk_flying_edges_1thread_s"] / row["evm_extract_mesh_1thread_s"],
         "mesh_polygons": len(polygons),
@@ -129,10 +132,12 @@ def surface_row(array, spacing, threshold, repeat):
 def first_use(warm_s):
     """The kernels' first use in a fresh process: compiling (empty cache), then loading."""
     with tempfile.TemporaryDirectory() as cache:
-        command = [sys.executable, "-c", FIRST_USE, str(REPO), cache, str(DATA / "ct_head_invesalius.npy")]
+        command = [sys.executable, "-c", FIRST_USE, str(REPO), cache,
+                   str(DATA / "ct_head_invesalius.npy")]
         cold, warm = (json.loads(subprocess.run(command, check=True, capture_output=True, text=True,
                                                 env=dict(os.environ)).stdout) for _ in range(2))
-    return {"case": "CT head bone, EVM.from_mask(...).mesh()", "cold_first_call_s": cold["first_call_s"],
+    return {"case": "CT head bone, EVM.from_mask(...).mesh()",
+            "cold_first_call_s": cold["first_call_s"],
             "warm_first_call_s": warm["first_call_s"], "package_import_s": warm["import_s"],
             "compiled_call_s": warm_s}
 
@@ -144,7 +149,8 @@ def run(repeat):
     head, spacing = load("ct_head_invesalius")
     x, y, z = np.ogrid[: head.shape[0], : head.shape[1], : head.shape[2]]
     tools = {
-        "box": np.broadcast_to((x >= 100) & (x < 180) & (y >= 80) & (y < 200) & (z >= 30) & (z < 90), head.shape),
+        "box": np.broadcast_to((x >= 100) & (x < 180) & (y >= 80) & (y < 200) & (z >= 30)
+                               & (z < 90), head.shape),
         "sphere": (x - 128) ** 2 + (y - 100) ** 2 + ((z - 54) * 1.5) ** 2 < 60 ** 2,
     }
     rows = []
@@ -199,7 +205,8 @@ CT_COLUMNS = [
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
@@ -212,14 +219,15 @@ def main():
     checks = {
         "extract_mesh_speedup_vs_marching_cubes": min(r["extract_mesh_speedup_vs_marching_cubes"]
                                                       for r in surfaces),
-        "extract_mesh_speedup_vs_vtk_flying_edges": min(r["extract_mesh_speedup_vs_vtk_flying_edges"]
-                                                        for r in surfaces),
+        "extract_mesh_speedup_vs_vtk_flying_edges": min(
+            r["extract_mesh_speedup_vs_vtk_flying_edges"] for r in surfaces),
         "mesh_faces_per_unit_face_bone": bone["mesh_faces_per_unit_face"],
         "bytes_vs_dense_bone": bone["bytes_vs_dense"],
     }
     for name, target in TARGETS.items():
         better = checks[name] >= target if "speedup" in name else checks[name] <= target
-        print(f"target {name}: {checks[name]:.3f} (target {target}) {'met' if better else 'NOT met'}")
+        print(f"target {name}: {checks[name]:.3f} (target {target}) "
+              f"{'met' if better else 'NOT met'}")
     result = {
         "benchmark": "evm_core",
         **run_facts(),

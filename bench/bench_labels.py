@@ -66,7 +66,8 @@ def build_row(name, array, spacing, repeat, threads):
         set_kernel_threads(count)
         labels_s, _ = best_time(lambda: VolumeEVM.from_labels(array, spacing=spacing), repeat)
         one_s, _ = best_time(lambda: VolumeEVM.from_array(array, 1, spacing=spacing), repeat)
-        bands_s, _ = best_time(lambda: [VolumeEVM.from_array(array, label, upper=label, spacing=spacing)
+        bands_s, _ = best_time(lambda: [VolumeEVM.from_array(array, label, upper=label,
+                                                             spacing=spacing)
                                         for label in regions], 1)
         row["threads"][count] = {"from_labels_s": labels_s, "one_build_s": one_s,
                                  "band_builds_s": bands_s, "vs_one_build": labels_s / one_s,
@@ -115,7 +116,8 @@ def mesh_row(name, array, spacing, regions, repeat):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
@@ -138,12 +140,13 @@ def main():
     print(f"\n{'map':26} {'ours s':>7} {'mc s':>7} {'x mc':>6} {'zmesh s':>8} {'x zmesh':>8}")
     for row in meshes:
         z = row.get("zmesh_s")
-        print(f"{row['map']:26} {row['ours_1_thread_s']:7.3f} {row['marching_cubes_per_label_s']:7.3f} "
-              f"{row['speedup_vs_marching_cubes']:6.1f} " + (f"{z:8.3f} {row['speedup_vs_zmesh']:8.2f}"
-                                                              if z else f"{'-':>8} {'-':>8}"))
+        print(f"{row['map']:26} {row['ours_1_thread_s']:7.3f} "
+              f"{row['marching_cubes_per_label_s']:7.3f} "
+              f"{row['speedup_vs_marching_cubes']:6.1f} "
+              + (f"{z:8.3f} {row['speedup_vs_zmesh']:8.2f}" if z else f"{'-':>8} {'-':>8}"))
     args.out.mkdir(parents=True, exist_ok=True)
-    write_json(args.out / "bench_labels.json", {"facts": facts, "targets": TARGETS, "builds": builds,
-                                                "meshes": meshes})
+    write_json(args.out / "bench_labels.json", {"facts": facts, "targets": TARGETS,
+                                                "builds": builds, "meshes": meshes})
 
 
 if __name__ == "__main__":

@@ -16,14 +16,13 @@ premultiplied RGBA at ``--size``². Results: ``bench/results/native_volume.json`
 import argparse
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
 from _common import REPO, best_time, run_facts, write_json
 
 sys.path.insert(0, str(REPO / "tests"))
 import bpy  # noqa: E402
+
 from blender_helpers import addon, reset_blender  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"

@@ -21,7 +21,6 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from bench._common import best_time, run_facts, write_json  # noqa: E402
 from surface_helpers import enclosed_volume, marching_cubes, roughness, triangles  # noqa: E402
-
 from volumeevm_addon import EVM  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"

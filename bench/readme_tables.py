@@ -128,8 +128,9 @@ def dvr_targets(results):
     vtk_goal = targets["speedup_vs_vtk_at_vtk_error_at_least"]
     volpack_goal = targets["shear_warp_time_over_volpack_at_volpack_error_at_most"]
     lines = [_facts(result, result["timing"]), "",
-             f"| dataset (view) | VTK's error (its time) | our fastest there | vs VTK (≥ {vtk_goal:g}× "
-             f"faster) | VolPack's error (its time) | shear-warp there | vs VolPack (≤ "
+             f"| dataset (view) | VTK's error (its time) | our fastest there | vs VTK "
+             f"(≥ {vtk_goal:g}× faster) | VolPack's error (its time) | shear-warp there | "
+             f"vs VolPack (≤ "
              f"{volpack_goal:g}× its time) |", "|---" * 7 + "|"]
     for c in result["target_results"]:
         cells = [f"{c['dataset']} ({c['view']})"]

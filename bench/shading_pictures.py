@@ -26,11 +26,17 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from _common import REPO, best_time, run_facts, write_json
 
-from volumeevm_addon import (Camera, TransferFunction, VolumeEVM, grid_to_world, render,
-                             set_kernel_threads, write_png)
+from volumeevm_addon import (
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    grid_to_world,
+    render,
+    set_kernel_threads,
+    write_png,
+)
 from volumeevm_addon.metrics import rmse
 
 DATA = REPO.parent / "shared" / "data"

@@ -80,7 +80,8 @@ def _joined(meshes):
         loops += len(polygons.indices)
         edge_count += len(faces.edges)
     faces = Faces(Polygons(*(np.concatenate(a).astype(np.int32) for a in (indices, starts, sizes))),
-                  np.concatenate(edges).astype(np.int32), np.concatenate(corner_edges).astype(np.int32))
+                  np.concatenate(edges).astype(np.int32),
+                  np.concatenate(corner_edges).astype(np.int32))
     return np.concatenate(co), faces, np.concatenate(labels)
 
 
@@ -116,7 +117,8 @@ def label_meshes_job(context, obj, *, single_mesh=False, manifold=False):
             values = np.array([label for label, _, _ in meshes])  # increasing: slot = place
             for label in values:
                 mesh.materials.append(materials[label])
-            mesh.polygons.foreach_set("material_index", np.searchsorted(values, labels).astype(np.int32))
+            mesh.polygons.foreach_set("material_index",
+                                      np.searchsorted(values, labels).astype(np.int32))
             mesh.attributes.new("label", "INT", "FACE").data.foreach_set("value", labels)
             made.append(bpy.data.objects.new(f"{name} labels mesh", mesh))
         else:

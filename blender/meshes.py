@@ -104,7 +104,8 @@ def _write(mesh, co, faces):
     """Write every array of ``co`` and ``faces`` into a mesh that has their sizes."""
     polygons = faces.polygons
     _attribute(mesh, "position", "FLOAT_VECTOR", "POINT").data.foreach_set("vector", co.ravel())
-    _attribute(mesh, ".edge_verts", "INT32_2D", "EDGE").data.foreach_set("value", faces.edges.ravel())
+    _attribute(mesh, ".edge_verts", "INT32_2D", "EDGE").data.foreach_set("value",
+                                                                         faces.edges.ravel())
     corners, field = _corner_vertices(mesh)
     corners.foreach_set(field, polygons.indices)
     _attribute(mesh, ".corner_edge", "INT", "CORNER").data.foreach_set("value", faces.corner_edges)

@@ -405,7 +405,8 @@ def refresh(vol_obj, depsgraph, *, create=False, force=False, extra=None):
                 return None
             result = _evaluate(state, entries, timing)
             if extra is None and not shown:
-                _write_surface(bpy.context, state, vol_obj, result, signature, timing, create=create)
+                _write_surface(bpy.context, state, vol_obj, result, signature, timing,
+                               create=create)
         except jobs.REPORTED_ERRORS as error:
             stack_problem(vol_obj, str(error))
             raise

@@ -30,10 +30,15 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import (VolumeEVM, VolumeEVMError, density_histogram, otsu_threshold,
-                               read_volume, volume_levels)
-from ..volumeevm_addon.model import chunked_build_memory
-from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM, index_to_physical
+from ..volumeevm_addon import (
+    VolumeEVM,
+    VolumeEVMError,
+    density_histogram,
+    otsu_threshold,
+    read_volume,
+    volume_levels,
+)
+from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM, chunked_build_memory, index_to_physical
 from . import jobs, runtime, sidecar
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object

@@ -35,8 +35,8 @@ class VOLUMEEVM_OT_make_label_meshes(jobs.JobOperator, bpy.types.Operator):
         return poll_volume(cls, context, built=False) is not None
 
     def job(self, context):
-        return labels.label_meshes_job(context, active_volume(context), single_mesh=self.single_mesh,
-                                         manifold=self.manifold)
+        return labels.label_meshes_job(context, active_volume(context),
+                                       single_mesh=self.single_mesh, manifold=self.manifold)
 
     def finished(self, context, made):
         faces = sum(len(obj.data.polygons) for obj in made)

@@ -5,12 +5,10 @@ The repository root is the extension package; tests import it under the name ``v
 with the demo script's loader (``sample_blends/make_demo.py``), so both load it the same way.
 """
 
-import importlib
 import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the CT head
@@ -56,25 +54,6 @@ def assert_surface_is(surface, vevm, **options):
     return polys
 
 
-@pytest.fixture(scope="module")
-def ext():
-    """The extension from the source tree, registered for the test module that imports this,
-    with its script API (``blender.api``) imported as a script imports it."""
-    module = addon()
-    importlib.import_module(f"{module.__name__}.blender.api")
-    module.register()
-    yield module
-    module.unregister()
-
-
-@pytest.fixture(autouse=True)
-def fresh(ext):
-    """Every test starts and ends with an empty scene."""
-    reset_blender()
-    yield
-    reset_blender()
-
-
 def write_ct_crop(path, data_dir):
     """Write the CT crop as ``.npy`` with its JSON sidecar (spacing, HU); returns the array."""
     meta = json.loads((data_dir / "ct_head_invesalius.json").read_text())
@@ -84,23 +63,3 @@ def write_ct_crop(path, data_dir):
     side["shape"] = list(array.shape)
     Path(path).with_suffix(".json").write_text(json.dumps(side))
     return array
-
-
-@pytest.fixture
-def ct_crop_npy(tmp_path, data_dir):
-    """A crop of the real CT head as .npy with its JSON sidecar (spacing, HU)."""
-    path = tmp_path / "ct_crop.npy"
-    write_ct_crop(path, data_dir)
-    return path
-
-
-@pytest.fixture
-def core(ext):
-    """The core as the extension imports it (same classes as the operators use)."""
-    return ext.volumeevm_addon
-
-
-@pytest.fixture
-def api(ext):
-    """The extension's script API."""
-    return ext.blender.api

@@ -5,8 +5,8 @@ import json
 
 import numpy as np
 
-from volumeevm_addon import EVM, TransferFunction, VolumeEVM, grid_to_world, phantoms
 from render_helpers import camera, const_tf
+from volumeevm_addon import EVM, TransferFunction, VolumeEVM, grid_to_world, phantoms
 
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the CT head
 BLOB = dict(centres=[(20.0, 20.0, 20.0)], sigmas=4.0, amplitudes=1.0)

@@ -145,7 +145,6 @@ def viewport(vol, tf, options, arrays, out):
     ``draw_view3d`` with the scene camera's matrices): saves the Solid image and depth, the
     composite, the matrices and the VolumeEVM (``<out>.vevm``) for the reference."""
     from mathutils import Matrix
-
     from volumeevm.blender import api, display_lut, gpu_viewport
     from volumeevm.blender.camera import camera_from_blender
 
@@ -198,7 +197,6 @@ def viewport_handler(vol, arrays):
     whether a rest timer is set after it and the level shown) and ``handler_level_text``
     (the sidebar's)."""
     from mathutils import Euler, Matrix
-
     from volumeevm.blender import gpu_viewport
     from volumeevm.blender.camera import camera_from_blender
     from volumeevm.blender.transfer import ensure_ramp
@@ -263,7 +261,6 @@ def display_colours(arrays, meta, data_dir):
     import tempfile
 
     from mathutils import Matrix
-
     from volumeevm.blender import api, display_lut, gpu_viewport, images
     from volumeevm.blender.camera import camera_from_blender
     from volumeevm.blender.dvr import settings_options

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"  # the real volumes (../shared/data beside the repo)
 
 #: Voxel size (mm) and the centre of voxel (0, 0, 0) (mm, LPS) of the written DICOM series.
 SPACING = (0.5, 0.75, 1.25)

@@ -27,7 +27,8 @@ def head(data_dir):
 @pytest.mark.parametrize("spacing", [(0, 1, 1), (1, -2, 1), (1, 1, np.nan), (1, np.inf, 1), (1, 1),
                                      (1, 1, 1, 1), "111", (1j, 1, 1), (True, True, True), None])
 def test_spacing_must_be_three_finite_positive_numbers(spacing):
-    with pytest.raises(VolumeEVMError, match=r"^scan: spacing must be three finite positive numbers"):
+    with pytest.raises(VolumeEVMError,
+                       match=r"^scan: spacing must be three finite positive numbers"):
         VolumeEVM.from_array(ONES, 1, spacing=spacing, source="scan")
 
 
@@ -37,8 +38,9 @@ def test_origin_must_be_three_finite_numbers(origin):
         VolumeEVM.from_array(ONES, 1, origin=origin, source="scan")
 
 
-@pytest.mark.parametrize("orientation", [2 * np.eye(3), [[1, 0.1, 0], [0, 1, 0], [0, 0, 1]], np.zeros((3, 3)),
-                                         np.full((3, 3), np.nan), np.eye(3) + 1e-4, np.eye(2), np.eye(4)])
+@pytest.mark.parametrize("orientation", [2 * np.eye(3), [[1, 0.1, 0], [0, 1, 0], [0, 0, 1]],
+                                         np.zeros((3, 3)), np.full((3, 3), np.nan),
+                                         np.eye(3) + 1e-4, np.eye(2), np.eye(4)])
 def test_orientation_must_be_orthonormal(orientation):
     with pytest.raises(VolumeEVMError, match=r"^scan: orientation must be"):
         VolumeEVM.from_array(ONES, 1, orientation=orientation, source="scan")
@@ -56,7 +58,8 @@ def test_from_volume_names_the_volume_file():
     bad = Volume(ONES, spacing=(1.0, 0.0, 1.0), source="head.nii.gz")
     with pytest.raises(VolumeEVMError, match=r"^head.nii.gz: spacing must be"):
         VolumeEVM.from_volume(bad, 1)
-    sheared = Volume(ONES, orientation=np.array([[1, 0.5, 0], [0, 1, 0], [0, 0, 1]]), source="ct.nrrd")
+    sheared = Volume(ONES, orientation=np.array([[1, 0.5, 0], [0, 1, 0], [0, 0, 1]]),
+                     source="ct.nrrd")
     with pytest.raises(VolumeEVMError, match=r"^ct.nrrd: orientation must be orthonormal"):
         VolumeEVM.from_volume(sheared, 1)
     with pytest.raises(VolumeEVMError, match="volume must be a Volume"):
@@ -64,8 +67,8 @@ def test_from_volume_names_the_volume_file():
 
 
 # ---------------------------------------------------------------------- densities and interval
-@pytest.mark.parametrize("threshold", [np.nan, np.inf, -np.inf, True, np.bool_(False), 1 + 2j, "300",
-                                       None, 10**400, np.array([1.0])])
+@pytest.mark.parametrize("threshold", [np.nan, np.inf, -np.inf, True, np.bool_(False), 1 + 2j,
+                                       "300", None, 10**400, np.array([1.0])])
 def test_threshold_must_be_a_finite_real_number(threshold):
     with pytest.raises(VolumeEVMError, match=r"^scan: threshold must be a finite number"):
         VolumeEVM.from_array(ONES, threshold, source="scan")
@@ -94,7 +97,8 @@ def test_integer_thresholds_compare_exactly_with_large_integers():
     (np.ones((2, 2, 2), bool), "got dtype bool; for a mask use EVM.from_mask"),
     (np.ones((2, 2, 2), complex), "got dtype complex128"),
     (np.array([[["a"]]]), "got dtype <U1"),
-    (np.ma.masked_array(np.ones((2, 2, 2)), mask=False), r"masked array .* \(array.filled\(value\)\)"),
+    (np.ma.masked_array(np.ones((2, 2, 2)), mask=False),
+     r"masked array .* \(array.filled\(value\)\)"),
     ([[[1, 2], [3]]], "not an array of densities"),
 ])
 def test_array_must_be_a_3d_nonempty_real_numeric_grid(array, problem):
@@ -106,14 +110,16 @@ def test_nan_densities_are_located():
     array = np.zeros((3, 4, 5), np.float32)
     array[2, 1, 3] = np.inf
     array[2, 3, 0] = np.nan
-    with pytest.raises(VolumeEVMError, match=r"^scan: 2 densities are NaN or infinite \(first at voxel \(2, 1, 3\)"):
+    with pytest.raises(VolumeEVMError, match=r"^scan: 2 densities are NaN or infinite "
+                                             r"\(first at voxel \(2, 1, 3\)"):
         VolumeEVM.from_array(array, 0, source="scan")
 
 
 def test_array_likes_and_filled_masked_arrays_build():
     vevm = VolumeEVM.from_array([[[1, 2], [3, 4]]], 2)
     assert vevm.voxel_count == 3 and vevm.shape == (1, 2, 2)
-    masked = np.ma.masked_array(np.arange(8.0).reshape(2, 2, 2), mask=np.arange(8).reshape(2, 2, 2) < 3)
+    masked = np.ma.masked_array(np.arange(8.0).reshape(2, 2, 2),
+                                mask=np.arange(8).reshape(2, 2, 2) < 3)
     assert VolumeEVM.from_array(masked.filled(-1.0), 0).voxel_count == 5
 
 
@@ -124,7 +130,8 @@ def test_units_must_be_text():
 
 def test_a_grid_beyond_the_evm_range_is_refused_before_building():
     too_long = np.ones((2**20, 1, 1), np.int8)
-    with pytest.raises(VolumeEVMError, match=r"^scan: grid of shape \(1048576, 1, 1\).*at most 1048575 voxels"):
+    with pytest.raises(VolumeEVMError, match=r"^scan: grid of shape \(1048576, 1, 1\)"
+                                             r".*at most 1048575 voxels"):
         VolumeEVM.from_array(too_long, 1, source="scan")
 
 
@@ -140,8 +147,9 @@ def test_constructor_checks_its_parts():
         VolumeEVM(evm, np.zeros(8), shape=(2, 0, 2))
     with pytest.raises(VolumeEVMError, match="shape must be 3 integers"):
         VolumeEVM(evm, np.zeros(8), shape=(2.0, 2, 2))
-    with pytest.raises(VolumeEVMError, match=r"evm: the region spans lattice corners \(0, 0, 0\) to \(2, 2, 2\), "
-                                             r"outside the grid of shape \(2, 1, 2\)"):
+    with pytest.raises(VolumeEVMError, match=r"evm: the region spans lattice corners \(0, 0, 0\) "
+                                             r"to \(2, 2, 2\), outside the grid of shape "
+                                             r"\(2, 1, 2\)"):
         VolumeEVM(evm, np.zeros(8), shape=(2, 1, 2))
     with pytest.raises(VolumeEVMError, match="orientation must be orthonormal"):
         VolumeEVM(evm, np.zeros(8), shape=(2, 2, 2), orientation=np.ones((3, 3)))
@@ -150,11 +158,12 @@ def test_constructor_checks_its_parts():
 
 
 # ---------------------------------------------------------------------- levels and voxelization
-@pytest.mark.parametrize("factor,problem", [(10**6, r"1000000 is larger than the grid's largest side \(5 voxels\)"),
-                                            (6, "6 is larger than the grid"), (0, "must be an integer >= 2"),
-                                            (1, "must be an integer >= 2"), (2.0, "must be an integer >= 2"),
-                                            (True, "must be an integer >= 2"), ("2", "must be an integer >= 2"),
-                                            ([2], "must be an integer >= 2")])
+@pytest.mark.parametrize("factor,problem", [
+    (10**6, r"1000000 is larger than the grid's largest side \(5 voxels\)"),
+    (6, "6 is larger than the grid"), (0, "must be an integer >= 2"),
+    (1, "must be an integer >= 2"), (2.0, "must be an integer >= 2"),
+    (True, "must be an integer >= 2"), ("2", "must be an integer >= 2"),
+    ([2], "must be an integer >= 2")])
 def test_level_factor_is_an_integer_from_two_to_the_grid_side(factor, problem):
     vevm = VolumeEVM.from_array(np.arange(60).reshape(3, 4, 5), 10)
     with pytest.raises(VolumeEVMError, match=rf"^level factor {problem}"):
@@ -166,8 +175,9 @@ def test_level_factor_is_an_integer_from_two_to_the_grid_side(factor, problem):
 def test_level_memory_is_checked(monkeypatch, head):
     vevm = VolumeEVM.from_array(head, 300)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "4M")
-    with pytest.raises(VolumeEVMError, match=r"^level factor: making level 2 needs about .* MiB of memory "
-                                             r"but only 4.0 MiB is available; use a smaller factor"):
+    with pytest.raises(VolumeEVMError, match=r"^level factor: making level 2 needs about .* MiB "
+                                             r"of memory but only 4.0 MiB is available; use a "
+                                             r"smaller factor"):
         vevm.level(2)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "16G")
     assert vevm.level(2).shape == (128, 128, 54)
@@ -176,8 +186,8 @@ def test_level_memory_is_checked(monkeypatch, head):
 def test_voxelizing_into_a_huge_grid_is_refused_before_allocating():
     vertices, faces = TETRA
     to_grid = np.diag([4.0, 4.0, 4.0, 1.0])
-    with pytest.raises(VolumeEVMError, match=r"^tool mesh: voxelizing into a grid of shape \(1000000, 1000000, "
-                                             r"1000000\) needs about .* GiB"):
+    with pytest.raises(VolumeEVMError, match=r"^tool mesh: voxelizing into a grid of shape "
+                                             r"\(1000000, 1000000, 1000000\) needs about .* GiB"):
         voxelize_mesh(vertices, faces, (10**6, 10**6, 10**6), to_grid)
     with pytest.raises(VolumeEVMError, match=r"^shape \(2000000, 8, 8\): .*at most 1048575 voxels"):
         voxelize_mesh_evm(vertices, faces, (2 * 10**6, 8, 8), to_grid)
@@ -190,8 +200,9 @@ def test_voxelize_memory_is_checked(monkeypatch):
     vertices, faces = TETRA
     to_grid = np.diag([60.0, 60.0, 60.0, 1.0])
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "256K")
-    with pytest.raises(VolumeEVMError, match=r"^tool mesh: voxelizing into a grid of shape \(64, 64, 64\) "
-                                             r"needs about .* MiB of memory but only 256.0 KiB is available"):
+    with pytest.raises(VolumeEVMError, match=r"^tool mesh: voxelizing into a grid of shape "
+                                             r"\(64, 64, 64\) needs about .* MiB of memory but "
+                                             r"only 256.0 KiB is available"):
         voxelize_mesh(vertices, faces, (64, 64, 64), to_grid)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
     mask = voxelize_mesh(vertices, faces, (64, 64, 64), to_grid)
@@ -202,8 +213,9 @@ def test_voxelize_memory_is_checked(monkeypatch):
 # ---------------------------------------------------------------------- memory at build
 def test_a_small_budget_refuses_the_build_naming_source_and_amounts(monkeypatch, head):
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1M")
-    with pytest.raises(VolumeEVMError, match=r"^ct_head: building the VolumeEVM needs about [\d.]+ MiB of memory but "
-                                             r"only 1.0 MiB is available; crop the volume, raise the threshold"):
+    with pytest.raises(VolumeEVMError, match=r"^ct_head: building the VolumeEVM needs about "
+                                             r"[\d.]+ MiB of memory but only 1.0 MiB is "
+                                             r"available; crop the volume, raise the threshold"):
         VolumeEVM.from_array(head, 300, source="ct_head")
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "4G")
     vevm = VolumeEVM.from_array(head, 300, source="ct_head")
@@ -229,9 +241,11 @@ def test_the_refusal_comes_while_the_vertices_are_extracted(monkeypatch):
 
 def _estimate_and_peak(monkeypatch, array, threshold):
     """The estimate from_array checks, and its measured peak (tracemalloc traces NumPy)."""
-    VolumeEVM.from_array(array, threshold)  # loads the compiled kernels: a one-time cost, not the data's
+    # Loads the compiled kernels: a one-time cost, not the data's.
+    VolumeEVM.from_array(array, threshold)
     seen = []
-    monkeypatch.setattr(_volumeevm, "check_memory", lambda needed, *args, **kwargs: seen.append(needed))
+    monkeypatch.setattr(_volumeevm, "check_memory",
+                        lambda needed, *args, **kwargs: seen.append(needed))
     tracemalloc.start()
     try:
         vevm = VolumeEVM.from_array(array, threshold)
@@ -256,7 +270,8 @@ def test_the_estimate_counts_the_region_vertices_and_boxes_exactly(array):
     assume((array >= 2).any())
     seen = []
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(_volumeevm, "check_memory", lambda needed, *args, **kwargs: seen.append(needed))
+        patch.setattr(_volumeevm, "check_memory",
+                      lambda needed, *args, **kwargs: seen.append(needed))
         vevm = VolumeEVM.from_array(array, 2)
     evm = EVM.from_mask(array >= 2)
     assert vevm.evm == evm
@@ -268,21 +283,25 @@ def test_voxel_mask_and_dense_grid_check_memory(monkeypatch):
     vevm = VolumeEVM.from_array(np.arange(64**3).reshape(64, 64, 64) % 7, 5)
     expected = (np.arange(64**3).reshape(64, 64, 64) % 7) >= 5
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "256K")
-    with pytest.raises(VolumeEVMError, match=r"^EVM grid \(64, 64, 64\): making the voxel mask needs about "
-                                             r"[\d.]+ MiB of memory but only 256.0 KiB is available"):
+    with pytest.raises(VolumeEVMError, match=r"^EVM grid \(64, 64, 64\): making the voxel mask "
+                                             r"needs about [\d.]+ MiB of memory but only 256.0 KiB "
+                                             r"is available"):
         vevm.evm.to_mask(vevm.shape)
-    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense grid needs about"):
+    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense "
+                                             r"grid needs about"):
         vevm.to_dense()
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
     assert np.array_equal(vevm.evm.to_mask(vevm.shape), expected)
-    assert np.array_equal(vevm.to_dense(), np.where(expected, np.arange(64**3).reshape(64, 64, 64) % 7, 0))
+    assert np.array_equal(vevm.to_dense(),
+                          np.where(expected, np.arange(64**3).reshape(64, 64, 64) % 7, 0))
 
 
 def test_other_axis_tables_check_memory(monkeypatch):
     array = np.arange(64**3).reshape(64, 64, 64) % 7
     vevm = VolumeEVM.from_array(array, 5)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "256K")
-    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense grid needs about"):
+    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense "
+                                             r"grid needs about"):
         vevm.table(2)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
     expected = np.transpose(array, (2, 0, 1))[np.transpose(array >= 5, (2, 0, 1))]

@@ -239,7 +239,8 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
         assert needed in names
     assert {n for n in names if n.startswith("wheels/")} == {f"wheels/{w.name}" for w in wheels}
     for left_out in ("tests/", "bench/", "sample_blends/", ".venv/", ".git/", "requirements/",
-                     "Makefile", "pytest.ini", "docs/", "out/", "dist/"):
+                     "Makefile", "pytest.ini", "pyproject.toml", "docs/",
+                     "out/", "dist/"):
         assert not any(n == left_out or n.startswith(left_out) for n in names), left_out
     assert not any("__pycache__" in n for n in names)
 

@@ -11,10 +11,10 @@ import dask
 import dask.array as da
 import numpy as np
 import pytest
-from zarr_files import pyramid, write_store
 
 from volumeevm_addon import Volume, VolumeEVM, VolumeEVMError, otsu_threshold, read_volume
 from volumeevm_addon.model import chunked_build_memory
+from zarr_files import pyramid, write_store
 
 VOLUMES = ("ct_head_invesalius", "ct_skull_cgal", "seg_liver_cgal", "mr_t1_itk_kmeans",
            "mr_brainsmall_volpack", "micro_nuclei3d_stardist")

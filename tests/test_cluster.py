@@ -7,9 +7,9 @@ import pickle
 
 import numpy as np
 import pytest
-from zarr_files import pyramid, write_store
 
 from volumeevm_addon import VolumeEVM, read_volume
+from zarr_files import pyramid, write_store
 
 distributed = pytest.importorskip("distributed")
 

@@ -37,7 +37,8 @@ def unit_faces(mask):
 def brute_vertices(mask):
     """Extreme vertices straight from the definition: odd number of the 8 incident voxels."""
     padded = np.pad(mask, 1).astype(np.uint8)
-    count = sum(padded[dx:dx + mask.shape[0] + 1, dy:dy + mask.shape[1] + 1, dz:dz + mask.shape[2] + 1]
+    count = sum(padded[dx:dx + mask.shape[0] + 1, dy:dy + mask.shape[1] + 1,
+                       dz:dz + mask.shape[2] + 1]
                 for dx in (0, 1) for dy in (0, 1) for dz in (0, 1))
     return np.argwhere(count % 2 == 1)
 
@@ -74,7 +75,8 @@ def test_extraction_is_the_parity_rule_in_any_blocks_on_any_threads(pair, block_
     try:
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(_evm, "_BLOCK_VOXELS", block_voxels)
-            variants = (mask, np.asfortranarray(mask), mask[::-1, :, ::-1], mask.astype(np.int16) * other)
+            variants = (mask, np.asfortranarray(mask), mask[::-1, :, ::-1],
+                        mask.astype(np.int16) * other)
             for variant in variants:
                 evm = EVM.from_mask(variant)
                 assert np.array_equal(evm.vertices, brute_vertices(variant != 0))
@@ -87,7 +89,8 @@ def test_extraction_is_the_parity_rule_in_any_blocks_on_any_threads(pair, block_
 def test_reference_numbers_of_brainsmall(data_dir):
     """The EV counts measured independently in the design notes (evm_algorithms.md §5.2)."""
     array = load(data_dir, "mr_brainsmall_volpack")
-    for threshold, voxels, vertices, faces in [(1, 1193707, 28532, 154556), (60, 116878, 69528, 135844),
+    for threshold, voxels, vertices, faces in [(1, 1193707, 28532, 154556),
+                                               (60, 116878, 69528, 135844),
                                                (150, 140, 394, 570)]:
         evm = EVM.from_mask(array >= threshold)
         assert (evm.volume(), len(evm), evm.area()) == (voxels, vertices, faces)
@@ -232,8 +235,8 @@ def _section_mask(points, shape):
     return grid[: shape[0], : shape[1]].astype(bool)
 
 
-@pytest.mark.parametrize("name,threshold", [("micro_nuclei3d_stardist", 250), ("ct_head_invesalius", 300),
-                                            ("seg_liver_cgal", 100)])
+@pytest.mark.parametrize("name,threshold", [("micro_nuclei3d_stardist", 250),
+                                            ("ct_head_invesalius", 300), ("seg_liver_cgal", 100)])
 def test_face_connected_components_equal_flood_fill(data_dir, name, threshold):
     mask = load(data_dir, name) >= threshold
     labels, count = ndimage.label(mask)
@@ -290,7 +293,8 @@ def _border(shape, keep):
     return mask & keep
 
 
-diagonal_steps = st.tuples(*[st.sampled_from([-1, 0, 1])] * 3).filter(lambda s: sum(map(abs, s)) >= 2)
+diagonal_steps = st.tuples(*[st.sampled_from([-1, 0, 1])] * 3).filter(
+    lambda s: sum(map(abs, s)) >= 2)
 patterns = st.one_of(
     shapes.flatmap(lambda shape: arrays(bool, shape)),
     st.builds(_checkerboard, shapes, st.tuples(*[st.integers(1, 2)] * 3), st.integers(0, 1)),
@@ -350,7 +354,8 @@ def test_translate_round_trips_to_any_placement_in_the_range(case):
 
 @settings(max_examples=80, deadline=None)
 @given(patterns.flatmap(lambda a: st.tuples(st.just(a), offsets(a.shape), st.integers(0, 2),
-                                            st.integers(-2, 8), st.sampled_from([0, 2**40, -2**40]))))
+                                            st.integers(-2, 8),
+                                            st.sampled_from([0, 2**40, -2**40]))))
 def test_split_and_clip_at_any_plane_even_beyond_the_range(case):
     """Planes past the range's ends are exact too: everything or nothing lies beyond them."""
     mask, offset, axis, c, far = case
@@ -371,14 +376,16 @@ def test_coordinates_beyond_the_range_are_refused_naming_the_parameter():
     voxel = np.ones((1, 1, 1), bool)
     edge = EVM.from_mask(voxel, (LIMIT - 2, -LIMIT, 0))  # vertices reach LIMIT - 1 and -LIMIT
     assert np.array_equal(edge.to_mask((1, 1, 1), (LIMIT - 2, -LIMIT, 0)), voxel)
-    with pytest.raises(VolumeEVMError, match=r"^mask placed at offset: .*from -1048576 to 1048575 only"):
+    with pytest.raises(VolumeEVMError,
+                       match=r"^mask placed at offset: .*from -1048576 to 1048575 only"):
         EVM.from_mask(voxel, (LIMIT - 1, 0, 0))
     with pytest.raises(VolumeEVMError, match=r"^mask placed at offset: "):
         EVM.from_mask(voxel, (0, -LIMIT - 1, 0))
     with pytest.raises(VolumeEVMError, match=r"^mask placed at offset: "):
         EVM.from_mask(np.zeros((LIMIT, 1, 1), bool))
     with pytest.raises(VolumeEVMError, match=r"^offset: the region would span lattice coordinates "
-                                             r"\(1048575, -1048576, 0\) to \(1048576, -1048575, 1\)"):
+                                             r"\(1048575, -1048576, 0\) to "
+                                             r"\(1048576, -1048575, 1\)"):
         edge.translate(np.array([1, 0, 0]))
     with pytest.raises(VolumeEVMError, match=r"^offset: "):
         edge.translate(np.array([0, 2**62, 0]))  # no wrap-around in int64

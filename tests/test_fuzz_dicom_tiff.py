@@ -31,10 +31,9 @@ from collections import Counter
 import numpy as np
 import pytest
 
+from reader_files import write_series, write_tiff
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
-
-from reader_files import write_series, write_tiff
 
 SEED = 20261124
 

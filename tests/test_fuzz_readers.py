@@ -36,8 +36,8 @@ import typing
 
 import numpy as np
 import pytest
-from reader_files import patch_nifti, write_den, write_nrrd
 
+from reader_files import patch_nifti, write_den, write_nrrd
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
 
@@ -450,7 +450,8 @@ def den_cases(files, rng, crop):
         return {"ct.den": header.tobytes() + data[58:]}
 
     return cases + [
-        Case("big-endian header", "crafted", {"ct.den": swapped + data[62:]}, (den_array(crop), {})),
+        Case("big-endian header", "crafted", {"ct.den": swapped + data[62:]},
+             (den_array(crop), {})),
         Case("version 2", "crafted", fields(f0=2), "refused"),
         Case("map_len shrunk", "crafted", fields(f27=5), "refused"),
         Case("map_len negative", "crafted", fields(f26=-16), "refused"),

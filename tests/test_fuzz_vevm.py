@@ -21,9 +21,19 @@ import zipfile
 import zlib
 
 import numpy as np
-from vevm_helpers import (crafted_npy, ct_crop, deflate_zeros, members_of, npy_bytes, raw_entries,
-                          raw_zip, region_change, synthetic, write_vevm_members)
 
+from vevm_helpers import (
+    crafted_npy,
+    ct_crop,
+    deflate_zeros,
+    members_of,
+    npy_bytes,
+    raw_entries,
+    raw_zip,
+    region_change,
+    synthetic,
+    write_vevm_members,
+)
 from volumeevm_addon import VolumeEVM, VolumeEVMError
 
 SEED = 20261124
@@ -38,7 +48,8 @@ OUTCOMES = [
     ("refused: checksum", r": checksum mismatch"),
     ("refused: other version", r": format version"),
     ("refused: memory", r"needs about .* of memory"),
-    ("refused: metadata or region", r": corrupt VolumeEVM file|: (spacing|origin|orientation) must"),
+    ("refused: metadata or region",
+     r": corrupt VolumeEVM file|: (spacing|origin|orientation) must"),
 ]
 
 
@@ -68,30 +79,36 @@ def crafted_cases(good, rng):
 
     # Huge or impossible .npy headers, deflate bombs, lying sizes, flags, members missing or extra.
     huge = {"format": ("<U1000000000", ()), "version": ("<i8", (10**9,)),
-            "meta": ("<U2000000000", ()), "vertices": ("<i8", (10**12, 3)), "table": ("<f8", (2**40,))}
+            "meta": ("<U2000000000", ()), "vertices": ("<i8", (10**12, 3)),
+            "table": ("<f8", (2**40,))}
     for name, (descr, shape) in huge.items():
         cases[f"huge header {name}"] = with_entries(
-            lambda by, _, n=name, d=descr, s=shape: by[n].update(payload=crafted_npy(d, s, bytes(64))))
+            lambda by, _, n=name, d=descr, s=shape: by[n].update(
+                payload=crafted_npy(d, s, bytes(64))))
     for name in arrays:
         cases[f"missing {name}"] = with_entries(lambda by, entries, n=name: entries.remove(by[n]))
     archive_changes = {
-        "negative shape": lambda by, _: by["table"].update(payload=crafted_npy("<f4", (-4,), bytes(64))),
+        "negative shape": lambda by, _: by["table"].update(
+            payload=crafted_npy("<f4", (-4,), bytes(64))),
         "bomb beyond declared size": lambda by, _: by["table"].update(
             payload=deflate_zeros(64 << 20), method=8, size=len(by["table"]["payload"])),
         "bomb beyond deflate ratio": lambda by, _: by["table"].update(payload=bytes(512), method=8,
                                                                       size=3 << 30),
         "honest 1 GiB member": lambda by, _: by["table"].update(_honest_bomb()),
-        "stored size lie": lambda by, _: by["vertices"].update(size=len(by["vertices"]["payload"]) - 8),
+        "stored size lie": lambda by, _: by["vertices"].update(
+            size=len(by["vertices"]["payload"]) - 8),
         "wrong crc": lambda by, _: by["meta"].update(crc=12345),
         "encrypted flag": lambda by, _: by["version"].update(flags=1),
         "bzip2 method": lambda by, _: by["meta"].update(method=12),
-        "extra member": lambda by, entries: entries.append({"name": "x", "payload": npy_bytes(np.ones(2))}),
+        "extra member": lambda by, entries: entries.append(
+            {"name": "x", "payload": npy_bytes(np.ones(2))}),
         "repeated member": lambda by, entries: entries.insert(0, dict(by["table"])),
         "empty archive": lambda by, entries: entries.clear(),
     }
     for label, change in archive_changes.items():
         cases[label] = with_entries(change)
-    # Wrong dtypes and shapes (checksums re-computed), pickles, a changed table under the old checksum.
+    # Wrong dtypes and shapes (checksums re-computed), pickles, a changed table under the old
+    # checksum.
     members = {
         "vertices float": ("vertices", lambda v: v.astype(np.float32)),
         "vertices uint64 huge": ("vertices", lambda v: v.astype(np.uint64) + np.uint64(2**63)),
@@ -155,13 +172,16 @@ def crafted_cases(good, rng):
         cases[f"region {name}"] = with_members(lambda a, m, n=name: region_change(n)(a, m))
     vertex_count, voxel_count = len(arrays["vertices"]), len(arrays["table"])
     for _ in range(8):  # one vertex moved by one step: always odd lines (or a duplicate)
-        row, axis, step = int(rng.integers(vertex_count)), int(rng.integers(3)), int(rng.choice([-1, 1]))
-        cases[f"vertex {row} moved"] = with_members(lambda a, m, r=row, x=axis, s=step: _move(a, r, x, s))
+        row, axis, step = (int(rng.integers(vertex_count)), int(rng.integers(3)),
+                           int(rng.choice([-1, 1])))
+        cases[f"vertex {row} moved"] = with_members(
+            lambda a, m, r=row, x=axis, s=step: _move(a, r, x, s))
     for value in (np.nan, np.inf, -np.inf, np.nan):
         row, spot = int(rng.integers(vertex_count)), int(rng.integers(voxel_count))
         cases[f"vertex {row} dropped"] = with_members(
             lambda a, m, r=row: a.__setitem__("vertices", np.delete(a["vertices"], r, 0)))
-        cases[f"table {value} at {spot}"] = with_members(lambda a, m, s=spot, v=value: _set_float(a, s, v))
+        cases[f"table {value} at {spot}"] = with_members(
+            lambda a, m, s=spot, v=value: _set_float(a, s, v))
     return cases
 
 
@@ -170,7 +190,8 @@ def _honest_bomb():
     count = (1 << 30) // 4
     header = crafted_npy("<f4", (count,))
     compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
-    stream = compressor.compress(header) + compressor.flush(zlib.Z_FULL_FLUSH) + deflate_zeros(1 << 30)
+    stream = (compressor.compress(header) + compressor.flush(zlib.Z_FULL_FLUSH)
+              + deflate_zeros(1 << 30))
     return {"payload": stream, "method": 8, "size": len(header) + 4 * count}
 
 
@@ -210,7 +231,8 @@ def mutations(good, rng):
     data = good.read_bytes()
     cases = {}
     ends = {0, 1, 4, 22, len(data) - 22, len(data) - 1}
-    offsets = sorted(ends | set(rng.choice(len(data), TRUNCATIONS - len(ends), replace=False).tolist()))
+    offsets = sorted(ends | set(rng.choice(len(data), TRUNCATIONS - len(ends),
+                                           replace=False).tolist()))
     for offset in offsets:
         cases[f"truncated at {offset}"] = lambda path, o=offset: path.write_bytes(data[:o])
     for region, ranges in byte_regions(good).items():
@@ -220,19 +242,22 @@ def mutations(good, rng):
             position, flip = int(rng.integers(start, stop)), int(rng.integers(1, 256))
             changed = bytearray(data)
             changed[position] ^= flip
-            cases[f"{region} byte {position} ^ {flip}"] = lambda path, c=bytes(changed): path.write_bytes(c)
+            cases[f"{region} byte {position} ^ {flip}"] = (
+                lambda path, c=bytes(changed): path.write_bytes(c))
     return cases
 
 
 def test_fuzz_vevm(tmp_path, data_dir, monkeypatch):
-    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "64M")  # a bomb let through is refused, not swapped
+    # A bomb let through is refused, not swapped.
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "64M")
     rng = np.random.default_rng(SEED)
     outcomes, failures, slowest = collections.defaultdict(collections.Counter), [], 0.0
     started = time.perf_counter()
     for source, original in (("synthetic", synthetic()), ("ct", ct_crop(data_dir))):
         good = tmp_path / f"{source}.vevm"
         original.save(good)
-        for kind, cases in (("mutation", mutations(good, rng)), ("crafted", crafted_cases(good, rng))):
+        for kind, cases in (("mutation", mutations(good, rng)),
+                            ("crafted", crafted_cases(good, rng))):
             for label, write in cases.items():
                 path = tmp_path / f"case-{source}.vevm"
                 write(path)
@@ -280,9 +305,10 @@ def same_data(loaded, original):
     return (np.array_equal(loaded.evm.vertices, original.evm.vertices)
             and loaded.table(0).dtype == original.table(0).dtype
             and np.array_equal(loaded.table(0), original.table(0))
-            and (loaded.shape, loaded.spacing, loaded.origin, loaded.units, loaded.threshold, loaded.upper)
-            == (original.shape, original.spacing, original.origin, original.units, original.threshold,
-                original.upper)
+            and (loaded.shape, loaded.spacing, loaded.origin, loaded.units, loaded.threshold,
+                 loaded.upper)
+            == (original.shape, original.spacing, original.origin, original.units,
+                original.threshold, original.upper)
             and np.array_equal(loaded.orientation, original.orientation))
 
 

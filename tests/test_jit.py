@@ -24,7 +24,8 @@ def test_importing_the_package_leaves_numba_alone():
 
 def test_settings_are_checked_and_threads_restorable():
     for bad in (0, -1, 1.5, True, "2"):
-        with pytest.raises(VolumeEVMError, match="^kernel threads must be a positive integer or None"):
+        with pytest.raises(VolumeEVMError,
+                           match="^kernel threads must be a positive integer or None"):
             set_kernel_threads(bad)
     for bad in (3, "", b"folder"):
         with pytest.raises(VolumeEVMError, match="^kernel cache dir must be a folder path"):
@@ -65,12 +66,14 @@ def test_a_map_inside_a_task_runs_on_its_thread():
     previous = set_kernel_threads(2)
     try:
         def task(i):
-            return _jit.parallel_map(lambda j: (i, j, threading.current_thread().name), [(j,) for j in range(3)])
+            return _jit.parallel_map(lambda j: (i, j, threading.current_thread().name),
+                                     [(j,) for j in range(3)])
 
         inner = _jit.parallel_map(task, [(i,) for i in range(4)])
     finally:
         set_kernel_threads(previous)
-    assert [[(i, j) for i, j, _ in row] for row in inner] == [[(i, j) for j in range(3)] for i in range(4)]
+    assert ([[(i, j) for i, j, _ in row] for row in inner]
+            == [[(i, j) for j in range(3)] for i in range(4)])
     assert all(len({name for _, _, name in row}) == 1 for row in inner)
 
 

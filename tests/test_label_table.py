@@ -37,8 +37,9 @@ def test_slicer_segments_of_the_real_files(data_dir):
     assert all(s["layer"] == 0 for s in segments)
     assert [s["value"] for s in segments] == list(range(1, len(segments) + 1))
     assert segments[0]["color"] == (0.992157, 0.909804, 0.619608)
-    overlapping = slicer_segments(nrrd.read_header(str(data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd")),
-                                  "SegmentationOverlapping.seg.nrrd")
+    overlapping = slicer_segments(
+        nrrd.read_header(str(data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd")),
+        "SegmentationOverlapping.seg.nrrd")
     assert overlapping[-1] == {"id": overlapping[-1]["id"], "name": "overlapping sphere",
                                "color": (0.862745, 0.960784, 0.0784314), "layer": 1, "value": 1}
     assert {(s["layer"], s["value"]) for s in overlapping[:-1]} == {(0, v) for v in range(1, 8)}
@@ -107,11 +108,13 @@ def test_disagreements_with_the_data_are_reported_not_silent():
         merged = label_table_for([0, 1, 2], table, source="seg.nii")
     messages = [str(w.message) for w in caught]
     assert "seg.nii: the label table names labels the data does not have: [5]" in messages
-    assert "seg.nii: labels [2] are not in the label table; they get the default names and colours" in messages
+    assert ("seg.nii: labels [2] are not in the label table; they get the default names and "
+            "colours") in messages
     assert merged == {1: table[1], 2: default_label_info(2)}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert label_table_for(np.array([3, 0, 1])) == {1: default_label_info(1), 3: default_label_info(3)}
+        assert label_table_for(np.array([3, 0, 1])) == {1: default_label_info(1),
+                                                       3: default_label_info(3)}
 
 
 def test_the_palette_is_fixed_and_tells_neighbours_apart():
@@ -226,7 +229,8 @@ def test_a_label_map_with_its_table_or_the_palette(tmp_path, data_dir):
     table.write_text('  84 255 0 0 1 1 1 "vessel"\n  85 0 255 0 1 1 1 "tumour"\n'
                      ' 127 0 0 255 1 1 1 "liver"\n 255 255 255 0 1 1 1 "body"\n')
     volume = read_volume(tmp_path / "liver.npy", labels=table)
-    assert volume.is_label_map and [i.name for i in volume.labels.values()] == ["vessel", "tumour", "liver", "body"]
+    assert volume.is_label_map and [i.name for i in volume.labels.values()] == [
+        "vessel", "tumour", "liver", "body"]
     assert volume.labels[127].color == (0.0, 0.0, 1.0)
     plain = read_volume(tmp_path / "liver.npy", labels=True)
     assert plain.labels == {label: default_label_info(label) for label in (84, 85, 127, 255)}
@@ -242,5 +246,6 @@ def test_a_label_map_with_its_table_or_the_palette(tmp_path, data_dir):
 def test_what_is_not_a_label_map_is_refused_when_read_as_one(data_dir):
     with pytest.raises(VolumeEVMError, match=r"CTChest4.nrrd: a label map holds labels >= 0"):
         read_volume(data_dir / "slicer" / "CTChest4.nrrd", labels=True)
-    with pytest.raises(VolumeEVMError, match=r"labels: 3 is not True, False, None or a label table"):
+    with pytest.raises(VolumeEVMError,
+                       match=r"labels: 3 is not True, False, None or a label table"):
         read_volume(data_dir / "slicer" / "CTChest4.nrrd", labels=3)

@@ -146,7 +146,8 @@ def test_a_box_measures_its_closed_forms():
     sx, sy, sz = spacing
     assert m["voxels"] == 24
     assert m["volume_mm3"] == 24 * sx * sy * sz and m["volume_ml"] == m["volume_mm3"] / 1000
-    assert m["area_mm2"] == pytest.approx(2 * (6 * 1 * sy * sz + 4 * 1 * sx * sz + 4 * 6 * sx * sy), rel=1e-15)
+    assert m["area_mm2"] == pytest.approx(2 * (6 * 1 * sy * sz + 4 * 1 * sx * sz + 4 * 6 * sx * sy),
+                                          rel=1e-15)
     # Voxel centre (i, j, k) sits at origin + index * spacing; corners half a voxel out.
     assert m["bbox_mm"] == ((10.0 + 0.5 * sx, 20.0 + 1.5 * sy, 30.0 + 2.5 * sz),
                             (10.0 + 4.5 * sx, 20.0 + 7.5 * sy, 30.0 + 3.5 * sz))
@@ -163,7 +164,8 @@ def test_a_ball_measures_its_voxel_count_and_a_turned_grid_turns_the_centroid():
                                 orientation=turn)
     m = vevm.measure()
     count = int(array.sum())
-    assert m["voxels"] == count and m["volume_mm3"] == pytest.approx(count * 0.7 * 0.7 * 1.1, rel=1e-15)
+    assert m["voxels"] == count and m["volume_mm3"] == pytest.approx(count * 0.7 * 0.7 * 1.1,
+                                                                      rel=1e-15)
     # A ball's voxels are symmetric about its centre voxel: the centroid is that voxel's centre.
     expected = vevm.index_to_physical() @ np.append(centre, 1.0)
     assert m["centroid_mm"] == pytest.approx(tuple(expected[:3]), abs=1e-12)
@@ -171,7 +173,8 @@ def test_a_ball_measures_its_voxel_count_and_a_turned_grid_turns_the_centroid():
     padded = np.pad(array, 1)
     faces = [np.count_nonzero(np.diff(padded, axis=axis)) for axis in range(3)]
     sx, sy, sz = 0.7, 0.7, 1.1
-    assert m["area_mm2"] == pytest.approx(faces[0] * sy * sz + faces[1] * sx * sz + faces[2] * sx * sy, rel=1e-14)
+    assert m["area_mm2"] == pytest.approx(faces[0] * sy * sz + faces[1] * sx * sz
+                                          + faces[2] * sx * sy, rel=1e-14)
     assert m["components"] == 1
 
 
@@ -218,11 +221,13 @@ def test_shared_areas_of_the_liver_labels_equal_the_touching_voxel_faces(liver):
     assert got.keys() == expected.keys()
     for pair, area in expected.items():
         assert got[pair] == pytest.approx(area, rel=1e-12)
-        assert measured[pair[0]]["shared_area_mm2"][pair[1]] == measured[pair[1]]["shared_area_mm2"][pair[0]]
+        assert (measured[pair[0]]["shared_area_mm2"][pair[1]]
+                == measured[pair[1]]["shared_area_mm2"][pair[0]])
     # Each label's own volume is its voxel count.
     for label, row in measured.items():
         assert row["voxels"] == int(np.count_nonzero(array == label))
-        assert row["volume_ml"] == pytest.approx(row["voxels"] * math.prod(spacing) / 1000, rel=1e-15)
+        assert row["volume_ml"] == pytest.approx(row["voxels"] * math.prod(spacing) / 1000,
+                                                 rel=1e-15)
 
 
 def test_measurements_as_csv(tmp_path):
@@ -242,7 +247,8 @@ def test_measurements_as_csv(tmp_path):
         assert int(back["voxels"]) == row["voxels"]
         assert float(back["volume_mm3"]) == pytest.approx(row["volume_mm3"], rel=1e-6)
         assert float(back["area_mm2"]) == pytest.approx(row["area_mm2"], rel=1e-6)
-        assert tuple(map(float, back["centroid_mm"].split())) == pytest.approx(row["centroid_mm"], rel=1e-6)
+        assert tuple(map(float, back["centroid_mm"].split())) == pytest.approx(row["centroid_mm"],
+                                                                               rel=1e-6)
     with pytest.raises(VolumeEVMError, match="labels.csv"):
         regions.write_measurements(path)
     with open(path, newline="") as file:
@@ -291,7 +297,8 @@ def test_cut_keep_and_add_act_on_every_label_as_on_the_map(liver):
         for label, region in edited.items():  # as a build from the edited map
             assert region.evm == VolumeEVM.from_array(expected, label, upper=label).evm
             assert region.threshold == region.upper == label
-    assert regions.add(tool, 7).infos[7] == LabelInfo("label 7", regions.add(tool, 7).infos[7].color)
+    assert regions.add(tool, 7).infos[7] == LabelInfo("label 7",
+                                                      regions.add(tool, 7).infos[7].color)
 
 
 def test_a_label_an_edit_empties_leaves_the_set():
@@ -329,11 +336,13 @@ def _unit_faces(evm):
         axis = int(np.flatnonzero(np.ptp(corners, axis=0) == 0)[0])
         b_axis, c_axis = [a for a in range(3) if a != axis]
         e1, e2 = corners[1] - corners[0], corners[2] - corners[1]
-        normal = np.cross(e1, e2) if np.cross(e1, e2).any() else np.cross(corners[2] - corners[0], corners[-1] - corners[0])
+        normal = (np.cross(e1, e2) if np.cross(e1, e2).any()
+                  else np.cross(corners[2] - corners[0], corners[-1] - corners[0]))
         lo, hi = corners.min(axis=0), corners.max(axis=0)
-        b, c = np.meshgrid(np.arange(lo[b_axis], hi[b_axis]), np.arange(lo[c_axis], hi[c_axis]), indexing="ij")
-        rows.append(np.stack([np.full(b.size, axis), np.full(b.size, lo[axis]), b.ravel(), c.ravel(),
-                              np.full(b.size, np.sign(normal[axis]))], axis=1))
+        b, c = np.meshgrid(np.arange(lo[b_axis], hi[b_axis]), np.arange(lo[c_axis], hi[c_axis]),
+                           indexing="ij")
+        rows.append(np.stack([np.full(b.size, axis), np.full(b.size, lo[axis]), b.ravel(),
+                              c.ravel(), np.full(b.size, np.sign(normal[axis]))], axis=1))
     return np.concatenate(rows)
 
 

@@ -11,8 +11,8 @@ import gzip
 
 import numpy as np
 import pytest
-from reader_files import patch_nifti, write_den, write_nrrd, write_tiff
 
+from reader_files import patch_nifti, write_den, write_nrrd, write_tiff
 from volumeevm_addon import VolumeEVM, VolumeEVMError, read_volume
 from volumeevm_addon.readers import _checks
 
@@ -29,13 +29,15 @@ def small_chunks(monkeypatch):
 @pytest.fixture(scope="module")
 def brain(data_dir):
     """The real MR brain (uint8, 256 x 256 x 109) cropped to a quick size."""
-    return np.ascontiguousarray(np.load(data_dir / "mr_brainsmall_volpack.npy")[40:200, 50:190, 20:80])
+    brain = np.load(data_dir / "mr_brainsmall_volpack.npy")
+    return np.ascontiguousarray(brain[40:200, 50:190, 20:80])
 
 
 @pytest.fixture(scope="module")
 def head(data_dir):
     """A crop of the real CT head (int16, HU)."""
-    return np.ascontiguousarray(np.load(data_dir / "ct_head_invesalius.npy")[60:180, 50:170, 30:90])
+    head = np.load(data_dir / "ct_head_invesalius.npy")
+    return np.ascontiguousarray(head[60:180, 50:170, 30:90])
 
 
 def assert_same_volume(lazy, eager, threshold):

@@ -29,7 +29,8 @@ def assert_closed_outward(vertices, polygons, mask):
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.tuples(st.integers(1, 6), st.integers(1, 6), st.integers(1, 6)).flatmap(lambda s: arrays(bool, s)))
+@given(st.tuples(st.integers(1, 6), st.integers(1, 6), st.integers(1, 6)).flatmap(
+    lambda s: arrays(bool, s)))
 def test_mesh_of_random_regions_is_closed_outward_and_exact(mask):
     vertices, polygons = EVM.from_mask(mask).mesh()
     if not mask.any():
@@ -44,7 +45,8 @@ def test_non_manifold_edge_has_four_faces():
     vertices, polygons = EVM.from_mask(mask).mesh()
     assert_closed_outward(vertices, polygons, mask)
     u, v = polygons.edges()
-    shared = [(a, b) for a, b in zip(u, v) if {tuple(vertices[a]), tuple(vertices[b])} == {(1, 1, 0), (1, 1, 1)}]
+    shared = [(a, b) for a, b in zip(u, v)
+              if {tuple(vertices[a]), tuple(vertices[b])} == {(1, 1, 0), (1, 1, 1)}]
     assert len(shared) == 4
 
 
@@ -91,7 +93,8 @@ def test_mesh_is_the_same_on_one_thread_and_on_two(data_dir):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.tuples(st.integers(1, 7), st.integers(1, 7), st.integers(1, 7)).flatmap(lambda s: arrays(bool, s)),
+@given(st.tuples(st.integers(1, 7), st.integers(1, 7), st.integers(1, 7)).flatmap(
+           lambda s: arrays(bool, s)),
        st.integers(1, 20), st.integers(1, 20))
 def test_mesh_does_not_depend_on_how_the_work_is_cut(mask, block_vertices, block_rectangles):
     """Tiny blocks (a plane or a few rectangles each, on two threads) give the same arrays."""

@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 
-from volumeevm_addon.metrics import (bias_jump, image_errors, luminance, popping_index, rmse,
-                                     spectral_peak, temporal_errors)
+from volumeevm_addon.metrics import (
+    bias_jump,
+    image_errors,
+    luminance,
+    popping_index,
+    rmse,
+    spectral_peak,
+    temporal_errors,
+)
 
 
 def _image(value, alpha, shape=(8, 10)):

@@ -6,9 +6,9 @@ import time
 import numpy as np
 import pytest
 
-from volumeevm_addon import (Volume, VolumeEVM, VolumeEVMError, grid_to_world, phantoms as ph,
-                             render)
 from render_helpers import camera, const_tf
+from volumeevm_addon import Volume, VolumeEVM, VolumeEVMError, grid_to_world, render
+from volumeevm_addon import phantoms as ph
 
 
 # ---------------------------------------------------------------------------- Marschner–Lobb

@@ -258,7 +258,8 @@ def test_top_level_is_the_users_and_moved_names_still_work_with_a_warning():
             places.setdefault(name, []).append(prefix)
     assert {name: where for name, where in places.items() if len(where) > 1} == {}
     for name, place in volumeevm_addon._MOVED.items():
-        assert name not in volumeevm_addon.__all__ and name in getattr(volumeevm_addon, place).__all__
+        assert name not in volumeevm_addon.__all__
+        assert name in getattr(volumeevm_addon, place).__all__
         with pytest.warns(DeprecationWarning, match=f"volumeevm_addon.{place}.{name}"):
             old = getattr(volumeevm_addon, name)
         assert old is getattr(getattr(volumeevm_addon, place), name)

@@ -24,13 +24,10 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-import pytest
 
+from reader_files import DATA, assert_same_as_nibabel
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import SUPPORTED_EXTENSIONS, read_volume
-
-from conftest import DATA
-from reader_files import assert_same_as_nibabel
 
 #: (package, folder inside it) of the test files other projects ship.
 SOURCES = [("nibabel", "tests/data"), ("nibabel", "nicom/tests/data"),

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from reader_files import REPO, patch_nifti, write_den, write_nrrd
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import SUPPORTED_EXTENSIONS, read_volume
-from reader_files import REPO, patch_nifti, write_den, write_nrrd
 
 pytestmark = pytest.mark.filterwarnings("error")
 

@@ -6,7 +6,6 @@ Files are written by the reference libraries (pydicom from its real ``CT_small.d
 from a crop of the real CT head, then damaged in one precise way.
 """
 
-import copy
 import os
 import re
 import struct
@@ -16,10 +15,9 @@ import warnings
 import numpy as np
 import pytest
 
+from reader_files import ORIGIN, SPACING, write_series, write_tiff
 from volumeevm_addon import VolumeEVMError, _memory
 from volumeevm_addon.readers import _dicom, _tiff, read_volume
-
-from reader_files import ORIGIN, SPACING, write_series, write_tiff
 
 
 @pytest.fixture(scope="module")
@@ -277,8 +275,8 @@ def test_dicom_pixel_format_problems(tmp_path, ct_crop, changes, match):
 def test_dicom_bits_above_bits_stored_follow_the_standard(tmp_path, ct_crop):
     # PS3.5 8.1.1: the bits above HighBit are not part of the value; signed values are
     # sign-extended from HighBit. A HighBit that disagrees with BitsStored is a corrupt header.
-    files = write_series(tmp_path / "s", ct_crop,
-                         edit=edit_slices(range(6), BitsStored=8, HighBit=7))
+    write_series(tmp_path / "s", ct_crop,
+                 edit=edit_slices(range(6), BitsStored=8, HighBit=7))
     stored = (ct_crop.astype(np.int32) + 1024) & 0xFF
     expected = np.where(stored >= 0x80, stored - 0x100, stored) - 1024
     vol = read_volume(tmp_path / "s")

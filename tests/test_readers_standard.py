@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from reader_files import assert_same_as_nibabel, write_nrrd
 from volumeevm_addon import VolumeEVMError
 from volumeevm_addon.readers import read_volume
-from reader_files import assert_same_as_nibabel, write_nrrd
 
 
 def raises(path, match):

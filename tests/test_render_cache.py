@@ -274,8 +274,6 @@ def test_bad_budgets_raise(bad):
 def test_threads_asking_for_one_missing_entry_make_it_once():
     """A render job's thread and the viewport's may ask for the same table at once: one makes
     it, the other waits for it and gets the same entry; another key is made meanwhile."""
-    import threading
-    import time
 
     cache = DerivedCache(budget=1 << 20)
     calls, started = [], threading.Event()

@@ -7,8 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
-from render_helpers import camera
 
+from render_helpers import camera
 from volumeevm_addon import TransferFunction, VolumeEVM, grid_to_world, render
 from volumeevm_addon.rendering._gradients import region_gradients
 from volumeevm_addon.rendering._ray_march import _hood_gradients

@@ -4,10 +4,17 @@ itself (distances, volume, closedness) and against marching cubes on the same ma
 
 import numpy as np
 import pytest
-from test_manifold import assert_two_manifold
 
-from surface_helpers import (boundary_face_points, distance_to_boundary, distance_to_triangles,
-                             marching_cubes, roughness, sample_triangles, triangles)
+from surface_helpers import (
+    boundary_face_points,
+    distance_to_boundary,
+    distance_to_triangles,
+    marching_cubes,
+    roughness,
+    sample_triangles,
+    triangles,
+)
+from test_manifold import assert_two_manifold
 from volumeevm_addon import EVM, VolumeEVM, set_kernel_threads
 from volumeevm_addon.model._mesh import mesh_volume_area
 

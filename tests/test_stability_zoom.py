@@ -5,7 +5,6 @@ measured error); moiré while panning by quarter-pixel steps (temporal error aga
 reference's). Fixed 24×24 images: the orthographic scale sets the zoom, so every zoom costs
 about the same."""
 
-import numpy as np
 import pytest
 
 from render_helpers import camera, reference

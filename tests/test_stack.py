@@ -26,7 +26,8 @@ def tools(head):
 def test_stack_equals_entries_applied_one_by_one_and_disabling_restores(head, tools):
     drill, box, implant = tools
     base = VolumeEVM.from_array(head, 300)
-    operations = [ToolOperation(box, "keep"), ToolOperation(drill, "cut"), ToolOperation(implant, "add", density=3000)]
+    operations = [ToolOperation(box, "keep"), ToolOperation(drill, "cut"),
+                  ToolOperation(implant, "add", density=3000)]
     stack = EditStack(base)
     result = stack.evaluate(operations)
     expected = base.keep(box).cut(drill).add(implant, 3000)
@@ -47,7 +48,8 @@ def test_stack_equals_entries_applied_one_by_one_and_disabling_restores(head, to
 def test_moving_the_last_tool_recomputes_only_it(head, tools):
     drill, box, implant = tools
     stack = EditStack(VolumeEVM.from_array(head, 300))
-    operations = [ToolOperation(box, "keep"), ToolOperation(implant, "add"), ToolOperation(drill, "cut")]
+    operations = [ToolOperation(box, "keep"), ToolOperation(implant, "add"),
+                  ToolOperation(drill, "cut")]
     stack.evaluate(operations)
     moved = ToolOperation(drill.translate(np.array([5, 0, 0])), "cut")
     result = stack.evaluate(operations[:2] + [moved])
@@ -59,7 +61,8 @@ def test_moving_the_last_tool_recomputes_only_it(head, tools):
 def test_largest_part_entry(head, tools):
     drill, box, _ = tools
     base = VolumeEVM.from_array(head, 300)
-    result = EditStack(base).evaluate([ToolOperation(drill, "cut"), ToolOperation(operation="largest")])
+    result = EditStack(base).evaluate([ToolOperation(drill, "cut"),
+                                       ToolOperation(operation="largest")])
     expected = base.cut(drill).largest_component()
     assert result.evm == expected.evm and np.array_equal(result.table(0), expected.table(0))
 
@@ -121,7 +124,8 @@ def test_updates_in_place_equal_full_evaluations_on_random_moves(head):
     for step in range(40):
         moved = rng.choice(4, size=2 if step % 5 == 4 else 1, replace=False)
         for m in moved:  # along one axis every other step, along all three otherwise
-            centres[m] = centres[m] + rng.integers(-3, 4, size=3) * (step % 2 or np.eye(3)[step % 3])
+            centres[m] = centres[m] + rng.integers(-3, 4, size=3) * (step % 2
+                                                                     or np.eye(3)[step % 3])
         if step % 9 == 8:
             enabled[rng.integers(4)] ^= True
         ops = operations(enabled)

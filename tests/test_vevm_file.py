@@ -190,13 +190,15 @@ def test_honest_huge_member_is_refused_by_the_memory_budget(tmp_path, good, monk
     count = (1 << 30) // 4
     header = crafted_npy("<f4", (count,))
     compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
-    stream = compressor.compress(header) + compressor.flush(zlib.Z_FULL_FLUSH) + deflate_zeros(1 << 30)
+    stream = (compressor.compress(header) + compressor.flush(zlib.Z_FULL_FLUSH)
+              + deflate_zeros(1 << 30))
     table.update(payload=stream, method=8, size=len(header) + 4 * count)
     path = tmp_path / "big.vevm"
     raw_zip(path, entries)
     tracemalloc.start()
     try:
-        refused(path, r"reading the VolumeEVM file needs about 1\.0 GiB of memory but only 64\.0 MiB")
+        refused(path, r"reading the VolumeEVM file needs about 1\.0 GiB of memory but only "
+                      r"64\.0 MiB")
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -226,12 +228,14 @@ def test_lying_stored_size_is_refused(tmp_path, good):
     ("vertices", lambda a: a.astype(np.float64),
      "member 'vertices' has dtype float64, expected integers"),
     ("vertices", lambda a: a[:, :2], r"member 'vertices' has shape \(\d+, 2\), expected \(n, 3\)"),
-    ("table", lambda a: a > 100, "member 'table' has dtype bool, expected integers or real numbers"),
+    ("table", lambda a: a > 100,
+     "member 'table' has dtype bool, expected integers or real numbers"),
     ("table", lambda a: a.astype(np.complex64), "member 'table' has dtype complex64"),
     ("table", lambda a: a.reshape(1, -1), r"member 'table' has shape \(1, \d+\), expected \(n,\)"),
     ("table", lambda a: np.zeros(len(a), [("a", "<f4")]),
      r"member 'table' has an unsupported dtype \[\('a', '<f4'\)\]"),
-    ("format", lambda a: np.array(b"volumeevm"), "member 'format' has dtype |S9, expected a string"),
+    ("format", lambda a: np.array(b"volumeevm"),
+     "member 'format' has dtype |S9, expected a string"),
     ("version", lambda a: np.array(1.0), "member 'version' has dtype float64, expected integers"),
     ("version", lambda a: np.array(2), "format version 2, this add-on reads 1"),
     ("format", lambda a: np.array("othertool"), r"not a VolumeEVM file \(format 'othertool'\)"),
@@ -445,8 +449,8 @@ def test_failed_write_keeps_the_old_file_and_no_temporary(tmp_path, overwrite):
 
     with pytest.raises(VolumeEVMError) as info:
         write_atomically(path, disk_full, overwrite=overwrite)
-    assert str(info.value) == (f"{path}: could not write the file (No space left on device); the disk "
-                               f"is full; free some space or choose another disk")
+    assert str(info.value) == (f"{path}: could not write the file (No space left on device); the "
+                               f"disk is full; free some space or choose another disk")
     assert info.value.__cause__.errno == errno.ENOSPC
     assert list(tmp_path.iterdir()) == ([path] if overwrite else [])
     if overwrite:
@@ -459,7 +463,8 @@ def test_folder_that_refuses_files(small):
         pytest.skip("no folder here refuses new files")
     with pytest.raises(VolumeEVMError) as info:
         small.save(f"{folder}/refused.vevm")
-    assert str(info.value).startswith(f"{folder}/refused.vevm: cannot create a file in its folder (")
+    assert str(info.value).startswith(f"{folder}/refused.vevm: cannot create a file in its "
+                                      f"folder (")
     assert isinstance(info.value.__cause__, OSError)
 
 

@@ -17,8 +17,8 @@ def head(data_dir):
 
 @pytest.fixture(scope="module")
 def bone(head):
-    return VolumeEVM.from_array(head, 300, spacing=(0.9570312, 0.9570312, 1.5), origin=(-120, -130, 10),
-                                units="HU")
+    return VolumeEVM.from_array(head, 300, spacing=(0.9570312, 0.9570312, 1.5),
+                                origin=(-120, -130, 10), units="HU")
 
 
 def test_region_and_table_match_the_dense_volume(head, bone):
@@ -66,7 +66,8 @@ def test_other_tables_are_made_only_when_asked(head):
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_relation_v_agrees_with_a_dense_lookup(head, bone, axis):
     rng = np.random.default_rng(axis)
-    voxels = np.c_[rng.integers(-2, 258, 20000), rng.integers(-2, 258, 20000), rng.integers(-2, 110, 20000)]
+    voxels = np.c_[rng.integers(-2, 258, 20000), rng.integers(-2, 258, 20000),
+                   rng.integers(-2, 110, 20000)]
     inside = np.all((voxels >= 0) & (voxels < head.shape), axis=1)
     index = bone.index(voxels, axis=axis)
     expected_in = np.zeros(len(voxels), bool)
@@ -99,7 +100,8 @@ def test_save_load_round_trip(tmp_path, bone):
     bone.save(path)
     again = VolumeEVM.load(path)
     assert again.evm == bone.evm
-    assert np.array_equal(again.table(0), bone.table(0)) and again.table(0).dtype == bone.table(0).dtype
+    assert (np.array_equal(again.table(0), bone.table(0))
+            and again.table(0).dtype == bone.table(0).dtype)
     assert (again.shape, again.spacing, again.origin, again.units, again.threshold) == (
         bone.shape, bone.spacing, bone.origin, bone.units, bone.threshold)
     np.testing.assert_array_equal(again.orientation, bone.orientation)
@@ -131,7 +133,8 @@ def test_corrupt_and_foreign_files(tmp_path, bone):
     pickled = tmp_path / "pickled.vevm"
     with pickled.open("wb") as file:
         np.savez(file, format=np.array("volumeevm"), version=np.array(1),
-                 meta=np.array([{"evil": 1}], dtype=object), vertices=np.zeros((0, 3)), table=np.zeros(0))
+                 meta=np.array([{"evil": 1}], dtype=object), vertices=np.zeros((0, 3)),
+                 table=np.zeros(0))
     with pytest.raises(VolumeEVMError, match="pickled.vevm: not a readable"):
         VolumeEVM.load(pickled)
     # Flip one density inside the archive: the checksum catches it.
@@ -151,7 +154,8 @@ def test_corrupt_and_foreign_files(tmp_path, bone):
 
 def test_bad_input_names_the_source_and_problem():
     array = np.zeros((4, 4, 4), np.float32)
-    with pytest.raises(VolumeEVMError, match=r"scan: the region is empty: no density is >= 5 \(data range 0.0 .. 0.0\)"):
+    with pytest.raises(VolumeEVMError, match=r"scan: the region is empty: no density is >= 5 "
+                                             r"\(data range 0.0 .. 0.0\)"):
         VolumeEVM.from_array(array, 5, source="scan")
     array[1, 1, 1] = np.nan
     with pytest.raises(VolumeEVMError, match="scan: 1 densities are NaN or infinite"):

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from zarr_files import chunk_files, pyramid, write_store
 
 from volumeevm_addon import VolumeEVMError, read_volume, volume_levels
+from zarr_files import chunk_files, pyramid, write_store
 
 
 @pytest.fixture(scope="module")

@@ -23,8 +23,9 @@ def synthetic():
     rng = np.random.default_rng(9)
     array = rng.normal(100.0, 40.0, (7, 6, 5)).astype(np.float32)
     turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    return VolumeEVM.from_array(array, 90.0, 180.0, spacing=(0.5, 0.75, 2.0), origin=(-3.0, 4.5, 10.0),
-                                orientation=turn, units="HU", source="synthetic")
+    return VolumeEVM.from_array(array, 90.0, 180.0, spacing=(0.5, 0.75, 2.0),
+                                origin=(-3.0, 4.5, 10.0), orientation=turn, units="HU",
+                                source="synthetic")
 
 
 def ct_crop(data_dir):
@@ -56,7 +57,8 @@ def npy_bytes(array):
 def crafted_npy(descr, shape, data=b""):
     """A ``.npy`` whose header declares ``descr`` and ``shape`` whatever ``data`` follows."""
     buffer = io.BytesIO()
-    npy_format.write_array_header_1_0(buffer, {"descr": descr, "fortran_order": False, "shape": shape})
+    npy_format.write_array_header_1_0(buffer, {"descr": descr, "fortran_order": False,
+                                               "shape": shape})
     return buffer.getvalue() + data
 
 

@@ -232,7 +232,8 @@ def _cache_folder(parent):
     imported = parent / __name__.rpartition(".")[0]
     if imported.is_dir():
         for old in imported.iterdir():
-            if old.name != name and len(old.name) == 16 and set(old.name) <= set("0123456789abcdef"):
+            if (old.name != name and len(old.name) == 16
+                    and set(old.name) <= set("0123456789abcdef")):
                 try:
                     stale = time.time() - old.stat().st_mtime > STALE_SECONDS
                 except OSError:  # removed meanwhile by another process
@@ -272,7 +273,8 @@ class Kernel:
                     numba = _numba()
                     # Numba reads its cache folder when a dispatcher is made: set it for ours only.
                     shared = numba.config.CACHE_DIR
-                    numba.config.CACHE_DIR = str(_cache_folder(_settings["cache_dir"] or default_cache_dir()))
+                    numba.config.CACHE_DIR = str(_cache_folder(_settings["cache_dir"]
+                                                               or default_cache_dir()))
                     try:
                         self._dispatcher = numba.njit(nogil=True, cache=True)(self.__wrapped__)
                     finally:

@@ -46,7 +46,8 @@ def memory_limit():
     except (ValueError, KeyError):
         value = float("nan")
     if not value > 0 or value == float("inf"):
-        raise VolumeEVMError(f"{LIMIT_VARIABLE}={text!r}: expected a positive size such as 512M or 2G")
+        raise VolumeEVMError(f"{LIMIT_VARIABLE}={text!r}: expected a positive size such as 512M "
+                             f"or 2G")
     return int(value)
 
 
@@ -150,8 +151,10 @@ def _windows_available():
     class MemoryStatus(ctypes.Structure):
         _fields_ = [("dwLength", ctypes.c_ulong), ("dwMemoryLoad", ctypes.c_ulong),
                     ("ullTotalPhys", ctypes.c_ulonglong), ("ullAvailPhys", ctypes.c_ulonglong),
-                    ("ullTotalPageFile", ctypes.c_ulonglong), ("ullAvailPageFile", ctypes.c_ulonglong),
-                    ("ullTotalVirtual", ctypes.c_ulonglong), ("ullAvailVirtual", ctypes.c_ulonglong),
+                    ("ullTotalPageFile", ctypes.c_ulonglong),
+                    ("ullAvailPageFile", ctypes.c_ulonglong),
+                    ("ullTotalVirtual", ctypes.c_ulonglong),
+                    ("ullAvailVirtual", ctypes.c_ulonglong),
                     ("ullAvailExtendedVirtual", ctypes.c_ulonglong)]
 
     status = MemoryStatus()

@@ -18,13 +18,13 @@ How the scene is matched
   VolPack has no perspective projection (``FactorPerspectiveView`` is stubbed out).
 - **Transfer function**: VolPack classifies voxels (pre-classification) with an opacity table
   indexed by density and colours them with a lookup "shader" table indexed by the same density
-  (no lighting): the TF's straight RGB at every integer density, scaled to VolPack's 0..255. VolPack corrects opacity per
-  view with ``α' = 1 - (1 - α)^f``, ``f = sqrt(1 + s_i² + s_j²)`` (``vp_view.c``,
-  ``ComputeAffineOpacityCorrection``: it counts index units along the ray, ignoring physical
-  spacing). The driver is given ``α = 1 - (1 - α_TF)^(L / (f · Δ0))`` with ``L`` the physical
-  distance (mm) between consecutive slice samples along a ray, so after VolPack's own correction
-  each sample has exactly our ``1 - (1 - α_TF)^(L/Δ0)``, also for anisotropic voxels. VolPack
-  stores opacities as 8 bits and writes 8-bit RGBA.
+  (no lighting): the TF's straight RGB at every integer density, scaled to VolPack's 0..255. VolPack
+  corrects opacity per view with ``α' = 1 - (1 - α)^f``, ``f = sqrt(1 + s_i² + s_j²)``
+  (``vp_view.c``, ``ComputeAffineOpacityCorrection``: it counts index units along the ray, ignoring
+  physical spacing). The driver is given ``α = 1 - (1 - α_TF)^(L / (f · Δ0))`` with ``L`` the
+  physical distance (mm) between consecutive slice samples along a ray, so after VolPack's own
+  correction each sample has exactly our ``1 - (1 - α_TF)^(L/Δ0)``, also for anisotropic voxels.
+  VolPack stores opacities as 8 bits and writes 8-bit RGBA.
 - **Output**: VolPack's RGBA bytes are premultiplied colour and coverage (its man page
   ``vpSetImage``: colour += C·(1 - alpha) composites over a background); divided by 255.
 """

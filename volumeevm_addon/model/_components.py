@@ -23,7 +23,8 @@ def _pairs(first, stop):
 
 def _overlapping(keys_lo, keys_hi, group, lo, hi):
     """For intervals ``[lo, hi)`` in ``group``, the range of sorted, disjoint intervals (given by
-    their packed ``(group, lo)`` and ``(group, hi)`` keys) that overlap each with a positive length."""
+    their packed ``(group, lo)`` and ``(group, hi)`` keys) that overlap each with a positive
+    length."""
     first = np.searchsorted(keys_hi, (group << _sweep.BITS) | (lo + _sweep.OFFSET), side="right")
     stop = np.searchsorted(keys_lo, (group << _sweep.BITS) | (hi + _sweep.OFFSET), side="left")
     return first, stop
@@ -92,7 +93,8 @@ def face_components(evm):
 
 
 def _connect(n, u, v):
-    """Connected-component labels of ``n`` nodes with edges ``(u, v)``: the smallest node of each."""
+    """Connected-component labels of ``n`` nodes with edges ``(u, v)``: the smallest node of
+    each."""
     labels = np.arange(n)
     while True:
         low = np.minimum(labels[u], labels[v])

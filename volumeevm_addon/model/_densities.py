@@ -82,10 +82,12 @@ class TableIndex:
         i = np.searchsorted(self.slab_lo, a, side="right") - 1
         ok = (i >= 0) & (a < self.slab_hi[np.maximum(i, 0)])
         i = np.maximum(i, 0)
-        j = np.searchsorted(self.sub_keys, (i << _sweep.BITS) | (b + _sweep.OFFSET), side="right") - 1
+        j = np.searchsorted(self.sub_keys, (i << _sweep.BITS) | (b + _sweep.OFFSET),
+                            side="right") - 1
         jj = np.maximum(j, 0)
         ok &= (j >= 0) & (self.sub_slab[jj] == i) & (b >= self.sub_lo[jj]) & (b < self.sub_hi[jj])
-        k = np.searchsorted(self.run_keys, (jj << _sweep.BITS) | (c + _sweep.OFFSET), side="right") - 1
+        k = np.searchsorted(self.run_keys, (jj << _sweep.BITS) | (c + _sweep.OFFSET),
+                            side="right") - 1
         kk = np.maximum(k, 0)
         ok &= (k >= 0) & (self.run_sub[kk] == jj) & (c >= self.run_lo[kk]) & (c < self.run_hi[kk])
         index = (

@@ -203,7 +203,8 @@ def _clip_keys(keys, lo, hi):
     while i < len(keys) and keys[i] >> plane_bits < hi[0]:
         j = _sweep.same_end(keys, i, len(keys), plane_bits)
         out = _sweep.with_room(out, n, 5 * (j - i) + 4)
-        n = _clip_plane(keys, i, j, lo, hi, (keys[i] >> plane_bits) << plane_bits, out, n, row, row_scratch)
+        n = _clip_plane(keys, i, j, lo, hi, (keys[i] >> plane_bits) << plane_bits, out, n, row,
+                        row_scratch)
         m = _sweep.xor_into(section, m, keys, i, j, plane_mask, scratch)
         section[:m] = scratch[:m]
         i = j
@@ -249,8 +250,10 @@ def vertex_keys(slices, shape, offset=(0, 0, 0)):
     buffer = np.empty((ny + 1) * (nz + 1), np.int64)
     previous = np.zeros((ny, nz), np.uint8)
     for x, mask in enumerate(itertools.chain(slices, [None])):
-        current = np.zeros((ny, nz), np.uint8) if mask is None else np.ascontiguousarray(mask).view(np.uint8)
-        count = _plane_keys(previous, current, np.int64(x + ox) << (2 * _sweep.BITS), oy, oz, buffer)
+        current = (np.zeros((ny, nz), np.uint8) if mask is None
+                   else np.ascontiguousarray(mask).view(np.uint8))
+        count = _plane_keys(previous, current, np.int64(x + ox) << (2 * _sweep.BITS), oy, oz,
+                            buffer)
         yield buffer[:count].copy()
         previous = current
 
@@ -368,7 +371,8 @@ class EVM:
         if mask.ndim != 3:
             raise VolumeEVMError(f"mask must be 3-D, got shape {mask.shape}")
         offset = integer_triple(offset, "offset")
-        check_lattice_range(offset, [o + n for o, n in zip(offset, mask.shape)], "mask placed at offset")
+        check_lattice_range(offset, [o + n for o, n in zip(offset, mask.shape)],
+                            "mask placed at offset")
         cells = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
         ox, oy, oz = (o + _sweep.OFFSET for o in offset)
         step = max(1, _BLOCK_VOXELS // max(1, mask.shape[1] * mask.shape[2]))
@@ -680,7 +684,8 @@ class EVM:
         return (self ^ inside) ^ inside._sweep(other.clip(*box), "difference")
 
     def _sweep(self, other, operation):
-        return EVM._from_keys(_sweep.boolean(self.keys(), other.keys(), _sweep.TRUTH_TABLES[operation]))
+        return EVM._from_keys(_sweep.boolean(self.keys(), other.keys(),
+                                             _sweep.TRUTH_TABLES[operation]))
 
     # ------------------------------------------------------------------ measures
     def boxes(self, order="xyz"):
@@ -775,7 +780,8 @@ class EVM:
         if self.is_empty():
             return self
         lo, hi = self.bounds()
-        check_lattice_range([a + o for a, o in zip(lo, offset)], [a + o for a, o in zip(hi, offset)], "offset")
+        check_lattice_range([a + o for a, o in zip(lo, offset)],
+                            [a + o for a, o in zip(hi, offset)], "offset")
         # A translation keeps the lexicographic order: the keys stay sorted.
         return EVM._from_keys(_sweep.pack(self.vertices.astype(np.int64) + np.array(offset)))
 

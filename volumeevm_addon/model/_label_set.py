@@ -46,17 +46,21 @@ class LabelSet(Mapping):
     >>> from volumeevm_addon.model import box_evm
     >>> array = np.zeros((6, 6, 6), np.uint8); array[:3] = 1; array[3:] = 2
     >>> regions = VolumeEVM.from_labels(array)
-    >>> {label: r.voxel_count for label, r in regions.cut(box_evm((0, 0, 0), (4, 6, 6), (6, 6, 6))).items()}
+    >>> {label: r.voxel_count
+    ...  for label, r in regions.cut(box_evm((0, 0, 0), (4, 6, 6), (6, 6, 6))).items()}
     {2: 72}
     """
 
     def __init__(self, regions, infos=None):
         self._regions = {int(label): region for label, region in sorted(regions.items())}
-        grids = {(r.shape, r.spacing, r.origin, r.orientation.tobytes()) for r in self._regions.values()}
+        grids = {(r.shape, r.spacing, r.origin, r.orientation.tobytes())
+                 for r in self._regions.values()}
         if len(grids) > 1:
-            raise VolumeEVMError("regions: the labels of a set must share one grid (shape and geometry)")
+            raise VolumeEVMError("regions: the labels of a set must share one grid (shape and "
+                                 "geometry)")
         infos = infos or {}
-        self.infos = {label: infos.get(label) or default_label_info(label) for label in self._regions}
+        self.infos = {label: infos.get(label) or default_label_info(label)
+                      for label in self._regions}
 
     def __getitem__(self, label):
         return self._regions[label]
@@ -146,7 +150,8 @@ class LabelSet(Mapping):
         VolumeEVMError
             When the tool misses every label.
         """
-        return self._edited({label: region.evm & tool for label, region in self.items()}, "keep inside")
+        return self._edited({label: region.evm & tool for label, region in self.items()},
+                            "keep inside")
 
     def add(self, tool, label):
         """Give the tool's voxels to ``label`` (a new label too), taking them from the others.
@@ -167,7 +172,8 @@ class LabelSet(Mapping):
         VolumeEVMError
             If ``label`` is not an integer > 0, or the tool has no voxel inside the grid.
         """
-        if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)) or label <= 0:
+        if (isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer))
+                or label <= 0):
             raise VolumeEVMError(f"add: label must be an integer > 0, got {label!r}")
         label = int(label)
         first = next(iter(self._regions.values()))
@@ -179,7 +185,8 @@ class LabelSet(Mapping):
         if label in self._regions:
             edited[label] = self._regions[label].add(tool, density=label)
         else:
-            edited[label] = first._derived(tool, np.full(tool.volume(), label, first.table(0).dtype))
+            edited[label] = first._derived(tool, np.full(tool.volume(), label,
+                                                         first.table(0).dtype))
             edited[label].threshold = edited[label].upper = float(label)
         return LabelSet(edited, self.infos)
 

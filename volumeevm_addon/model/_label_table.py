@@ -111,7 +111,8 @@ def read_label_table(path):
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
         raise VolumeEVMError(f"{path}: cannot read the label table ({error})") from error
-    entries = _json_entries(text, path) if path.suffix.lower() == ".json" else _itksnap_entries(text, path)
+    entries = (_json_entries(text, path) if path.suffix.lower() == ".json"
+               else _itksnap_entries(text, path))
     table = {}
     for where, text_label, name, color in entries:
         if not re.fullmatch(r"\s*\d+\s*", text_label):
@@ -183,7 +184,8 @@ def slicer_segments(header, source):
         If a segment lacks its name, colour, label value or layer, a number or colour is
         malformed, two segments share a name, or two share a layer and label value.
     """
-    numbers = sorted({int(m.group(1)) for key in header if (m := re.fullmatch(r"Segment(\d+)_ID", key))})
+    numbers = sorted({int(m.group(1)) for key in header
+                      if (m := re.fullmatch(r"Segment(\d+)_ID", key))})
     segments, names, places = [], {}, {}
     for n in numbers:
         def field(name):
@@ -196,9 +198,11 @@ def slicer_segments(header, source):
         try:
             value, layer = int(field("LabelValue")), int(field("Layer"))
         except ValueError as error:
-            raise VolumeEVMError(f"{where}: LabelValue and Layer must be integers ({error})") from error
+            raise VolumeEVMError(f"{where}: LabelValue and Layer must be integers "
+                                 f"({error})") from error
         if value <= 0 or layer < 0:
-            raise VolumeEVMError(f"{where}: LabelValue must be > 0 and Layer >= 0, got {value}, {layer}")
+            raise VolumeEVMError(f"{where}: LabelValue must be > 0 and Layer >= 0, got {value}, "
+                                 f"{layer}")
         try:
             rgb = [float(c) for c in field("Color").split()]
         except ValueError:
@@ -211,7 +215,8 @@ def slicer_segments(header, source):
             raise VolumeEVMError(f"{where}: layer {layer}, label value {value} is also segment "
                                  f"{places[layer, value]}'s")
         names[name], places[layer, value] = n, n
-        segments.append({"id": field("ID"), "name": name, "color": color, "layer": layer, "value": value})
+        segments.append({"id": field("ID"), "name": name, "color": color, "layer": layer,
+                         "value": value})
     return segments
 
 

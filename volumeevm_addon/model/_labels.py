@@ -76,13 +76,15 @@ def _label_block(labels, ids, first, stop, n_ids, ox, oy, oz):
             mixed = False
             for z in range(nz + 2):
                 value = before[y, z]
-                mixed |= (before[y + 1, z] != value) | (after[y, z] != value) | (after[y + 1, z] != value)
+                mixed |= ((before[y + 1, z] != value) | (after[y, z] != value)
+                          | (after[y + 1, z] != value))
             if not mixed:
                 continue
             # Column z of the point's 4 rows is uniform when its 4 cells agree; a point is inside
             # one label when its two columns are uniform with the same value.
             left = before[y, 0]
-            left_uniform = before[y + 1, 0] == left and after[y, 0] == left and after[y + 1, 0] == left
+            left_uniform = (before[y + 1, 0] == left and after[y, 0] == left
+                            and after[y + 1, 0] == left)
             for z in range(nz + 1):
                 value = before[y, z + 1]
                 uniform = (before[y + 1, z + 1] == value and after[y, z + 1] == value
@@ -175,7 +177,8 @@ def checked_labels(array, source):
     """
     array = np.asarray(array)
     if array.ndim != 3 or array.size == 0:
-        raise VolumeEVMError(f"{source}: a label map must be a non-empty 3-D array, got shape {array.shape}")
+        raise VolumeEVMError(f"{source}: a label map must be a non-empty 3-D array, got shape "
+                             f"{array.shape}")
     if array.dtype.kind not in "iu":
         hint = {"b": "a boolean mask is one region: use EVM.from_mask",
                 "f": "labels are categories, not densities: if the values are whole numbers, "
@@ -184,7 +187,8 @@ def checked_labels(array, source):
                              + (f" ({hint})" if hint else ""))
     if array.dtype.kind == "i" and int(array.min()) < 0:
         raise VolumeEVMError(f"{source}: a label map holds labels >= 0 (0 = background), but "
-                             f"{np.count_nonzero(array < 0)} voxels are negative (min {array.min()})")
+                             f"{np.count_nonzero(array < 0)} voxels are negative "
+                             f"(min {array.min()})")
     return array
 
 
@@ -235,7 +239,8 @@ def label_regions(array, labels=None, *, source="array"):
     if len(candidates) > MAX_LABELS:
         raise VolumeEVMError(
             f"{source}: {len(candidates)} labels, more than the {MAX_LABELS} a label map may hold; "
-            f"pick the labels you need with labels=, or build density bands with VolumeEVM.from_array"
+            f"pick the labels you need with labels=, or build density bands with "
+            f"VolumeEVM.from_array"
         )
     # Each candidate's number, by its value's place in the lookup (-1: not built).
     ids = np.full(int(values[-1]) + 1 if lookup else len(values), -1, np.int32)

@@ -107,7 +107,8 @@ def checked_factor(factor, shape):
     VolumeEVMError
         Naming the level factor and the accepted range.
     """
-    if isinstance(factor, (bool, np.bool_)) or not isinstance(factor, numbers.Integral) or factor < 2:
+    if (isinstance(factor, (bool, np.bool_)) or not isinstance(factor, numbers.Integral)
+            or factor < 2):
         raise VolumeEVMError(f"level factor must be an integer >= 2, got {factor!r}")
     if factor > max(shape):
         raise VolumeEVMError(

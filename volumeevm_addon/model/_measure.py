@@ -43,7 +43,8 @@ def faces_mm2(counts, spacing):
     """The physical area of ``counts`` voxel faces perpendicular to x, y and z (in this order of
     summation, whatever the machine)."""
     sx, sy, sz = spacing
-    return float(int(counts[0]) * (sy * sz) + int(counts[1]) * (sx * sz) + int(counts[2]) * (sx * sy))
+    return float(int(counts[0]) * (sy * sz) + int(counts[1]) * (sx * sz)
+                 + int(counts[2]) * (sx * sy))
 
 
 def measure(vevm):
@@ -77,7 +78,8 @@ def measure(vevm):
     centre = doubled / (2.0 * voxels)  # voxel-centre index units
     matrix = vevm.index_to_physical()
     centroid = transform(centre[None], matrix[:3, :3].T, matrix[:3, 3])[0]
-    result.update(bbox_mm=(tuple(corners.min(axis=0).tolist()), tuple(corners.max(axis=0).tolist())),
+    result.update(bbox_mm=(tuple(corners.min(axis=0).tolist()),
+                           tuple(corners.max(axis=0).tolist())),
                   centroid_mm=tuple(centroid.tolist()), components=len(evm.components()))
     return result
 

@@ -167,7 +167,8 @@ def _advance(open_runs, n_open, runs, n_runs, a, b, found, n_found, following):
         n += 1
         j += 1
     for k in range(n):
-        open_runs[k, 0], open_runs[k, 1], open_runs[k, 2] = following[k, 0], following[k, 1], following[k, 2]
+        open_runs[k, 0], open_runs[k, 1], open_runs[k, 2] = (following[k, 0], following[k, 1],
+                                                              following[k, 2])
     return n_found, n
 
 
@@ -243,13 +244,15 @@ def _plane_rectangles(keys, start, stop, section):
                 b = before[p] >> _sweep.BITS
             else:
                 b = after[q] >> _sweep.BITS
-            p, length_before = _sweep.toggle_line(before, n_before, p, b, row_before, length_before, scratch)
-            q, length_after = _sweep.toggle_line(after, n_after, q, b, row_after, length_after, scratch)
+            p, length_before = _sweep.toggle_line(before, n_before, p, b, row_before,
+                                                  length_before, scratch)
+            q, length_after = _sweep.toggle_line(after, n_after, q, b, row_after, length_after,
+                                                 scratch)
             # The face runs from this line on: where the solid ends, and where it starts.
             runs_e = _sweep.combine_rows(row_before, length_before, row_after, length_after, _ENDS,
                                          end_runs) // 2
-            runs_s = _sweep.combine_rows(row_before, length_before, row_after, length_after, _STARTS,
-                                         start_runs) // 2
+            runs_s = _sweep.combine_rows(row_before, length_before, row_after, length_after,
+                                         _STARTS, start_runs) // 2
             if n_ends + open_e > len(ends):
                 ends = _sweep.with_room(ends, n_ends, open_e)
             n_ends, open_e = _advance(open_ends, open_e, end_runs, runs_e, a, b, ends, n_ends,
@@ -290,7 +293,8 @@ def _blocks(keys):
     if len(keys) == 0:
         return []
     plane_starts = np.flatnonzero(np.r_[True, np.diff(keys >> (2 * _sweep.BITS)) != 0])
-    first_planes = np.unique(np.searchsorted(plane_starts, np.arange(0, len(keys), _BLOCK_VERTICES)))
+    first_planes = np.unique(np.searchsorted(plane_starts,
+                                             np.arange(0, len(keys), _BLOCK_VERTICES)))
     cuts = plane_starts[first_planes[first_planes < len(plane_starts)]].tolist() + [len(keys)]
     sections = [np.zeros(0, np.int64)]
     for start, stop in zip(cuts[:-2], cuts[1:-1]):
@@ -370,7 +374,8 @@ def _loops(corner_vertex, first, stop, axis_b, axis_c, order, rank):
         size = 0
         for e in range(4):
             axis = axis_b if e % 2 == 0 else axis_c
-            size += abs(rank[axis, corner_vertex[4 * r + (e + 1) % 4]] - rank[axis, corner_vertex[4 * r + e]])
+            size += abs(rank[axis, corner_vertex[4 * r + (e + 1) % 4]]
+                        - rank[axis, corner_vertex[4 * r + e]])
         sizes[r - first] = size
         total += size
     loops = np.empty(total, np.int32)
@@ -473,7 +478,8 @@ def _groups(evm):
     groups, count = [], 0
     for order, axis in zip(_CYCLIC, tasks):
         blocks = [next(found) for _ in axis]
-        ends, starts = (np.concatenate([block[side] for block in blocks] or [np.zeros((0, 5), np.int64)])
+        ends, starts = (np.concatenate([block[side] for block in blocks]
+                                       or [np.zeros((0, 5), np.int64)])
                         for side in (0, 1))
         groups += [ends, starts]
         count += len(ends) + len(starts)
@@ -494,7 +500,8 @@ def _dirty_rectangles(keys, lo, hi):
     ``keys`` (sorted in a cyclic order), as :func:`_plane_rectangles` gives them: the section
     before them swept from the first plane, then their own sweep."""
     start, stop = np.searchsorted(keys >> (2 * _sweep.BITS), (lo, hi + 1))
-    return _plane_rectangles(keys, start, stop, _section_after(keys, 0, start, np.zeros(0, np.int64)))
+    return _plane_rectangles(keys, start, stop,
+                             _section_after(keys, 0, start, np.zeros(0, np.int64)))
 
 
 class BoundaryMesh:
@@ -554,7 +561,8 @@ class BoundaryMesh:
         self.came_from = None
         groups = _groups(evm)
         if not any(len(g) for g in groups):
-            self._set(evm, groups, np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int32))
+            self._set(evm, groups, np.zeros(0, np.int64), np.zeros(0, np.int32),
+                      np.zeros(0, np.int32))
             return
         keys, corner_vertex = _vertices_of(self._corners(groups))
         uses = np.bincount(corner_vertex, minlength=len(keys)).astype(np.int32)
@@ -579,7 +587,8 @@ class BoundaryMesh:
         tasks, first = [], 0
         for g, rectangles in enumerate(groups):
             axes, stop = _AXES[g // 2], first + len(rectangles)
-            tasks += [(corner_vertex, start, min(start + _BLOCK_RECTANGLES, stop), axes[1], axes[2], order, rank)
+            tasks += [(corner_vertex, start, min(start + _BLOCK_RECTANGLES, stop), axes[1],
+                       axes[2], order, rank)
                       for start in range(first, stop, _BLOCK_RECTANGLES)]
             first = stop
         blocks = parallel_map(_loops, tasks)
@@ -657,9 +666,11 @@ class BoundaryMesh:
         # Faces change on the planes of old ^ new only: per axis, lo to hi (offset coordinates).
         lo, hi = _sweep.key_bounds(changed)
         orders = [evm.keys()] + [
-            _sweep.xor(old, _sweep.radix_sort(_sweep.pack(_sweep.unpack(changed, 3)[:, axes]), 0, 3)[0])
+            _sweep.xor(old, _sweep.radix_sort(_sweep.pack(_sweep.unpack(changed, 3)[:, axes]),
+                                              0, 3)[0])
             for old, axes in zip(self._orders[1:], _AXES[1:])]
-        dirty = parallel_map(_dirty_rectangles, [(orders[axis], lo[axis], hi[axis]) for axis in range(3)])
+        dirty = parallel_map(_dirty_rectangles,
+                             [(orders[axis], lo[axis], hi[axis]) for axis in range(3)])
         # On those planes, a rectangle whose closed extent misses the closed box of the change
         # (in B and C) has the same runs on its lines and the lines around it: it stays.
         groups, corners, left, came, first = [], [], [], [], 0
@@ -667,7 +678,8 @@ class BoundaryMesh:
             axes, side = _AXES[g // 2], g % 2
             r0, r1 = np.searchsorted(old[:, 0], (lo[axes[0]], hi[axes[0]] + 1))
             new = dirty[g // 2][side]
-            old_touch, new_touch = (_touching(rectangles, lo[axes], hi[axes]) for rectangles in (old[r0:r1], new))
+            old_touch, new_touch = (_touching(rectangles, lo[axes], hi[axes])
+                                    for rectangles in (old[r0:r1], new))
             groups.append(np.concatenate([old[:r0], new, old[r1:]]))
             vertex = self._corner_vertex[first:first + 4 * len(old)].reshape(-1, 4)
             corners.append((vertex[:r0], vertex[r0:r1][~old_touch], new_touch, vertex[r1:]))
@@ -676,8 +688,10 @@ class BoundaryMesh:
             first += 4 * len(old)
         _check_memory(_BYTES_PER_RECTANGLE * sum(len(g) for g in groups) + _MESH_OVERHEAD,
                       "the updated face runs")
-        uses = self._uses - np.bincount(np.concatenate(left), minlength=len(self._keys)).astype(np.int32)
-        keys, uses, old_vertex, added_vertex = _merge_vertices(self._keys, uses, np.concatenate(came))
+        uses = self._uses - np.bincount(np.concatenate(left),
+                                        minlength=len(self._keys)).astype(np.int32)
+        keys, uses, old_vertex, added_vertex = _merge_vertices(self._keys, uses,
+                                                               np.concatenate(came))
         corner_vertex, added = [], 0
         for before, kept, touch, after in corners:
             middle = np.empty((len(touch), 4), np.int32)
@@ -704,7 +718,8 @@ class BoundaryMesh:
             if self._lines is None:
                 self._edges = np.zeros((0, 2), np.int32), np.zeros(0, np.int32)
             else:
-                self._edges = _numbered_edges(np.concatenate(self._slots), self._lines[0], len(self))
+                self._edges = _numbered_edges(np.concatenate(self._slots), self._lines[0],
+                                              len(self))
         return self._edges
 
 

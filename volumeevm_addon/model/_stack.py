@@ -216,8 +216,8 @@ def _update_in_place(previous, old, operation, blocks, shape):
             lo, size = (x0, y0, 0), (x1 - x0, y1 - y0, nz)
             before, inside = region.to_mask(size, lo), inside_tool.to_mask(size, lo)
             dense = np.empty(size, previous.table.dtype)
-            dense[before] = np.concatenate([previous.table[previous.rows[f + y0]:previous.rows[f + y1]]
-                                            for f in firsts])
+            dense[before] = np.concatenate(
+                [previous.table[previous.rows[f + y0]:previous.rows[f + y1]] for f in firsts])
             if operation.operation == "add":
                 after = before | inside
                 dense[inside] = density
@@ -329,7 +329,8 @@ class EditStack:
         updated = 0
         for index in range(same, len(operations)):
             operation = operations[index]
-            old_operation, old = self._entries[index] if index < len(self._entries) else (None, None)
+            old_operation, old = (self._entries[index] if index < len(self._entries)
+                                  else (None, None))
             if old_operation is None or not _same_but_tool(operation, old_operation):
                 changes = None
             elif changes is not None and operation.tool != old_operation.tool:

@@ -173,7 +173,8 @@ def xor(a, b):
 
 TRUTH_TABLES = {"union": 0b1110, "intersection": 0b1000, "difference": 0b0100, "xor": 0b0110,
                 "reverse difference": 0b0010}
-"""Each operation as a truth table: bit ``2 * in_a + in_b`` says whether a point is in the result."""
+"""Each operation as a truth table: bit ``2 * in_a + in_b`` says whether a point is in the
+result."""
 
 
 @kernel
@@ -223,7 +224,8 @@ def _combine_sections(a, count_a, b, count_b, table, out):
     line are the change of its row there. Returns ``(out, count)``; ``out`` grows as needed."""
     size = count_a + count_b + 2
     row_a, row_b = np.empty(size, np.int64), np.empty(size, np.int64)
-    row, previous, scratch = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64)
+    row, previous, scratch = (np.empty(size, np.int64), np.empty(size, np.int64),
+                              np.empty(size, np.int64))
     length_a = 0
     length_b = 0
     length_previous = 0
@@ -266,7 +268,8 @@ def boolean(a, b, table):
     i = 0
     j = 0
     while i < len(a) or j < len(b):
-        plane = a[i] >> plane_bits if j == len(b) or (i < len(a) and a[i] < b[j]) else b[j] >> plane_bits
+        plane = (a[i] >> plane_bits if j == len(b) or (i < len(a) and a[i] < b[j])
+                 else b[j] >> plane_bits)
         if i < len(a) and a[i] >> plane_bits == plane:
             stop = same_end(a, i, len(a), plane_bits)
             count_a = xor_into(section_a, count_a, a, i, stop, plane_mask, scratch)

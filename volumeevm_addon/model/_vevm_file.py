@@ -20,8 +20,8 @@ A file comes from outside, so :func:`read_vevm` trusts nothing in it:
    fit each other: equal for a stored member; for a deflated one, no larger than deflate's
    maximum expansion (a "zip bomb" declaring a huge array) and no smaller than the compressed
    data could hold (a stream that would inflate beyond its declared size). The arrays' total is
-   checked against the free memory (:func:`~volumeevm_addon.system.check_memory`) before any is read. The
-   ZIP reader never inflates beyond the declared size and verifies each member's CRC.
+   checked against the free memory (:func:`~volumeevm_addon.system.check_memory`) before any is
+   read. The ZIP reader never inflates beyond the declared size and verifies each member's CRC.
 2. The metadata must have every key with the right type: shape 3 positive integers, spacing 3
    finite positive numbers, origin 3 finite numbers, orientation an orthonormal 3x3 matrix (the
    geometry by the same rules as for a new VolumeEVM), units a string, threshold and upper
@@ -147,9 +147,11 @@ def read_vevm(path):
         raise VolumeEVMError(f"{path}: format version {version}, this add-on reads {VERSION}")
     meta = _check_meta(str(arrays["meta"][()]), path)
     vertices, table = arrays["vertices"], arrays["table"]
-    changed = [name for name in ("vertices", "table") if checksum(arrays[name]) != meta[f"{name}_sha256"]]
+    changed = [name for name in ("vertices", "table")
+               if checksum(arrays[name]) != meta[f"{name}_sha256"]]
     if changed:
-        raise VolumeEVMError(f"{path}: checksum mismatch ({' and '.join(changed)}), the file is corrupt")
+        raise VolumeEVMError(f"{path}: checksum mismatch ({' and '.join(changed)}), the file is "
+                             f"corrupt")
     evm = _check_region(vertices, meta["shape"], path)
     if not evm.volume() == meta["voxels"] == len(table):
         raise _corrupt(path, f"the region has {evm.volume()} voxels, the metadata says "
@@ -195,8 +197,9 @@ def _member_headers(archive, path):
         if info.flag_bits & 0x1:
             raise _unreadable(path, f"member '{name}' is encrypted")
         if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
-            raise _unreadable(path, f"member '{name}' uses compression method {info.compress_type}; "
-                                    f"only stored and deflated members are read")
+            raise _unreadable(path, f"member '{name}' uses compression method "
+                                    f"{info.compress_type}; only stored and deflated members are "
+                                    f"read")
         _check_sizes(info, name, path)
         with archive.open(info) as member:
             shape, dtype = _npy_header(member, name, path)
@@ -204,7 +207,8 @@ def _member_headers(archive, path):
         nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
         if nbytes != data_bytes:
             raise _unreadable(path, f"member '{name}' declares an array of shape {shape} and dtype "
-                                    f"{dtype} ({nbytes} bytes) but holds {data_bytes} bytes of data")
+                                    f"{dtype} ({nbytes} bytes) but holds {data_bytes} bytes of "
+                                    f"data")
         headers[name] = (shape, nbytes)
     return headers
 
@@ -289,7 +293,8 @@ def _check_meta(text, path):
     shape = meta["shape"]
     if not (isinstance(shape, list) and len(shape) == 3
             and all(type(n) is int and 0 < n < _sweep.LIMIT for n in shape)):
-        raise _corrupt(path, f"shape {_shown(shape)} must be 3 integers from 1 to {_sweep.LIMIT - 1}")
+        raise _corrupt(path, f"shape {_shown(shape)} must be 3 integers from 1 to "
+                             f"{_sweep.LIMIT - 1}")
     spacing, origin, orientation = checked_geometry(meta["spacing"], meta["origin"],
                                                     meta["orientation"], source=str(path))
     if not isinstance(meta["units"], str):
@@ -299,7 +304,8 @@ def _check_meta(text, path):
         if value is not None and (type(value) not in (int, float)
                                   or not abs(value) <= sys.float_info.max):
             raise _corrupt(path, f"{key} {_shown(value)} must be a finite number or null")
-    if meta["threshold"] is not None and meta["upper"] is not None and meta["upper"] < meta["threshold"]:
+    if (meta["threshold"] is not None and meta["upper"] is not None
+            and meta["upper"] < meta["threshold"]):
         raise _corrupt(path, f"upper {meta['upper']} is below threshold {meta['threshold']}")
     voxels = meta["voxels"]
     if type(voxels) is not int or voxels < 0:
@@ -309,7 +315,8 @@ def _check_meta(text, path):
             raise _corrupt(path, f"{key} {_shown(meta[key])} must be a string")
     return {**meta, "shape": tuple(shape), "spacing": spacing, "origin": origin,
             "orientation": orientation,
-            **{key: None if meta[key] is None else float(meta[key]) for key in ("threshold", "upper")}}
+            **{key: None if meta[key] is None else float(meta[key])
+               for key in ("threshold", "upper")}}
 
 
 def _shown(value):

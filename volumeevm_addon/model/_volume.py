@@ -223,18 +223,22 @@ def checked_geometry(spacing, origin, orientation, *, source=""):
         Naming the parameter and what is wrong with it.
     """
     prefix = f"{source}: " if source else ""
-    spacing = _reals(spacing, (3,), "spacing", prefix, "three finite positive numbers (mm per voxel)")
+    spacing = _reals(spacing, (3,), "spacing", prefix,
+                     "three finite positive numbers (mm per voxel)")
     if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
-        raise VolumeEVMError(f"{prefix}spacing must be three finite positive numbers (mm per voxel), "
-                             f"got {spacing.tolist()}")
+        raise VolumeEVMError(f"{prefix}spacing must be three finite positive numbers (mm per "
+                             f"voxel), got {spacing.tolist()}")
     origin = _reals(origin, (3,), "origin", prefix, "three finite numbers (mm)")
     if not np.all(np.isfinite(origin)):
-        raise VolumeEVMError(f"{prefix}origin must be three finite numbers (mm), got {origin.tolist()}")
+        raise VolumeEVMError(f"{prefix}origin must be three finite numbers (mm), got "
+                             f"{origin.tolist()}")
     if orientation is None:
         rotation = np.eye(3)
     else:
-        rotation = _reals(orientation, (3, 3), "orientation", prefix, "a 3x3 matrix of real numbers")
-        deviation = np.abs(rotation.T @ rotation - np.eye(3)).max() if np.isfinite(rotation).all() else np.inf
+        rotation = _reals(orientation, (3, 3), "orientation", prefix,
+                          "a 3x3 matrix of real numbers")
+        deviation = (np.abs(rotation.T @ rotation - np.eye(3)).max()
+                     if np.isfinite(rotation).all() else np.inf)
         if not deviation <= ORTHONORMAL_TOLERANCE:
             raise VolumeEVMError(
                 f"{prefix}orientation must be orthonormal (unit, mutually perpendicular axis "
@@ -288,7 +292,8 @@ def checked_densities(array, source):
     except (TypeError, ValueError) as error:
         raise VolumeEVMError(f"{source}: not an array of densities ({error})") from error
     if array.ndim != 3:
-        raise VolumeEVMError(f"{source}: expected a 3-D array indexed [x, y, z], got shape {array.shape}")
+        raise VolumeEVMError(f"{source}: expected a 3-D array indexed [x, y, z], got shape "
+                             f"{array.shape}")
     if array.size == 0:
         raise VolumeEVMError(f"{source}: the volume is empty (shape {array.shape})")
     if array.dtype.kind not in "uif":

@@ -96,19 +96,21 @@ class VolumeEVM:
             raise VolumeEVMError(f"evm must be an EVM, got {type(evm).__name__}")
         table = np.asarray(table)
         if table.ndim != 1 or table.dtype.kind not in "uif":
-            raise VolumeEVMError(f"table must be a 1-D array of integers or real numbers, got shape "
-                                 f"{table.shape} and dtype {table.dtype}")
+            raise VolumeEVMError(f"table must be a 1-D array of integers or real numbers, got "
+                                 f"shape {table.shape} and dtype {table.dtype}")
         if table.dtype.kind == "f" and not np.isfinite(table).all():
-            raise VolumeEVMError(f"table: {np.count_nonzero(~np.isfinite(table))} densities are NaN or infinite")
+            raise VolumeEVMError(f"table: {np.count_nonzero(~np.isfinite(table))} densities are "
+                                 f"NaN or infinite")
         self.shape = _grid_shape(shape, "")
         if not evm.is_empty():
             lo, hi = evm.bounds()
             if min(lo) < 0 or any(h > s for h, s in zip(hi, self.shape)):
-                raise VolumeEVMError(f"evm: the region spans lattice corners {lo} to {hi}, outside the "
-                                     f"grid of shape {self.shape}")
+                raise VolumeEVMError(f"evm: the region spans lattice corners {lo} to {hi}, outside "
+                                     f"the grid of shape {self.shape}")
         count = evm.volume()
         if count != len(table):
-            raise VolumeEVMError(f"table: the region has {count} voxels but the table {len(table)} densities")
+            raise VolumeEVMError(f"table: the region has {count} voxels but the table "
+                                 f"{len(table)} densities")
         self.spacing, self.origin, self.orientation = checked_geometry(spacing, origin, orientation)
         if not isinstance(units, str):
             raise VolumeEVMError(f"units must be a string (such as 'HU'), got {units!r}")
@@ -191,7 +193,8 @@ class VolumeEVM:
 
         def check(vertex_count):
             check_memory(needed(vertex_count), "building the VolumeEVM", source=source,
-                         advice="crop the volume, raise the threshold or narrow the density interval")
+                         advice="crop the volume, raise the threshold or narrow the density "
+                                "interval")
 
         budget = available_memory()
         keys, vertex_count = [], 0
@@ -263,7 +266,8 @@ class VolumeEVM:
         (64, 8, 'a.u.')
         """
         if not isinstance(volume, Volume):
-            raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got {type(volume).__name__}")
+            raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got "
+                                 f"{type(volume).__name__}")
         if is_lazy(volume.array):
             return cls._from_lazy(volume, threshold, upper, progress)
         built = cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
@@ -367,7 +371,8 @@ class VolumeEVM:
         check_memory(sum(count for _, count in regions.values()) * labels_map.dtype.itemsize,
                      "the label tables", source=source, advice="pick fewer labels with labels=")
         return LabelSet({label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
-                                    shape=shape, units=units, threshold=label, upper=label, **geometry)
+                                    shape=shape, units=units, threshold=label, upper=label,
+                                    **geometry)
                          for label, (keys, count) in regions.items()}, infos)
 
     # ------------------------------------------------------------------ densities
@@ -652,7 +657,8 @@ class VolumeEVM:
         if np.issubdtype(table.dtype, np.integer):
             info = np.iinfo(table.dtype)
             if not info.min <= density <= info.max:
-                raise VolumeEVMError(f"add: density {density} does not fit the data type {table.dtype}")
+                raise VolumeEVMError(f"add: density {density} does not fit the data type "
+                                     f"{table.dtype}")
         region = self.evm | tool
         result = self._derived(region, np.empty(region.volume(), table.dtype))
         # Both tables list voxels in the same (C) order, so the old voxels the tool leaves alone
@@ -685,10 +691,12 @@ class VolumeEVM:
         rows = size[:, 0] * size[:, 1]
         box = np.repeat(np.arange(len(lo)), rows)
         local = np.arange(rows.sum()) - np.repeat(np.cumsum(rows) - rows, rows)
-        firsts = lo[box] + np.stack([local // size[box, 1], local % size[box, 1], np.zeros_like(local)], axis=1)
+        firsts = lo[box] + np.stack([local // size[box, 1], local % size[box, 1],
+                                     np.zeros_like(local)], axis=1)
         start = self.index(firsts)
         end = start + size[box, 2]
-        edges = np.bincount(start, minlength=self.voxel_count + 1) - np.bincount(end, minlength=self.voxel_count + 1)
+        edges = (np.bincount(start, minlength=self.voxel_count + 1)
+                 - np.bincount(end, minlength=self.voxel_count + 1))
         return np.cumsum(edges[:-1]) > 0
 
     def _derived(self, region, table):
@@ -944,7 +952,8 @@ def _density_interval(threshold, upper, prefix, optional=False):
         except OverflowError:  # an int beyond float64
             number = math.nan
         if not math.isfinite(number):
-            raise VolumeEVMError(f"{prefix}{name} must be a finite number (a real number, not a bool), got {value!r}")
+            raise VolumeEVMError(f"{prefix}{name} must be a finite number (a real number, not a "
+                                 f"bool), got {value!r}")
         values.append(value if isinstance(value, (int, np.integer)) else number)
     threshold, upper = values
     if threshold is not None and upper is not None and upper < threshold:
@@ -954,6 +963,7 @@ def _density_interval(threshold, upper, prefix, optional=False):
 
 def _check_tool(tool):
     if not isinstance(tool, EVM):
-        raise TypeError(f"tool must be an EVM (e.g. EVM.from_mask(voxelize_mesh(...))), got {type(tool).__name__}")
+        raise TypeError(f"tool must be an EVM (e.g. EVM.from_mask(voxelize_mesh(...))), got "
+                        f"{type(tool).__name__}")
     return tool
 

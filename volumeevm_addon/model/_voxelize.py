@@ -746,9 +746,9 @@ def voxelize_mesh_evm(vertices, faces, shape, to_grid):
     """The EVM of :func:`voxelize_mesh`'s voxels, computed on the tool's bounding box only.
 
     A tool usually covers a small part of the grid; its runs and their EVM are made for the
-    sub-grid of the tool's bounding box and placed with an integer offset (no grid is filled). The vertices are
-    mapped to index space exactly as :func:`voxelize_mesh` maps them and then moved by a
-    non-negative integer no larger than their smallest coordinates; that subtraction is exact in
+    sub-grid of the tool's bounding box and placed with an integer offset (no grid is filled). The
+    vertices are mapped to index space exactly as :func:`voxelize_mesh` maps them and then moved by
+    a non-negative integer no larger than their smallest coordinates; that subtraction is exact in
     float64, and the voxelization is invariant under integer translations (the tie rule perturbs
     every centre alike), so the voxels are the same as on the whole grid.
 

@@ -17,8 +17,8 @@ to the library's own error if any:
 - every reader checks its header before reading data: the data must be exactly as long as the
   header announces (uncompressed files by their length, compressed streams by inflating no
   further and by their checksums), and the peak memory of the read must fit
-  (:func:`~volumeevm_addon.system.check_memory`), so a corrupt or hostile header costs neither a huge
-  allocation nor silently different voxels.
+  (:func:`~volumeevm_addon.system.check_memory`), so a corrupt or hostile header costs neither a
+  huge allocation nor silently different voxels.
 """
 
 import dataclasses

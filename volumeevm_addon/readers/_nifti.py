@@ -104,7 +104,8 @@ def read_nifti(path, lazy=False):
         slope, inter = _scaling(header, path)
         scaled = slope is not None and (slope, inter) != (1.0, 0.0)
         if lazy:
-            return _lazy(nib, path, header, offset, shape, dtype, (slope, inter) if scaled else None)
+            scaling = (slope, inter) if scaled else None
+            return _lazy(nib, path, header, offset, shape, dtype, scaling)
         # The buffer and its C-ordered copy; when scaled, later the C-ordered copy and two
         # float64 arrays at once (the product and the sum nibabel's scaling makes).
         check_read_memory(path, shape, dtype, copies=1,

@@ -22,8 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import VolumeEVMError
-from ._checks import (check_ndim, check_read_memory, checked_volume, data_units, lazy_mapped,
-                      open_file, read_payload)
+from ._checks import (
+    check_ndim,
+    check_read_memory,
+    checked_volume,
+    data_units,
+    lazy_mapped,
+    open_file,
+    read_payload,
+)
 
 #: ``numpy.lib.format`` header readers by format version (3.0 only adds UTF-8 field names,
 #: which a volume's plain dtype never needs).

@@ -52,12 +52,12 @@ from .._memory import check_memory
 from ..model._label_table import LabelInfo, default_label_info, slicer_segments
 from ..model._labels import checked_labels, labels_present
 from ._checks import (
+    UNKNOWN_LENGTH_UNITS,
     check_ndim,
     check_read_memory,
     checked_volume,
-    import_reader_package,
-    UNKNOWN_LENGTH_UNITS,
     data_units,
+    import_reader_package,
     lazy_mapped,
     mm_per_unit,
     open_file,

@@ -128,7 +128,8 @@ def checked_depth_in(depth_in, shape):
         raise VolumeEVMError(f"depth_in: expected an array of numbers, got "
                              f"{type(depth_in).__name__}") from error
     if depth_in.shape != tuple(shape):
-        raise VolumeEVMError(f"depth_in: shape {depth_in.shape} differs from the image's {tuple(shape)}")
+        raise VolumeEVMError(f"depth_in: shape {depth_in.shape} differs from the image's "
+                             f"{tuple(shape)}")
     if np.isnan(depth_in).any():
         raise VolumeEVMError(
             f"depth_in: {int(np.isnan(depth_in).sum())} NaN values; use 1e10 for no geometry")

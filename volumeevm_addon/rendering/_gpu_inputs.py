@@ -276,8 +276,8 @@ def axial_from_window(window_depth, camera):
 def window_from_axial(axial_depth, camera):
     """Window depth (``[0, 1]``, what a depth buffer holds) of axial depths, for ``camera``.
 
-    Depths beyond the far clip plane (:data:`~volumeevm_addon.rendering.BACKGROUND_DEPTH` included) give
-    1, depths before the near one 0.
+    Depths beyond the far clip plane (:data:`~volumeevm_addon.rendering.BACKGROUND_DEPTH`
+    included) give 1, depths before the near one 0.
 
     Parameters
     ----------

@@ -591,7 +591,8 @@ def _classify(lut, lo, scale, value, ratio):
     x = min(max((value - np.float32(lo)) * np.float32(scale), np.float32(0)), np.float32(n - 1))
     i = min(np.int64(x), n - 2)
     f = np.float64(x) - i
-    return (lut[i, 0] + f * (lut[i + 1, 0] - lut[i, 0]), lut[i, 1] + f * (lut[i + 1, 1] - lut[i, 1]),
+    return (lut[i, 0] + f * (lut[i + 1, 0] - lut[i, 0]),
+            lut[i, 1] + f * (lut[i + 1, 1] - lut[i, 1]),
             lut[i, 2] + f * (lut[i + 1, 2] - lut[i, 2]),
             _short(lut[i, 3] + f * (lut[i + 1, 3] - lut[i, 3]), ratio))
 

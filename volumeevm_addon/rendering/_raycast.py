@@ -95,8 +95,14 @@ import numpy as np
 from .._jit import kernel, parallel_map
 from ..model._densities import TABLE_ORDERS, TableIndex
 from ._camera import BACKGROUND_DEPTH
-from ._checks import (RAY_STEPS_PER_VOXEL, categorical, checked_step_mm, checked_view, flag,
-                      positive_integer)
+from ._checks import (
+    RAY_STEPS_PER_VOXEL,
+    categorical,
+    checked_step_mm,
+    checked_view,
+    flag,
+    positive_integer,
+)
 from ._depth import visible_threshold
 from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode

@@ -74,9 +74,17 @@ import numpy as np
 from .._errors import VolumeEVMError
 from . import _depth
 from ._camera import BACKGROUND_DEPTH, Camera  # noqa: F401  (Camera: doctest)
-from ._checks import (REFERENCE_STEPS_PER_VOXEL, categorical, check_camera, check_mode,
-                      check_transfer_function, checked_affine, checked_step_mm, checked_xray,
-                      positive_integer)
+from ._checks import (
+    REFERENCE_STEPS_PER_VOXEL,
+    categorical,
+    check_camera,
+    check_mode,
+    check_transfer_function,
+    checked_affine,
+    checked_step_mm,
+    checked_xray,
+    positive_integer,
+)
 from ._gradients import region_gradients
 from ._modes import Compositing, finish_mode
 from ._rays import camera_rays

@@ -254,8 +254,8 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         more than :data:`MAX_SAMPLES` samples (the message says which ``step_mm`` or
         ``substeps`` would do); and when the image or the render's estimated peak memory
         (:func:`render_memory`) exceeds the memory available
-        (:func:`volumeevm_addon.system.available_memory`; the message suggests a coarser level, a smaller
-        image or another method).
+        (:func:`volumeevm_addon.system.available_memory`; the message suggests a coarser level,
+        a smaller image or another method).
     TypeError
         For an option the method does not take.
 

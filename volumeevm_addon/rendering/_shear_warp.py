@@ -133,9 +133,23 @@ from ._checks import categorical, checked_view, flag, positive_integer
 from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode
 from ._shading import Shading, checked_shading, fade_magnitudes
-from ._shear_warp_kernels import (NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
-                                  box_runs, composite, flagged_runs, lit_colours, mask_runs,
-                                  mixed_codes, ray_points, warp)
+from ._shear_warp_kernels import (
+    NEVER,
+    Frame,
+    Light,
+    Optics,
+    Plan,
+    Runs,
+    Voxels,
+    box_runs,
+    composite,
+    flagged_runs,
+    lit_colours,
+    mask_runs,
+    mixed_codes,
+    ray_points,
+    warp,
+)
 
 __all__ = ["render_shear_warp", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
 

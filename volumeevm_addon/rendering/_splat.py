@@ -115,8 +115,7 @@ from ._gradients import region_gradients
 from ._modes import MODE_CODES, finish_mode
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
-from ._splat_kernels import (Crossings, Footprint, Image, Optics, Slab, Voxels,
-                             splat_rows)
+from ._splat_kernels import Crossings, Footprint, Image, Optics, Slab, Voxels, splat_rows
 
 __all__ = ["render_splat"]
 
@@ -345,8 +344,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
         (module docstring: one sample per slab makes the image depend on the sub-voxel phase
         of the rays). 1 (default) = Westover's one sample per sheet, box along ``A``; 3
         removes the phase pop and halves the error on smooth data, at 2.2× the frame time
-        (CT head, 512²), but is not the default yet (module docstring: thin shells). MIP always takes one: the density, linear along
-        ``A`` between the sheets, peaks on their planes.
+        (CT head, 512²), but is not the default yet (module docstring: thin shells). MIP always
+        takes one: the density, linear along ``A`` between the sheets, peaks on their planes.
     xray_scale, xray_offset : float
         X-ray attenuation per mm per data unit and the density of zero attenuation.
 

@@ -31,7 +31,6 @@ compiled kernel serves every render (what a render does not use is an empty arra
 :data:`Image`.
 """
 
-import math
 from collections import namedtuple
 
 import numpy as np

@@ -17,15 +17,8 @@ import time
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU,
-    CT_CROP,
-    api,
-    assert_surface_is,
-    core,
-    ext,
-    fresh,
-)
+
+from blender_helpers import CT_BONE_HU, CT_CROP, assert_surface_is
 from zarr_files import chunk_files, pyramid, write_store
 
 LEVELS = 3

@@ -8,7 +8,8 @@ Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import api, assert_surface_is, core, ext, fresh, mesh_arrays  # noqa: F401
+
+from blender_helpers import assert_surface_is, mesh_arrays
 
 
 @pytest.fixture
@@ -58,8 +59,8 @@ def test_one_mesh_with_a_material_and_a_label_per_face(api, core, segmentation):
     assert names == [f"Segmentation.seg {regions.infos[label].name}" for label in regions]
     co, indices, _, _ = mesh_arrays(mesh)
     first_vertices = len(regions[next(iter(regions))].mesh()[0])
-    np.testing.assert_array_equal(co[:first_vertices],
-                                  (regions[next(iter(regions))].mesh()[0] * 0.001).astype(np.float32))
+    np.testing.assert_array_equal(
+        co[:first_vertices], (regions[next(iter(regions))].mesh()[0] * 0.001).astype(np.float32))
 
 
 def test_a_volume_that_is_not_a_label_map_is_refused_and_nothing_changes(api, core, data_dir):
@@ -67,7 +68,8 @@ def test_a_volume_that_is_not_a_label_map_is_refused_and_nothing_changes(api, co
     before = {o.name for o in bpy.data.objects}, len(bpy.data.collections), len(bpy.data.materials)
     with pytest.raises(core.VolumeEVMError, match="CTChest4.nrrd: a label map holds labels >= 0"):
         api.make_label_meshes(vol)
-    assert ({o.name for o in bpy.data.objects}, len(bpy.data.collections), len(bpy.data.materials)) == before
+    assert ({o.name for o in bpy.data.objects}, len(bpy.data.collections),
+            len(bpy.data.materials)) == before
 
 
 def test_the_operator_makes_them_from_the_sidebar(api, segmentation):
@@ -218,7 +220,8 @@ def test_tools_cut_keep_and_add_on_every_label_live(ext, api, core, data_dir, se
     assert result[5].evm == added[5].evm and vol.volumeevm.tools[0].label == 5
     assert_objects_show(added)
     with pytest.raises(core.VolumeEVMError,
-                       match=r"label 99 is not one of the label objects' labels \[1, 2, 3, 4, 5, 6"):
+                       match=r"label 99 is not one of the label objects' labels "
+                             r"\[1, 2, 3, 4, 5, 6"):
         api.add_tool(vol, nut, "add", label=99)
     with pytest.raises(core.VolumeEVMError, match="not for label maps"):
         api.apply_stack(vol)

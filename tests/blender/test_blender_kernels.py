@@ -12,7 +12,6 @@ extension's user folder, no Numba imported by enabling it) is tested in ``test_b
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import ext, fresh  # noqa: F401 (fixtures)
 from test_blender_ui import _Context, _driver, _ticks
 
 FIRST_USE = "compiling VolumeEVM's Numba kernels (first use only)"

@@ -4,12 +4,11 @@ back with its importer, is closed and manifold (bmesh's own checks); the plain m
 Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 """
 
-import bpy
 import bmesh  # bpy's own module, importable once bpy is
+import bpy
 import numpy as np
-import pytest
-from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, assert_surface_is, core, ct_crop_npy, ext, fresh)
+
+from blender_helpers import CT_BONE_HU, assert_surface_is
 
 
 def round_trip(surface, path):

@@ -21,10 +21,11 @@ import re
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import addon, api, ext, fresh, mesh_arrays  # noqa: F401 (fixtures)
 from test_blender_render import add_camera, cycles, settings_for
 from test_blender_tools import box_object
 from test_blender_ui import _Context, _driver, _ticks
+
+from blender_helpers import addon, mesh_arrays
 
 SKULL = "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9

@@ -6,8 +6,8 @@ Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 
 import bpy
 import numpy as np
-from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, assert_surface_is, core, ct_crop_npy, ext, fresh, mesh_arrays)
+
+from blender_helpers import CT_BONE_HU, assert_surface_is, mesh_arrays
 
 
 def shaded_smooth(mesh):

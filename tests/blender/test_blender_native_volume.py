@@ -15,8 +15,6 @@ import bpy
 import numpy as np
 import pytest
 
-from blender_helpers import api, core, ct_crop_npy, ext, fresh  # noqa: F401 (fixtures)
-
 BONE_HU = 150.0  # ct_bone turns opaque from 150 HU: the region is what the preset shows
 
 

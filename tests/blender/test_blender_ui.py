@@ -12,7 +12,6 @@ import time
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import ext, fresh  # noqa: F401 (fixtures)
 
 SKULL = "ct_skull_cgal.npy"
 

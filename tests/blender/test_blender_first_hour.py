@@ -8,8 +8,9 @@ import sys
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import REPO, ct_crop_npy, ext, fresh  # noqa: F401 (fixtures)
 from test_blender_ui import texts
+
+from blender_helpers import REPO
 
 # A user's script: register the extension, import a volume, show the viewport DVR, and end
 # without unregister().

@@ -12,8 +12,8 @@ import bpy
 import numpy as np
 import pytest
 from mathutils import Matrix
-from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, api, assert_surface_is, core, ct_crop_npy, ext, fresh, mesh_arrays)
+
+from blender_helpers import CT_BONE_HU, assert_surface_is, mesh_arrays
 
 BACKGROUND = -5000  # below every CT value: marks voxels outside the region in to_dense
 

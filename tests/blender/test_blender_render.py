@@ -13,7 +13,7 @@ import OpenEXR
 import pytest
 from mathutils import Vector
 
-from blender_helpers import REPO, ext, fresh  # noqa: F401 (fixtures)
+from blender_helpers import REPO
 
 SKULL = REPO / "sample_blends" / "data" / "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9

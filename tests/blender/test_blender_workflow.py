@@ -12,8 +12,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 import pytest
-from blender_helpers import (  # noqa: F401 (fixtures)
-    CT_BONE_HU, CT_CROP, REPO, api, assert_surface_is, core, ct_crop_npy, ext, fresh)
+
+from blender_helpers import CT_BONE_HU, CT_CROP, REPO, assert_surface_is
 
 SKULL_THRESHOLD = 2.9  # CGAL meshes this skull at 2.9
 
@@ -290,7 +290,7 @@ def test_empty_region_reported_previous_build_kept(data_dir, api):
 def test_missing_source_after_reopen_is_reported(tmp_path, data_dir, api):
     source = tmp_path / "skull.npy"
     source.write_bytes((data_dir / "ct_skull_cgal.npy").read_bytes())
-    obj = api.import_volume(source)
+    api.import_volume(source)
     blend = tmp_path / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     os.remove(source)
