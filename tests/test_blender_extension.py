@@ -235,7 +235,8 @@ def test_extension_builds_validates_installs_and_runs(tmp_path, data_dir):
     for needed in ("blender_manifest.toml", "__init__.py", "blender/api.py", "ui/panels.py",
                    "volumeevm_addon/__init__.py", "volumeevm_addon/readers/__init__.py",
                    "volumeevm_addon/model/_evm.py", "volumeevm_addon/rendering/_render.py",
-                   "volumeevm_addon/phantoms.py", "volumeevm_addon/metrics.py"):
+                   "volumeevm_addon/phantoms.py", "volumeevm_addon/metrics.py",
+                   "volumeevm_addon/rendering/shaders/dvr.frag.glsl"):
         assert needed in names
     assert {n for n in names if n.startswith("wheels/")} == {f"wheels/{w.name}" for w in wheels}
     for left_out in ("tests/", "bench/", "sample_blends/", ".venv/", ".git/", "requirements/",

@@ -26,7 +26,8 @@ depth, EXR channels, and the NumPy half of the GPU method. One private module pe
 - ``_levels.py``: which resolution level a view needs (``LEVELS``, the auto rule); the levels
   themselves are the model's.
 - ``_gpu_inputs.py``: the NumPy half of the GPU method (which draws on the Blender side,
-  ``blender/gpu_dvr.py``): checks, pixel rays, depth conversions, textures, uniforms.
+  ``blender/gpu_dvr.py``): checks, pixel rays, depth conversions, textures, uniforms; its
+  shaders are GLSL files in ``shaders/`` (text the Blender side compiles).
 
 To add a method: write its ``render_<method>`` (and ``tables_to_build``) in a module of its own
 here, with the signature of the others and built on the shared pieces above, then name it in
@@ -46,6 +47,7 @@ from ._gpu_inputs import (
                           gpu_gradients,
                           gpu_occupancy,
                           gpu_region,
+                          gpu_shader_source,
                           gpu_transfer_table,
                           window_from_axial,
 )
@@ -55,6 +57,7 @@ from ._render import MAX_SAMPLES, render_options
 
 __all__ = ["BACKGROUND_DEPTH", "GPUFrame", "GPU_UNIFORMS_GLSL", "MAX_SAMPLES", "VISIBLE_ALPHA",
            "axial_from_window", "camera_from_viewport", "composite_over", "exr_channels",
-           "gpu_frame", "gpu_gradients", "gpu_occupancy", "gpu_region", "gpu_transfer_table",
+           "gpu_frame", "gpu_gradients", "gpu_occupancy", "gpu_region", "gpu_shader_source",
+           "gpu_transfer_table",
            "method_options", "openexr_module", "output_depth", "render_options",
            "window_from_axial"]

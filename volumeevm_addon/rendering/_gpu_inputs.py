@@ -47,6 +47,7 @@ OpenGL reads a texture); 2D images for the GPU run bottom row first.
 """
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -78,6 +79,7 @@ from ._render import check_samples
 from ._shading import Lighting, checked_shading
 
 __all__ = ["GPU_BLOCK", "GPU_TABLE_ROWS", "GPU_UNIFORMS_GLSL", "GPUFrame", "gpu_frame",
+           "gpu_shader_source",
            "gpu_region", "gpu_gradients", "gpu_occupancy", "gpu_transfer_table",
            "camera_from_viewport", "axial_from_window", "window_from_axial"]
 
@@ -709,3 +711,29 @@ def _mat4(m3):
     m = np.zeros((4, 4))
     m[:3, :3] = m3
     return m
+
+
+def gpu_shader_source(name):
+    """The GLSL text of one of the GPU method's shaders, kept as files in ``shaders/`` beside
+    this module (data for the Blender side, which compiles them; the core never does).
+
+    Parameters
+    ----------
+    name : str
+        The file's name: ``"dvr.vert.glsl"``, ``"dvr.frag.glsl"`` or ``"stretch.frag.glsl"``.
+
+    Returns
+    -------
+    str
+        The shader's source.
+
+    Raises
+    ------
+    VolumeEVMError
+        If ``name`` is not one of the shaders.
+    """
+    folder = Path(__file__).resolve().parent / "shaders"
+    names = sorted(path.name for path in folder.glob("*.glsl"))
+    if name not in names:
+        raise VolumeEVMError(f"name: no shader {name!r}; the shaders are {', '.join(names)}")
+    return (folder / name).read_text(encoding="utf-8")
