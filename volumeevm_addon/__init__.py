@@ -45,7 +45,9 @@ from .rendering._images import exr_channels, openexr_module, read_exr, write_exr
 from .rendering._levels import LEVELS
 from .rendering._modes import MODES
 from .rendering._quality import method_options
-from .rendering._render import MAX_SAMPLES, METHODS, render, render_options
+from .rendering._registry import methods
+from .rendering._method import MAX_SAMPLES, MemoryModel, Method
+from .rendering._render import METHODS, render, render_options
 from .rendering._shading import Shading
 from .rendering._transfer import PRESETS, TransferFunction
 
@@ -65,6 +67,8 @@ __all__ = [
     "LabelSet",
     "MAX_SAMPLES",
     "METHODS",
+    "MemoryModel",
+    "Method",
     "MeshCheck",
     "MODES",
     "PRESETS",
@@ -96,6 +100,7 @@ __all__ = [
     "index_to_physical",
     "kernel_threads",
     "method_options",
+    "methods",
     "openexr_module",
     "otsu_threshold",
     "output_depth",
