@@ -63,6 +63,9 @@ class MemoryModel:
         mask: ``1 + itemsize`` per grid voxel.
     shading_grid : int
         Per grid voxel with ``shading``: the gradient tables and their temporaries.
+    per_set : callable or None
+        ``per_set(vevm, options) -> int``: bytes of each set of tables beyond ``grid`` and
+        ``region`` (tables whose size follows something else, such as occupied blocks).
     per_view : callable or None
         ``per_view(vevm, options) -> int``: the method's own working set per view beyond
         the above (``options``: the renderer's keywords with its defaults filled in).
@@ -74,6 +77,7 @@ class MemoryModel:
     region: int = 0
     axis_table: bool = False
     shading_grid: int = 0
+    per_set: Callable | None = None
     per_view: Callable | None = None
 
     def bytes(self, vevm, pixels, sets, options):
@@ -97,10 +101,12 @@ class MemoryModel:
         """
         grid = int(np.prod(np.asarray(vevm.shape, dtype=np.int64) + 2))
         needed = pixels * (IMAGE_BYTES_PER_PIXEL + self.pixel) + self.fixed
-        per_set = grid * self.grid + int(vevm.voxel_count) * self.region
+        each_set = grid * self.grid + int(vevm.voxel_count) * self.region
         if self.axis_table:
-            per_set += grid * (1 + vevm.table(0).dtype.itemsize)
-        needed += sets * per_set
+            each_set += grid * (1 + vevm.table(0).dtype.itemsize)
+        if self.per_set is not None:
+            each_set += self.per_set(vevm, options)
+        needed += sets * each_set
         if options.get("shading") not in (None, False):
             needed += grid * self.shading_grid
         if self.per_view is not None:
