@@ -42,9 +42,8 @@ def frame_times(vevm, cam, tf, size, repeat):
     w, h = size
     cam = dataclasses.replace(cam, resolution_x=w, resolution_y=h, resolution_percentage=100)
     projection, view = cam.matrix_projection(), np.linalg.inv(cam.matrix_world)
-    options = method_options("raycast", 1.0, tuple(vevm.spacing), termination=0.99,
+    options = method_options(gpu_dvr.METHOD, 1.0, tuple(vevm.spacing), termination=0.99,
                              level="auto")
-    options = {k: v for k, v in options.items() if k in gpu_dvr.options() or k == "level"}
     offscreen = gpu.types.GPUOffScreen(w, h)
     pixel = gpu_dvr.float_buffer(np.zeros(4, np.float32))
     times, levels = {}, {}

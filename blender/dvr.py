@@ -39,9 +39,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..volumeevm_addon import METHODS as CORE_METHODS
 from ..volumeevm_addon import TransferFunction, VolumeEVMError, render
-from ..volumeevm_addon.rendering import composite_over, method_options, output_depth, render_options
+from ..volumeevm_addon.rendering import composite_over, method_options, methods, output_depth
 from ..volumeevm_addon.system import atomic_target
 from . import exr, gpu_dvr, images, jobs
 from .camera import camera_from_blender
@@ -54,8 +53,9 @@ from .transfer import ensure_ramp, transfer_function
 DEFAULT_IMAGE = "VolumeEVM Render"
 #: Custom property of the DVR image: the view it was rendered for (see :func:`view_signature`).
 VIEW_KEY = "volumeevm_view"
-#: The methods of Render VolumeEVM: the core's (CPU) and the GPU's (:mod:`.gpu_dvr`).
-METHODS = CORE_METHODS + (gpu_dvr.METHOD,)
+#: The methods of Render VolumeEVM: the core's records (``volumeevm_addon.rendering.methods()``),
+#: the CPU's and the GPU's (drawn by :mod:`.gpu_dvr`).
+METHODS = tuple(methods())
 
 
 @dataclass
@@ -167,7 +167,8 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     options = {"level": "auto", **(options or {})}  # the Render setting Resolution's default
     signature = view_signature(scene, camera_object)
     drawn, note = None, ""
-    if method == gpu_dvr.METHOD:  # drawn here: GPU work belongs to the main thread
+    record = methods()[method]
+    if record.gpu:  # drawn here: GPU work belongs to the main thread
         try:
             *drawn, level = gpu_dvr.render_gpu(vevm, camera, tf, mode=mode,
                                                depth_in=scene_pass.depth,
@@ -175,7 +176,9 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
             if level > 1:  # say which level the GPU drew
                 note = f"rendered from {gpu_dvr.level_text(level)}"
         except gpu_dvr.GPUUnavailable as error:
-            method, note = "raycast", f"{error}: rendered with ray casting on the CPU instead"
+            method = record.fallback
+            note = (f"{error}: rendered with {methods()[method].label.lower()} on the CPU "
+                    f"instead")
 
     def steps():
         yield 0.2, f"volume render ({method}, {mode})"
@@ -209,26 +212,16 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     return jobs.Job(f"Render {vol_obj.name}", steps(), commit)
 
 
-def options_of(method):
-    """The options ``method`` (one of :data:`METHODS`) takes, with their defaults: the core's
-    ``render_options``, or the GPU's (:func:`.gpu_dvr.options`)."""
-    return gpu_dvr.options() if method == gpu_dvr.METHOD else render_options(method)
-
-
 def settings_options(settings, vol, method):
     """The options of ``method`` that the Render settings (``Scene.volumeevm_render``) ask
-    for a volume object ``vol``: the core's ``method_options`` (the GPU's quality is the ray
-    caster's, less what the GPU does not have), X-ray's with ``mode="xray"``."""
-    gpu = method == gpu_dvr.METHOD
-    options = method_options("raycast" if gpu else method, settings.quality,
-                             tuple(vol.volumeevm.spacing), shading=settings.shading,
-                             termination=settings.termination, level=settings.resolution,
+    for a volume object ``vol``: the core's ``method_options`` (each setting only to the
+    methods that take it), X-ray's with ``mode="xray"``."""
+    options = method_options(method, settings.quality, tuple(vol.volumeevm.spacing),
+                             shading=settings.shading, termination=settings.termination,
+                             level=settings.resolution,
                              slices_per_voxel=settings.slices_per_voxel,
                              classification=settings.classification,
                              jitter=settings.jitter, preintegrate=settings.preintegrate)
-    if gpu:
-        allowed = options_of(method)
-        options = {k: v for k, v in options.items() if k in allowed or k == "level"}
     if settings.mode == "xray":
         options.update(xray_scale=settings.xray_scale, xray_offset=settings.xray_offset)
     return options
@@ -276,7 +269,7 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
         ``"gpu"`` (:func:`.gpu_dvr.render_gpu`; the CPU ray caster where no GPU context can
         be made, said in the result's ``note``).
     options : dict, optional
-        Method options (see the core's ``method_options``; :func:`options_of` for the GPU's);
+        Method options (the core's ``method_options`` and ``render_options``, the GPU's too);
         ``level`` is ``"auto"`` unless given, as the Render setting Resolution is by default.
     camera_object : bpy.types.Object, optional
         Default: ``scene.camera``.

@@ -45,7 +45,6 @@ works, so the render can fall back to the CPU ray caster). Without EGL that atte
 Blender instead of failing, so it is made first in a process of its own.
 """
 
-import inspect
 import subprocess
 import sys
 import weakref
@@ -66,11 +65,13 @@ from ..volumeevm_addon.rendering import (
     gpu_region,
     gpu_shader_source,
     gpu_transfer_table,
+    methods,
 )
 from . import display_lut
 
-#: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`).
-METHOD = "gpu"
+#: The method's name among Render VolumeEVM's methods (:data:`.dvr.METHODS`): the core's GPU
+#: record (its options, quality and CPU fallback).
+METHOD = next(name for name, record in methods().items() if record.gpu)
 
 
 class _Refused(VolumeEVMError):
@@ -512,15 +513,3 @@ def level_text(level):
     """Which resolution level a draw showed, for the sidebar and the render's note: "" for
     the full level, else e.g. "level 2 (2× coarser voxels)"."""
     return "" if level == 1 else f"level {level} ({level}\u00d7 coarser voxels)"
-
-
-def options():
-    """The options of :func:`render_gpu` with their defaults, as the core's ``render_options``
-    gives a CPU method's (``mode``, ``depth_in``, ``matrix_world`` and ``level`` aside)."""
-    return dict(_OPTIONS)
-
-
-_OPTIONS = tuple((p.name, p.default) for p in inspect.signature(render_gpu).parameters.values()
-                 if p.kind == p.KEYWORD_ONLY
-                 and p.name not in ("mode", "depth_in", "matrix_world", "level"))
-""":func:`options` as pairs, read from the signature once (the viewport asks on every draw)."""

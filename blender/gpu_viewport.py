@@ -145,7 +145,7 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
         A display table (:mod:`.display_lut`): draw for the viewport's display. None: the
         scene-linear colour.
     **options
-        The GPU method's options (:func:`.gpu_dvr.options`) and ``level``.
+        The GPU method's options (the core's ``render_options("gpu")``) and ``level``.
 
     Returns
     -------

@@ -6,10 +6,11 @@ render settings). Bulk data never goes into ID properties: the dense volume stay
 cache in Python (``blender/runtime.py``) and the VolumeEVM in a ``.vevm`` sidecar file beside
 the .blend (``blender/sidecar.py``).
 
-The enums' identifiers come from one place each: the Render methods of ``blender/dvr.py``
-(the core's ``METHODS`` and the GPU's), the core's ``MODES``, ``LEVELS`` and ``PRESETS``, the
-tool stack's ``TOOL_KINDS`` (only shear-warp's two classifications are listed here); the names
-and descriptions shown in the sidebar are written here.
+The enums' identifiers come from one place each: the core's method records
+(``volumeevm_addon.rendering.methods()``: identifier, name and description), the core's
+``MODES``, ``LEVELS`` and ``PRESETS``, the tool stack's ``TOOL_KINDS`` (only shear-warp's two
+classifications are listed here); the other names and descriptions shown in the sidebar are
+written here.
 """
 
 import json
@@ -28,12 +29,13 @@ from bpy.props import (
 )
 
 from ..blender import gpu_viewport, tool_stack
-from ..blender.dvr import DEFAULT_IMAGE, METHODS
+from ..blender.dvr import DEFAULT_IMAGE
 from ..blender.labels import select_label
 from ..blender.objects import render_volume
 from ..blender.transfer import load_preset
 from ..blender.volumes import HISTOGRAM_BINS
 from ..volumeevm_addon import LEVELS, MODES, PRESETS
+from ..volumeevm_addon.rendering import methods
 
 
 def enum_items(names, texts):
@@ -272,17 +274,9 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     )
 
 
-METHOD_ITEMS = enum_items(METHODS, {
-    "raycast": ("Ray Casting", "Trilinear ray casting with the EVM as space-leaping structure"),
-    "shear_warp": ("Shear-Warp", "Sheared slices, one intermediate image, one 2D warp (fast)"),
-    "splat": ("Splatting", "Voxel footprints, sheet by sheet along the principal axis"),
-    "raycast_navigate": ("Ray Casting (Navigation)", "Ray casting that finds every density "
-                         "through the EVM (the report's slow baseline)"),
-    "reference": ("Reference", "Dense float64 ray caster with a tiny step (accuracy oracle, "
-                  "slow)"),
-    "gpu": ("GPU", "Ray casting on the graphics card through Blender's gpu module (the "
-                   "CPU ray caster where no GPU context can be made)"),
-})
+#: Render methods: the core's records, in their order (Blender stores the setting's position).
+METHOD_ITEMS = tuple((record.name, record.label, record.description)
+                     for record in methods().values())
 MODE_ITEMS = enum_items(MODES, {
     "over": ("Over", "Emission-absorption, front to back with early ray termination"),
     "under": ("Under", "Emission-absorption, back to front"),

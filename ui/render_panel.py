@@ -5,9 +5,9 @@ import bpy
 
 from ..blender import gpu_viewport, jobs
 from ..blender.compositor import stale_dvr
-from ..blender.dvr import options_of
 from ..blender.objects import render_volume
 from ..blender.transfer import preset_note
+from ..volumeevm_addon.rendering import render_options
 from .panels import draw_histogram, wrap
 
 #: Histogram rows drawn beside the ramp.
@@ -52,7 +52,7 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
         col = layout.column(align=True)
         for name in ("method", "mode", "quality", "resolution", "termination"):
             col.prop(settings, name)
-        takes = options_of(settings.method)
+        takes = render_options(settings.method)
         for name in METHOD_SETTINGS:
             if name in takes:
                 col.prop(settings, name)

@@ -5,6 +5,7 @@ an F12 render that includes the DVR.
 Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13); Cycles CPU.
 """
 
+import inspect
 import math
 
 import bpy
@@ -524,6 +525,24 @@ def test_animation_renders_every_frame_and_f12_says_the_dvr_is_stale(ext, dvr, s
     assert "rendered for another frame, camera or resolution" in capfd.readouterr().err
     assert dvr.frame_path("/x/a.png", 7) == "/x/a_0007.png"
     assert dvr.frame_path("/x/a_###_b.exr", 12) == "/x/a_012_b.exr"
+
+
+def test_the_method_enum_is_the_registry(ext):
+    """The sidebar lists every registered method with its record's name and description, in
+    the registry's order (Blender stores the setting by position: the old methods keep
+    theirs), and the GPU method's options are the core record's."""
+    records = ext.volumeevm_addon.rendering.methods()
+    settings = bpy.context.scene.volumeevm_render
+    items = settings.bl_rna.properties["method"].enum_items
+    assert [(i.identifier, i.name, i.description) for i in items] == [
+        (r.name, r.label, r.description) for r in records.values()]
+    assert [i.identifier for i in items][:6] == ["raycast", "shear_warp", "splat",
+                                                 "raycast_navigate", "reference", "gpu"]
+    assert [i.value for i in items] == list(range(len(records)))
+    gpu_dvr = ext.blender.gpu_dvr
+    signature = inspect.signature(gpu_dvr.render_gpu).parameters.values()
+    assert {p.name: p.default for p in signature if p.kind == p.KEYWORD_ONLY and p.name not in
+            ("mode", "depth_in", "matrix_world", "level")} == dict(records[gpu_dvr.METHOD].options)
 
 
 def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):

@@ -3,10 +3,14 @@
 The names users need (:func:`~volumeevm_addon.render`, ``Camera``, ``TransferFunction``,
 ``METHODS``, ...) are imported from ``volumeevm_addon``; this package exports what the Blender
 side needs beyond them: the quality setting as options, compositing over a scene render and its
-depth, EXR channels, and the NumPy half of the GPU method. One private module per method;
-``_render.py`` is the entry point that checks the inputs and dispatches to them:
+depth, EXR channels, the NumPy half of the GPU method, and the methods' records
+(:func:`methods`). One private module per method; ``_render.py`` is the entry point that checks
+the inputs and dispatches to them through their records:
 
 - ``_render.py``: :func:`~volumeevm_addon.render`, whatever the method (checks, memory, levels).
+- ``_method.py``: the :class:`Method` record, its :class:`MemoryModel` and the pieces records
+  share (the sample bound, the ray casters' quality mapping); ``_registry.py``: the records,
+  one line each (:func:`~volumeevm_addon.rendering.methods`).
 - ``_shear_warp.py``: shear-warp (Lacroute & Levoy), parallel and perspective.
 - ``_splat.py``: sheet-buffer splatting (Westover), post-classified.
 - ``_raycast.py``: ray casting with the EVM as space-leaping structure, and its navigation mode
@@ -29,10 +33,17 @@ depth, EXR channels, and the NumPy half of the GPU method. One private module pe
   ``blender/gpu_dvr.py``): checks, pixel rays, depth conversions, textures, uniforms; its
   shaders are GLSL files in ``shaders/`` (text the Blender side compiles).
 
-To add a method: write its ``render_<method>`` (and ``tables_to_build``) in a module of its own
-here, with the signature of the others and built on the shared pieces above, then name it in
-``_render.py``: ``METHODS``, ``_renderers()``, ``_tables_to_build()`` and the memory model
-(``_GRID_BYTES`` and the tables beside it, measured with ``bench/bench_memory.py``).
+To add a method: write a module of its own here with its renderer, with the signature every
+record's ``render`` has (``render(vevm, camera, tf, grid_to_world, *, mode, depth_in,
+**options)``, options keyword-only with their defaults) and built on the shared pieces above,
+and end it with its ``Method`` record: name and the sidebar's label and description, the
+renderer and its options (``keyword_options(renderer)``), its memory model (a
+``MemoryModel``, measured with ``bench/bench_memory.py``), ``tables_to_build`` (what it
+would add to ``vevm.cache``), its sample bound, its quality mapping and whether it renders
+label maps. Then add the record to ``_RECORDS`` in ``_registry.py``, last (Blender stores the
+sidebar's setting by position). :func:`~volumeevm_addon.render`, the quality setting, the
+memory and sample checks, the Blender render job and the sidebar read it from there; what it
+must satisfy is tested for every record by ``tests/test_method_contract.py``.
 """
 
 from ._camera import BACKGROUND_DEPTH
@@ -52,10 +63,13 @@ from ._gpu_inputs import (
                           window_from_axial,
 )
 from ._images import exr_channels, openexr_module
+from ._method import MAX_SAMPLES, MemoryModel, Method
 from ._quality import method_options
-from ._render import MAX_SAMPLES, render_options
+from ._registry import methods
+from ._render import render_options
 
-__all__ = ["BACKGROUND_DEPTH", "GPUFrame", "GPU_UNIFORMS_GLSL", "MAX_SAMPLES", "VISIBLE_ALPHA",
+__all__ = ["BACKGROUND_DEPTH", "GPUFrame", "GPU_UNIFORMS_GLSL", "MAX_SAMPLES", "MemoryModel",
+           "Method", "VISIBLE_ALPHA", "methods",
            "axial_from_window", "camera_from_viewport", "composite_over", "exr_channels",
            "gpu_frame", "gpu_gradients", "gpu_occupancy", "gpu_region", "gpu_shader_source",
            "gpu_transfer_table",

@@ -137,30 +137,23 @@ def check_transfer_function(tf, mode):
         raise VolumeEVMError(f"tf: expected a TransferFunction, got {type(tf).__name__}")
 
 
-CATEGORICAL_METHODS = ("raycast", "raycast_navigate", "shear_warp", "reference", "gpu")
-"""Methods that sample the nearest voxel for a categorical transfer function (label maps)."""
-
-
 def categorical(tf, mode):
     """True when ``tf`` is a categorical transfer function that ``mode`` uses: samples take
     the nearest voxel's label (``TransferFunction.categorical``)."""
     return mode != "xray" and bool(getattr(tf, "is_categorical", False))
 
 
-def checked_categorical_level(tf, method, mode, level, options):
+def checked_categorical_level(tf, mode, level, options):
     """The resolution level to render with ``tf``: ``level`` as given, except that a
     categorical function renders the full level for ``"auto"``.
 
     A categorical function (label map) is drawn with the nearest voxel's label: interpolating
     labels, a coarser level (its densities are block means) or gradients of label numbers
-    would invent labels, so it is refused with those, and with the methods that interpolate
-    by construction (splatting's kernels).
+    would invent labels, so it is refused with those (the methods that interpolate by
+    construction, splatting's kernels, are refused by their record: ``Method.categorical``).
     """
     if not categorical(tf, mode):
         return level
-    if method not in CATEGORICAL_METHODS:
-        raise VolumeEVMError(f"method: {method!r} interpolates densities; a categorical transfer "
-                             f"function (labels) renders with one of {CATEGORICAL_METHODS}")
     if mode not in ("over", "under"):
         raise VolumeEVMError(f"mode: a categorical transfer function (labels) renders with "
                              f"'over' or 'under', got {mode!r}")

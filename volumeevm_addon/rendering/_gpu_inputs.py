@@ -75,13 +75,20 @@ from ._checks import (
 )
 from ._gradients import region_gradients
 from ._levels import level_factor
-from ._render import check_samples
+from ._method import (
+    Method,
+    check_method_samples,
+    keyword_options,
+    one_set,
+    step_quality,
+    step_samples,
+)
 from ._shading import Lighting, checked_shading
 
 __all__ = ["GPU_BLOCK", "GPU_TABLE_ROWS", "GPU_UNIFORMS_GLSL", "GPUFrame", "gpu_frame",
            "gpu_shader_source",
            "gpu_region", "gpu_gradients", "gpu_occupancy", "gpu_transfer_table",
-           "camera_from_viewport", "axial_from_window", "window_from_axial"]
+           "camera_from_viewport", "axial_from_window", "window_from_axial", "GPU_METHOD"]
 
 GPU_BLOCK = 8
 """Edge in voxels of the occupancy blocks (empty-space skipping)."""
@@ -625,7 +632,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
         that would take more than ``MAX_SAMPLES`` samples.
     """
     check_camera(camera)
-    level = checked_categorical_level(tf, "gpu", mode, level, {"shading": shading})
+    level = checked_categorical_level(tf, mode, level, {"shading": shading})
     shading = checked_shading(shading)
     check_volumeevm(vevm)
     if step_mm is not None:
@@ -642,7 +649,7 @@ def gpu_frame(vevm, camera, tf, *, mode="over", depth_in=None, matrix_world=None
                                             termination, xray_scale, xray_offset)
     spacing = np.asarray(vevm.spacing, dtype=np.float64)
     step = checked_step_mm(step_mm, spacing, RAY_STEPS_PER_VOXEL)
-    check_samples("raycast", vevm, camera, g, {"step_mm": step})
+    check_method_samples(GPU_METHOD, vevm, camera, g, {"step_mm": step})
     skip_empty = flag("skip_empty", skip_empty)
     display = flag("display", display)
     rays, axial_origin = _pixel_rays(camera, g, vevm.shape)
@@ -737,3 +744,15 @@ def gpu_shader_source(name):
     if name not in names:
         raise VolumeEVMError(f"name: no shader {name!r}; the shaders are {', '.join(names)}")
     return (folder / name).read_text(encoding="utf-8")
+
+
+GPU_METHOD = Method(
+    name="gpu", label="GPU",
+    description="Ray casting on the graphics card through Blender's gpu module (the CPU ray "
+                "caster where no GPU context can be made)",
+    render=None,  # drawn on the Blender side (blender/gpu_dvr.py) from gpu_frame's arrays
+    options=keyword_options(gpu_frame, besides=("matrix_world", "level", "display")),
+    memory=None,  # each array is checked as it is made (gpu_region, gpu_gradients)
+    tables_to_build=one_set, check_samples=step_samples(RAY_STEPS_PER_VOXEL),
+    quality=step_quality(RAY_STEPS_PER_VOXEL), gpu=True, fallback="raycast", categorical=True)
+"""The GPU ray marcher: its options are :func:`gpu_frame`'s, its quality the ray caster's."""

@@ -10,7 +10,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from ._levels import LEVELS
-from ._render import METHODS
+from ._registry import method_record
 
 __all__ = ["method_options"]
 
@@ -19,18 +19,21 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
                    slices_per_voxel=1, classification="pre", jitter=False, preintegrate=False):
     """The options of :func:`~volumeevm_addon.render` for one method at one quality setting.
 
-    ``quality`` scales the sampling density (1 = each method's default sampling): shear-warp's
-    intermediate pixels per voxel (``intermediate_scale``), the ray casters' samples per voxel
-    (``step_mm`` = half the smallest voxel size / quality), the reference's (smallest voxel
-    size / 16 / quality); for splatting, ``quality`` rounded is its number of sub-slabs per
-    sheet (``substeps``). The method's own settings go only to the method that has them:
-    ``slices_per_voxel`` and ``classification`` to shear-warp, ``jitter`` and ``preintegrate``
-    to the ray casters.
+    ``quality`` scales the sampling density (1 = each method's default sampling), as the
+    method's record says (``Method.quality``): shear-warp's intermediate pixels per voxel
+    (``intermediate_scale``), the ray casters' samples per voxel (``step_mm`` = half the
+    smallest voxel size / quality; the GPU's too), the reference's (smallest voxel size / 16 /
+    quality); for splatting, ``quality`` rounded is its number of sub-slabs per sheet
+    (``substeps``). Every setting goes only to the methods that take it (their
+    :func:`~volumeevm_addon.rendering.render_options`): ``slices_per_voxel`` and
+    ``classification`` to shear-warp, ``jitter`` and ``preintegrate`` to the ray casters,
+    ``termination`` to all but the reference.
 
     Parameters
     ----------
     method : str
-        One of :data:`~volumeevm_addon.METHODS`.
+        One of :data:`~volumeevm_addon.METHODS`, or the GPU's
+        (:func:`~volumeevm_addon.rendering.methods`).
     quality : float
         Sampling density relative to the method's default; > 0.
     spacing : sequence of 3 float
@@ -69,8 +72,7 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
     >>> method_options("splat", 3.0, (1.0, 1.0, 1.0))["substeps"]
     3
     """
-    if method not in METHODS:
-        raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
+    record = method_record(method)
     quality = float(quality)
     if not np.isfinite(quality) or quality <= 0:
         raise VolumeEVMError(f"quality: must be > 0, got {quality!r}")
@@ -79,19 +81,14 @@ def method_options(method, quality, spacing, *, shading=False, termination=0.99,
     sizes = np.asarray(spacing, np.float64)
     if sizes.shape != (3,) or not (np.isfinite(sizes).all() and (sizes > 0).all()):
         raise VolumeEVMError(f"spacing: three positive voxel sizes in mm, got {spacing!r}")
-    smallest = float(sizes.min())
+    takes = dict(record.options)
     options = {"termination": float(termination), "level": level}
     if shading:
         options["shading"] = True
-    if method == "shear_warp":
-        options.update(intermediate_scale=quality, slices_per_voxel=int(slices_per_voxel),
-                       classification=classification)
-    elif method == "splat":
-        options["substeps"] = max(1, int(round(quality)))
-    elif method in ("raycast", "raycast_navigate"):
-        options.update(step_mm=0.5 * smallest / quality, jitter=bool(jitter),
-                       preintegrate=bool(preintegrate))
-    else:  # the reference
-        options = {k: v for k, v in options.items() if k != "termination"}
-        options["step_mm"] = smallest / 16.0 / quality
-    return options
+    options.update(record.quality(quality, float(sizes.min())))
+    for name, value, kind in (("slices_per_voxel", slices_per_voxel, int),
+                              ("classification", classification, str),
+                              ("jitter", jitter, bool), ("preintegrate", preintegrate, bool)):
+        if name in takes:
+            options[name] = value if kind is str else kind(value)
+    return {name: value for name, value in options.items() if name == "level" or name in takes}

@@ -86,12 +86,13 @@ from ._checks import (
     positive_integer,
 )
 from ._gradients import region_gradients
+from ._method import MemoryModel, Method, keyword_options, one_set, step_quality, step_samples
 from ._modes import Compositing, finish_mode
 from ._rays import camera_rays
 from ._shading import Lighting, checked_shading
 from ._transfer import TransferFunction  # noqa: F401  (doctest)
 
-__all__ = ["render_reference", "BOUNDARIES"]
+__all__ = ["render_reference", "render_reference_vevm", "BOUNDARIES", "REFERENCE_METHOD"]
 
 BOUNDARIES = ("clamp", "shell")
 
@@ -491,3 +492,41 @@ def _march(sampler, compositing, tf, lighting, step, rays, mm_per_t):
     found = np.isfinite(tdepth)
     depth[found] = rays.a0[found] + rays.kz[found] * tdepth[found]
     return acc, depth
+
+
+# ---------------------------------------------------------------------------- the record
+def render_reference_vevm(vevm, camera, tf, grid_to_world, **options):
+    """:func:`render_reference` of a VolumeEVM, with the signature of every method's renderer.
+
+    Parameters
+    ----------
+    vevm : VolumeEVM
+        Rendered as its dense densities (:meth:`VolumeEVM.to_dense`) and region mask.
+    camera : Camera
+    tf : TransferFunction
+    grid_to_world : (4, 4) ndarray
+        Voxel-centre index space to Blender world.
+    **options
+        ``mode``, ``depth_in`` and the options of :func:`render_reference`.
+
+    Returns
+    -------
+    rgba : (H, W, 4) ndarray of np.float32
+    depth : (H, W) ndarray of np.float32
+        As :func:`render_reference`.
+    """
+    return render_reference(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), grid_to_world,
+                            vevm.spacing, camera, tf, **options)
+
+
+REFERENCE_METHOD = Method(
+    name="reference", label="Reference",
+    description="Dense float64 ray caster with a tiny step (accuracy oracle, slow)",
+    render=render_reference_vevm, options=keyword_options(render_reference),
+    # Per grid voxel: dense float64 densities, masks, the padded (P, 2) float64 sampling table
+    # and the float64 min/max block-range grids of the sampler; fixed: its chunks (bounded by
+    # samples and breakpoints per chunk). It caches nothing: one set of tables per render.
+    memory=MemoryModel(pixel=360, fixed=40 << 20, grid=64, shading_grid=32),
+    tables_to_build=one_set, check_samples=step_samples(REFERENCE_STEPS_PER_VOXEL),
+    quality=step_quality(REFERENCE_STEPS_PER_VOXEL), categorical=True, full_level=True)
+"""The dense float64 reference ray caster, the accuracy oracle of every method."""

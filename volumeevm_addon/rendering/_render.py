@@ -21,9 +21,6 @@ the memory the render needs (:func:`render_memory`) against what is available
 (:func:`volumeevm_addon.system.check_memory`).
 """
 
-import functools
-import inspect
-import math
 import numbers
 
 import numpy as np
@@ -33,80 +30,21 @@ from .._memory import check_memory
 from ..model._volume import grid_to_world
 from ._camera import Camera
 from ._checks import (
-    RAY_STEPS_PER_VOXEL,
-    REFERENCE_STEPS_PER_VOXEL,
+    categorical,
     check_mode,
     check_volumeevm,
     checked_affine,
     checked_categorical_level,
-    checked_step_mm,
     positive_number,
 )
 from ._depth import checked_depth_in
 from ._levels import level_factor
+from ._method import IMAGE_BYTES_PER_PIXEL, check_method_samples
+from ._registry import CPU_METHODS, REGISTRY, method_record
 
-METHODS = ("shear_warp", "splat", "raycast", "raycast_navigate", "reference")
-
-MAX_SAMPLES = 20_000_000_000
-"""Most samples a render may take: covered pixels x samples per ray through the volume's box.
-
-Ray casting every sample (``skip_empty=False``) marches 3e7 samples per second on one core
-(CT head, 128² image, the compiled caster; the navigation variant and the reference are 7 to
-100 times slower), so 2e10 samples are ten minutes at best and hours for the slower methods: a
-step that asks for more is never what a user means (a step in the wrong unit, a typo). A 4K
-frame (3840 x 2160) of a 512³ volume at the ray casters' default step (half a voxel) is about
-1.5e10 samples, still allowed.
-"""
-
-# Memory model of each method, bytes, fitted to tracemalloc peaks (bench/bench_memory.py:
-# CT head 256x256x108 and the same upsampled to 512³, MRI 128x128x84; 64² to 512² images) and
-# rounded up. Per grid voxel: the tables a method builds on first use and keeps in the
-# VolumeEVM's cache (``vevm.cache``), with their construction temporaries, counted once per set
-# of tables the render would build (the renderers' ``tables_to_build``, which look in that
-# cache: none when they are kept already). Per pixel: the ray set-up and per-ray state beside
-# the image buffers.
-_IMAGE_BYTES_PER_PIXEL = 20
-"""The float32 RGBA image and depth every method returns."""
-_GRID_BYTES = {
-    # padded complex64 sampling table written in place, and the region mask (the space-leaping
-    # blocks, made first, need less: a float32 grid and the mask, filtered a plane at a time)
-    "raycast": 10,
-    # no dense table; the block grid is made through a temporary float32 grid and the mask
-    "raycast_navigate": 7,
-    # the region's runs come from the EVM's boxes beside the axis's densities table
-    # (_TABLE_METHODS); post-classification's mixed codes take an int32 grid per axis; with
-    # skip_empty=False the dense layout made for each render: the transposed dense grid, its
-    # mask and its codes
-    "shear_warp": 9,
-    # per-axis sheets come from the region's voxels (_REGION_BYTES), beside the axis's
-    # densities table (_TABLE_METHODS)
-    "splat": 0,
-    # dense float64 densities, masks, the padded (P, 2) float64 sampling table and the
-    # float64 min/max block-range grids of the sampler
-    "reference": 64,
-}
-_TABLE_METHODS = ("shear_warp", "splat")
-"""Methods that read the densities table of the principal axis (:meth:`VolumeEVM.table`),
-made through a transient grid of the table's type and the mask: ``1 + itemsize`` per voxel."""
-_SHADING_GRID_BYTES = {"raycast": 14, "shear_warp": 32, "reference": 32}
-"""Per grid voxel, with ``shading``: the gradient tables and their temporaries (counted even
-when cached: shear-warp lights every voxel per view)."""
-_REGION_BYTES = {"splat": 56}
-"""Per region voxel: splatting's sections (cells per slab) and culled voxel lists, per axis."""
-_PIXEL_BYTES = {"raycast": 32, "raycast_navigate": 32, "shear_warp": 24, "splat": 340,
-                "reference": 360}
-_BLOCK_VIEW_BYTES = 48
-"""Ray casting with space leaping, per block of the (padded) block grid: which blocks the
-transfer function leaves visible (the density ranges widened, compared and combined) and their
-leap levels, made when the transfer function or mode differs from the last view's (counted for
-every view). Measured: 80 MiB for the 2.2 million blocks of a 512³ grid."""
-_INTERMEDIATE_BYTES = 40
-"""Shear-warp, per intermediate pixel: the RGBA image, its rank and depth maps, slice buffers."""
-_FIXED_BYTES = {"reference": 40 << 20, "shear_warp": 1 << 20, "splat": 1 << 20,
-                "raycast": 1 << 20, "raycast_navigate": 1 << 20}
-"""Fixed working set: the reference's chunks (bounded by samples and breakpoints per chunk);
-the transfer function's lookup tables and the renderers' small tables, which dominate
-renders of a few thousand pixels (shear-warp: 0.45 MiB for a 2x2 image)."""
+METHODS = CPU_METHODS
+"""The methods :func:`render` runs, by name (:func:`~volumeevm_addon.rendering.methods` has
+their records, the GPU's too)."""
 
 
 def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None, matrix_world=None,
@@ -275,40 +213,39 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
     >>> bool(abs(rgba2 - rgba).max() < 1e-6)
     True
     """
-    if method not in METHODS:
-        raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
+    record = _cpu_method(method)
     check_mode(mode)
     if not isinstance(camera, Camera):
         raise VolumeEVMError(f"camera: expected a Camera, got {type(camera).__name__}")
     check_volumeevm(vevm)
-    renderer = _renderers()[method]
-    _check_option_types(method, options)
-    level = checked_categorical_level(tf, method, mode, level, options)
+    _check_option_types(record, options)
+    if categorical(tf, mode) and not record.categorical:
+        names = tuple(name for name, other in REGISTRY.items() if other.categorical)
+        raise VolumeEVMError(f"method: {method!r} interpolates densities; a categorical transfer "
+                             f"function (labels) renders with one of {names}")
+    level = checked_categorical_level(tf, mode, level, options)
     depth_in = checked_depth_in(depth_in, camera.shape)
     h, w = camera.shape
-    check_memory(h * w * _IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",
+    check_memory(h * w * IMAGE_BYTES_PER_PIXEL, f"a {w}x{h} image", source="camera",
                  advice="lower the resolution or resolution_percentage")
     if matrix_world is not None:
         matrix_world = checked_affine("matrix_world", matrix_world)
     to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
     factor = level_factor(level, vevm.shape, to_world, camera)
-    if factor > 1 and method != "reference":
+    if factor > 1 and not record.full_level:
         vevm = vevm.level(factor)
         to_world = grid_to_world(vevm.spacing, vevm.origin, vevm.orientation, matrix_world)
         if options.get("step_mm") is not None:
             options["step_mm"] = options["step_mm"] * factor
     check_samples(method, vevm, camera, to_world, options)
-    advice = ("the reference renders the full grid at full resolution: use another method "
-              "or a smaller image" if method == "reference" else
+    advice = (f"the {method} renders the full grid at full resolution: use another method "
+              f"or a smaller image" if record.full_level else
               "render a coarser level (level='auto' or an integer >= 2), a smaller image or "
               "another method")
     check_memory(render_memory(method, vevm, camera, tf, to_world, {"mode": mode, **options}),
                  f"rendering {'x'.join(map(str, vevm.shape))} voxels at {w}x{h} pixels "
                  f"({method})", source="render", advice=advice)
-    if method == "reference":
-        return renderer(vevm.to_dense(), vevm.evm.to_mask(vevm.shape), to_world, vevm.spacing,
-                        camera, tf, mode=mode, depth_in=depth_in, **options)
-    return renderer(vevm, camera, tf, to_world, mode=mode, depth_in=depth_in, **options)
+    return record.render(vevm, camera, tf, to_world, mode=mode, depth_in=depth_in, **options)
 
 
 def check_samples(method, vevm, camera, grid_to_world, options):
@@ -317,8 +254,8 @@ def check_samples(method, vevm, camera, grid_to_world, options):
     The count is the pixels the volume's box covers times the samples a ray takes through the
     box's diagonal: ``diagonal_mm / step_mm`` for the ray casters and the reference (default
     steps: half, resp. a sixteenth of the smallest voxel), the sheets (the largest side)
-    times ``substeps`` for splatting. Shear-warp is bounded by its own ranges
-    (``slices_per_voxel <= 8``, ``intermediate_scale <= 8``).
+    times ``substeps`` for splatting (the record's ``check_samples``). Shear-warp is bounded
+    by its own ranges (``slices_per_voxel <= 8``, ``intermediate_scale <= 8``).
 
     Parameters
     ----------
@@ -330,32 +267,8 @@ def check_samples(method, vevm, camera, grid_to_world, options):
     VolumeEVMError
         Naming ``step_mm`` or ``substeps``, with the smallest step (largest substeps) allowed.
     """
-    if method == "shear_warp":
-        return
-    spacing = np.asarray(vevm.spacing, dtype=np.float64)
-    pixels = _covered_pixels(vevm.shape, grid_to_world, camera)
-    if method == "splat":
-        substeps = options.get("substeps", 1)
-        per_ray = max(vevm.shape) * substeps
-        if pixels * per_ray > MAX_SAMPLES:
-            most = max(1, MAX_SAMPLES // (pixels * max(vevm.shape)))
-            raise VolumeEVMError(
-                f"substeps: {substeps} sub-slabs per sheet would take about "
-                f"{pixels * per_ray:.2g} samples ({pixels} pixels x {per_ray} per ray), more "
-                f"than the {MAX_SAMPLES:.0e} a render may take (hours); use substeps <= {most} "
-                f"or a smaller image")
-        return
-    step = checked_step_mm(options.get("step_mm"), spacing, REFERENCE_STEPS_PER_VOXEL
-                           if method == "reference" else RAY_STEPS_PER_VOXEL)
-    diagonal = float(np.linalg.norm(np.asarray(vevm.shape) * spacing))
-    samples = pixels * diagonal / step
-    if samples > MAX_SAMPLES:
-        smallest = pixels * diagonal / MAX_SAMPLES
-        raise VolumeEVMError(
-            f"step_mm: a step of {step:.3g} mm would take about {samples:.2g} samples "
-            f"({pixels} pixels x {diagonal / step:.3g} samples per ray through the volume's "
-            f"box), more than the {MAX_SAMPLES:.0e} a render may take (hours); use "
-            f"step_mm >= {smallest:.3g} or a smaller image")
+    record = method_record(method)
+    check_method_samples(record, vevm, camera, grid_to_world, _with_defaults(record, options))
 
 
 def render_memory(method, vevm, camera, tf, grid_to_world, options):
@@ -365,9 +278,8 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
     casters' default chunk holds a 512² image), the tables the method builds from the grid
     (once per set the render would build: tables an earlier render left in ``vevm.cache``
     cost nothing, :func:`_tables_to_build`) and per-method working sets (shear-warp's
-    intermediate image, the reference's chunks, lookup tables). The constants are
-    tracemalloc peaks per voxel and per pixel measured on real volumes and rounded up
-    (``bench/bench_memory.py`` prints each estimate beside the measured peak, cold and warm).
+    intermediate image, the reference's chunks, lookup tables): the method record's
+    :class:`._method.MemoryModel`.
 
     Parameters
     ----------
@@ -390,29 +302,10 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
     int
         Bytes.
     """
+    record = _cpu_method(method)
+    sets = _tables_to_build(method, vevm, camera, tf, grid_to_world, options)
     h, w = camera.shape
-    pixels = h * w
-    grid = int(np.prod(np.asarray(vevm.shape, dtype=np.int64) + 2))
-    needed = pixels * (_IMAGE_BYTES_PER_PIXEL + _PIXEL_BYTES[method])
-    needed += _FIXED_BYTES[method]
-    per_set = grid * _GRID_BYTES[method] + int(vevm.voxel_count) * _REGION_BYTES.get(method, 0)
-    if method in _TABLE_METHODS:
-        per_set += grid * (1 + vevm.table(0).dtype.itemsize)
-    needed += _tables_to_build(method, vevm, camera, tf, grid_to_world, options) * per_set
-    if options.get("shading") not in (None, False):
-        needed += grid * _SHADING_GRID_BYTES.get(method, 0)
-    if method in ("raycast", "raycast_navigate") and options.get("skip_empty", True):
-        # (a block of 0 is the renderer's to refuse; counted as 1 here)
-        block = max(1, int(options.get("block", render_options(method)["block"])))
-        needed += math.prod(-(-int(n) // block) + 2 for n in vevm.shape) * _BLOCK_VIEW_BYTES
-    if method == "shear_warp":
-        # One intermediate pixel per voxel (times the scale) along the two in-slice axes, the
-        # slices sheared across up to one voxel per slice: at most (n1 + n2)² for the two
-        # largest sides.
-        scale = float(options.get("intermediate_scale", 1.0))
-        n1, n2 = sorted(vevm.shape)[-2:]
-        needed += int((scale * (n1 + n2)) ** 2) * _INTERMEDIATE_BYTES
-    return int(needed)
+    return record.memory.bytes(vevm, h * w, sets, _with_defaults(record, options))
 
 
 def render_options(method):
@@ -423,12 +316,14 @@ def render_options(method):
     renderer's own (each method's fastest settings). :func:`render` checks the options it is
     given against this: an unknown name raises ``TypeError``, a value whose type does not
     match the default's raises :class:`VolumeEVMError`. What each option means is under
-    "Other Parameters" in :func:`render`'s docstring, which a test keeps equal to this.
+    "Other Parameters" in :func:`render`'s docstring, which a test keeps equal to this. The
+    GPU method's (drawn on the Blender side) are those of :func:`gpu_frame`.
 
     Parameters
     ----------
     method : str
-        One of :data:`METHODS`.
+        One of :data:`METHODS`, or another method of
+        :func:`~volumeevm_addon.rendering.methods` (the GPU's).
 
     Returns
     -------
@@ -438,7 +333,7 @@ def render_options(method):
     Raises
     ------
     VolumeEVMError
-        When ``method`` is not one of :data:`METHODS`.
+        When ``method`` is not the name of a method.
 
     Examples
     --------
@@ -448,57 +343,39 @@ def render_options(method):
     >>> sorted(render_options("raycast"))[:4]
     ['block', 'chunk_rays', 'jitter', 'preintegrate']
     """
-    if method not in METHODS:
-        raise VolumeEVMError(f"method: one of {METHODS}, got {method!r}")
-    return dict(_options_of(method))
+    return dict(method_record(method).options)
 
 
-@functools.cache
-def _options_of(method):
-    """``render_options(method)`` as pairs, read from the renderer's signature once (it is
-    asked on every render; reading a signature costs a third of a millisecond)."""
-    parameters = inspect.signature(_renderers()[method]).parameters.values()
-    return tuple((p.name, p.default) for p in parameters
-                 if p.kind == p.KEYWORD_ONLY and p.name not in ("mode", "depth_in"))
+def _cpu_method(name):
+    """The record of a method :func:`render` runs, or :class:`VolumeEVMError`."""
+    if name in REGISTRY and name not in METHODS:
+        raise VolumeEVMError(f"method: {name!r} is drawn by Blender (Render VolumeEVM); the "
+                             f"core renders one of {METHODS}")
+    if name not in METHODS:
+        raise VolumeEVMError(f"method: one of {METHODS}, got {name!r}")
+    return REGISTRY[name]
+
+
+def _with_defaults(record, options):
+    """``options`` with the method's defaults filled in."""
+    return {**dict(record.options), **options}
 
 
 def _tables_to_build(method, vevm, camera, tf, grid_to_world, options):
-    """Sets of grid tables the render would build (the renderer's ``tables_to_build``: one
-    per principal axis for shear-warp and splatting, one for the ray casters; 0 when all are
+    """Sets of grid tables the render would build (the record's ``tables_to_build``: one per
+    principal axis for shear-warp and splatting, one for the ray casters; 0 when all are
     cached). The reference caches nothing: always 1."""
-    from . import _raycast, _shear_warp, _splat
-
-    if method == "reference":
-        return 1
-    if method in ("raycast", "raycast_navigate"):
-        return _raycast.tables_to_build(vevm, options, navigate=method == "raycast_navigate")
-    module = _shear_warp if method == "shear_warp" else _splat
-    return module.tables_to_build(vevm, camera, tf, grid_to_world, options)
+    return method_record(method).tables_to_build(vevm, camera, tf, grid_to_world, options)
 
 
-def _covered_pixels(shape, grid_to_world, camera):
-    """Pixels in the bounding rectangle of the volume box's projection (all pixels when a
-    corner is at or behind a perspective camera)."""
-    n = np.asarray(shape, dtype=np.float64)
-    corners = np.array([[a, b, c] for a in (-0.5, n[0] - 0.5) for b in (-0.5, n[1] - 0.5)
-                        for c in (-0.5, n[2] - 0.5)])
-    g = np.asarray(grid_to_world, dtype=np.float64)
-    uv, _ = camera.project(corners @ g[:3, :3].T + g[:3, 3])
-    h, w = camera.shape
-    if not np.isfinite(uv).all():
-        return h * w
-    u0, v0 = np.clip(np.floor(uv.min(axis=0)), 0, (w, h))
-    u1, v1 = np.clip(np.ceil(uv.max(axis=0)), 0, (w, h))
-    return int((u1 - u0) * (v1 - v0))
-
-
-def _check_option_types(method, options):
+def _check_option_types(record, options):
     """Refuse an option value of the wrong type for the method's option, judged by the
     option's default (:func:`render_options`): a flag (default True/False) must be a bool, a
     count (an int default) an integer, a quantity (a float default) a finite real number;
     ``step_mm`` a number > 0. Ranges are the renderer's to check. An option the method does not
     take raises ``TypeError``, as calling its renderer would."""
-    defaults = render_options(method)
+    method = record.name
+    defaults = dict(record.options)
     for name, value in options.items():
         if name not in defaults:
             raise TypeError(f"{name}: not an option of method {method!r}; its options are "
@@ -520,13 +397,3 @@ def _check_option_types(method, options):
     if "step_mm" in options and options["step_mm"] is not None:
         positive_number("step_mm", options["step_mm"])
 
-
-def _renderers():
-    """The method implementations, imported when first used."""
-    from ._raycast import render_raycast, render_raycast_navigate
-    from ._reference import render_reference
-    from ._shear_warp import render_shear_warp
-    from ._splat import render_splat
-
-    return {"shear_warp": render_shear_warp, "splat": render_splat, "raycast": render_raycast,
-            "raycast_navigate": render_raycast_navigate, "reference": render_reference}

@@ -131,6 +131,7 @@ from . import _depth
 from ._camera import BACKGROUND_DEPTH
 from ._checks import categorical, checked_view, flag, positive_integer
 from ._gradients import region_gradients
+from ._method import MemoryModel, Method, keyword_options
 from ._modes import MODE_CODES, finish_mode
 from ._shading import Shading, checked_shading, fade_magnitudes
 from ._shear_warp_kernels import (
@@ -151,7 +152,7 @@ from ._shear_warp_kernels import (
     warp,
 )
 
-__all__ = ["render_shear_warp", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
+__all__ = ["render_shear_warp", "SLICES_PER_VOXEL", "CLASSIFICATIONS", "SHEAR_WARP_METHOD"]
 
 SLICES_PER_VOXEL = (1, 2, 3, 4, 8)
 """Allowed samples per voxel slice along the rays (Shear-Warp Deluxe's intermediate slices)."""
@@ -1005,3 +1006,38 @@ def _reach(view, width):
         reach[:, 1] = np.minimum(reach[:, 1], x1)
     np.clip(reach, 0, width, out=reach)
     return reach
+
+
+# ---------------------------------------------------------------------------- the record
+_INTERMEDIATE_BYTES = 40
+"""Per intermediate pixel: the RGBA image, its rank and depth maps, slice buffers."""
+
+
+def _intermediate_bytes(vevm, options):
+    """The intermediate image: one pixel per voxel (times the scale) along the two in-slice
+    axes, the slices sheared across up to one voxel per slice: at most (n1 + n2)² for the two
+    largest sides."""
+    scale = float(options["intermediate_scale"])
+    n1, n2 = sorted(vevm.shape)[-2:]
+    return int((scale * (n1 + n2)) ** 2) * _INTERMEDIATE_BYTES
+
+
+def _quality(quality, smallest_mm):
+    """Quality is intermediate pixels per voxel."""
+    return {"intermediate_scale": quality}
+
+
+SHEAR_WARP_METHOD = Method(
+    name="shear_warp", label="Shear-Warp",
+    description="Sheared slices, one intermediate image, one 2D warp (fast)",
+    render=render_shear_warp, options=keyword_options(render_shear_warp),
+    # Per grid voxel and principal axis: the region's runs come from the EVM's boxes beside
+    # the axis's densities table; post-classification's mixed codes take an int32 grid; with
+    # skip_empty=False the dense layout made for each render: the transposed dense grid, its
+    # mask and its codes. Shading: counted even when cached (every voxel is lit per view).
+    # Fixed: the lookup tables, which dominate tiny images (0.45 MiB for a 2x2 image).
+    memory=MemoryModel(pixel=24, grid=9, axis_table=True, shading_grid=32,
+                       per_view=_intermediate_bytes),
+    tables_to_build=tables_to_build, check_samples=None,  # bounded by its option ranges
+    quality=_quality, categorical=True)
+"""Shear-warp (Lacroute & Levoy), parallel and perspective."""

@@ -112,12 +112,13 @@ from ..model._volume import transform
 from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, positive_integer
 from ._gradients import region_gradients
+from ._method import MAX_SAMPLES, MemoryModel, Method, keyword_options
 from ._modes import MODE_CODES, finish_mode
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
 from ._splat_kernels import Crossings, Footprint, Image, Optics, Slab, Voxels, splat_rows
 
-__all__ = ["render_splat"]
+__all__ = ["render_splat", "SPLAT_METHOD"]
 
 _FOOTPRINT_SIZE = 1024
 _CULL_INVISIBLE = True
@@ -845,3 +846,34 @@ def _window_offsets(uv, uvb, uvc, ub, uc, hu, hv, radius, perspective):
     slack = perp(corners @ inv.T).max() * (3.0 if perspective else 1.0)
     keep = perp(cand @ inv.T) <= radius + slack
     return cand[keep].astype(np.int64)
+
+
+# ---------------------------------------------------------------------------- the record
+def _check_samples(vevm, pixels, options):
+    """Refuse more than ``MAX_SAMPLES`` samples: the sheets (the largest side) times
+    ``substeps`` per covered pixel."""
+    substeps = options["substeps"]
+    per_ray = max(vevm.shape) * substeps
+    if pixels * per_ray > MAX_SAMPLES:
+        most = max(1, MAX_SAMPLES // (pixels * max(vevm.shape)))
+        raise VolumeEVMError(
+            f"substeps: {substeps} sub-slabs per sheet would take about "
+            f"{pixels * per_ray:.2g} samples ({pixels} pixels x {per_ray} per ray), more "
+            f"than the {MAX_SAMPLES:.0e} a render may take (hours); use substeps <= {most} "
+            f"or a smaller image")
+
+
+def _quality(quality, smallest_mm):
+    """Quality rounded is sub-slabs per sheet."""
+    return {"substeps": max(1, int(round(quality)))}
+
+
+SPLAT_METHOD = Method(
+    name="splat", label="Splatting",
+    description="Voxel footprints, sheet by sheet along the principal axis",
+    render=render_splat, options=keyword_options(render_splat),
+    # Per-axis sheets come from the region's voxels beside the axis's densities table: per
+    # region voxel and axis, the sections (cells per slab) and culled voxel lists.
+    memory=MemoryModel(pixel=340, region=56, axis_table=True),
+    tables_to_build=tables_to_build, check_samples=_check_samples, quality=_quality)
+"""Sheet-buffer splatting (Westover), post-classified."""
