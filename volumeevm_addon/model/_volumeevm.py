@@ -103,10 +103,25 @@ class VolumeEVM:
         count = evm.volume()
         if count != len(table):
             raise VolumeEVMError(f"table: the region has {count} voxels but the table {len(table)} densities")
-        self.spacing, self.origin, self.orientation = checked_geometry(spacing, origin, orientation)
+        spacing, origin, orientation = checked_geometry(spacing, origin, orientation)
         if not isinstance(units, str):
             raise VolumeEVMError(f"units must be a string (such as 'HU'), got {units!r}")
         threshold, upper = _density_interval(threshold, upper, "", optional=True)
+        self._fill(evm, table, self.shape, (spacing, origin, orientation), units, threshold, upper)
+
+    @classmethod
+    def _checked_parts(cls, evm, table, shape, geometry, units, threshold, upper):
+        """A VolumeEVM of parts right by construction (checked geometry, a table of one
+        density per voxel of ``evm``), without the checks of ``__init__``: counting the voxels
+        sweeps the EVM, which for the many labels of a map costs more than building them."""
+        vevm = cls.__new__(cls)
+        vevm._fill(evm, table, shape, geometry, units, threshold, upper)
+        return vevm
+
+    def _fill(self, evm, table, shape, geometry, units, threshold, upper):
+        """Set the fields from checked parts (the one place that sets them)."""
+        self.shape = shape
+        self.spacing, self.origin, self.orientation = geometry
         self.threshold = None if threshold is None else float(threshold)
         self.upper = None if upper is None else float(upper)
         self.evm = evm
@@ -341,18 +356,21 @@ class VolumeEVM:
             labels_map = maps[0]
         else:
             maps = (labels_map,)
-        geometry = dict(zip(geometry, checked_geometry(
+        geometry = checked_geometry(
             (1.0, 1.0, 1.0) if geometry["spacing"] is None else geometry["spacing"],
             (0.0, 0.0, 0.0) if geometry["origin"] is None else geometry["origin"],
-            geometry["orientation"], source=source)))
+            geometry["orientation"], source=source)
         if not isinstance(units, str):
             raise VolumeEVMError(f"{source}: units must be a string, got {units!r}")
         regions = layered_regions(maps, labels, source=source)
         shape = _grid_shape(np.shape(labels_map), f"{source}: ")
         check_memory(sum(count for _, count in regions.values()) * labels_map.dtype.itemsize,
                      "the label tables", source=source, advice="pick fewer labels with labels=")
-        return LabelSet({label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
-                                    shape=shape, units=units, threshold=label, upper=label, **geometry)
+        spacing, origin, orientation = geometry
+        return LabelSet({label: cls._checked_parts(EVM._from_keys(keys),
+                                                   np.full(count, label, labels_map.dtype), shape,
+                                                   (spacing, origin, orientation.copy()), units,
+                                                   label, label)
                          for label, (keys, count) in regions.items()}, infos)
 
     # ------------------------------------------------------------------ densities
