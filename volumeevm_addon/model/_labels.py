@@ -18,6 +18,7 @@ from .._errors import VolumeEVMError
 from .._jit import kernel, kernel_threads, parallel_map
 from .._memory import check_memory
 from . import _sweep
+from ._volume import is_lazy
 
 MAX_LABELS = 1 << 16
 """The most labels one map may hold (65536): more is a density volume, not a segmentation."""
@@ -100,13 +101,12 @@ def _label_block(labels, ids, first, stop, n_ids, ox, oy, oz):
     for x in range(first, stop):
         if x < nx:
             for y in range(ny):
-                row, padded, marks = labels[x, y], after[y + 1], flags[y]
                 for z in range(nz):
-                    padded[z + 1] = row[z]
+                    after[y + 1, z + 1] = labels[x, y, z]
                 for z in range(nz - 1):  # the runs' last voxels
-                    marks[z] = row[z] != row[z + 1]
-                marks[nz - 1] = 1
-                marks[nz] = 0
+                    flags[y, z] = labels[x, y, z] != labels[x, y, z + 1]
+                flags[y, nz - 1] = 1
+                flags[y, nz] = 0
             start = 0
             for i in range(_marked(flags, ny, places)):
                 y, z = places[0, i], places[1, i]
@@ -115,10 +115,11 @@ def _label_block(labels, ids, first, stop, n_ids, ox, oy, oz):
         else:
             after[:, :] = 0
         for y in range(ny + 1):
-            b0, b1, a0, a1, marks = before[y], before[y + 1], after[y], after[y + 1], flags[y]
             for z in range(nz + 1):
-                c0, c1, c2, c3 = b0[z], b0[z + 1], b1[z], b1[z + 1]
-                c4, c5, c6, c7 = a0[z], a0[z + 1], a1[z], a1[z + 1]
+                c0, c1 = before[y, z], before[y, z + 1]
+                c2, c3 = before[y + 1, z], before[y + 1, z + 1]
+                c4, c5 = after[y, z], after[y, z + 1]
+                c6, c7 = after[y + 1, z], after[y + 1, z + 1]
                 other = c1 if c1 != c0 else c0  # a value other than c0, if there is one
                 other = c2 if c2 != c0 else other
                 other = c3 if c3 != c0 else other
@@ -133,7 +134,7 @@ def _label_block(labels, ids, first, stop, n_ids, ox, oy, oz):
                 two = ((e1 | (c1 == other)) & (e2 | (c2 == other)) & (e3 | (c3 == other))
                        & (e4 | (c4 == other)) & (e5 | (c5 == other)) & (e6 | (c6 == other))
                        & (e7 | (c7 == other)))
-                marks[z] = (not uniform) & ((not two) | (not c0_even))
+                flags[y, z] = (not uniform) & ((not two) | (not c0_even))
         marked = _marked(flags, ny + 1, places)
         if len(out_keys) < n + 8 * marked:  # room for 8 labels at each marked point
             size = max(2 * len(out_keys), n + 8 * marked)
@@ -211,6 +212,9 @@ def _group(ids, keys, n_ids):
 def checked_labels(array, source):
     """The label map as a 3-D integer ndarray, refused unless it is one.
 
+    A lazy (Dask) array is checked for its shape and type and returned as it is: its chunks
+    are checked as they are swept (:mod:`._chunked`).
+
     Raises
     ------
     VolumeEVMError
@@ -218,7 +222,9 @@ def checked_labels(array, source):
         floating-point labels (cast whole-numbered floats with ``array.astype(np.int32)``),
         booleans (a mask: :meth:`EVM.from_mask`) and negative labels.
     """
-    array = np.asarray(array)
+    lazy = is_lazy(array)
+    if not lazy:
+        array = np.asarray(array)
     if array.ndim != 3 or array.size == 0:
         raise VolumeEVMError(f"{source}: a label map must be a non-empty 3-D array, got shape {array.shape}")
     if array.dtype.kind not in "iu":
@@ -227,7 +233,7 @@ def checked_labels(array, source):
                      "cast them with array.astype(np.int32)"}.get(array.dtype.kind, "")
         raise VolumeEVMError(f"{source}: a label map must hold integers, got dtype {array.dtype}"
                              + (f" ({hint})" if hint else ""))
-    if array.dtype.kind == "i" and int(array.min()) < 0:
+    if not lazy and array.dtype.kind == "i" and int(array.min()) < 0:
         raise VolumeEVMError(f"{source}: a label map holds labels >= 0 (0 = background), but "
                              f"{np.count_nonzero(array < 0)} voxels are negative (min {array.min()})")
     return array
@@ -262,8 +268,17 @@ def label_regions(array, labels=None, *, source="array"):
     UserWarning
         Naming the wanted labels that have no voxel (the others are built all the same).
     """
+    wanted = wanted_labels(labels)
+    regions = swept_labels(array, wanted, source=source)
+    warn_missing(wanted, regions, source)
+    return regions
+
+
+def swept_labels(array, wanted, offset=(0, 0, 0), *, source="array"):
+    """:func:`label_regions` of ``array`` placed at grid index ``offset`` (a chunk of a larger
+    map: its vertices in the grid's coordinates), for the labels ``wanted``
+    (:func:`wanted_labels`), without a warning for the wanted labels it lacks."""
     array = checked_labels(array, source)
-    wanted = _wanted(labels)
     hi = int(array.max())
     lookup = hi < _LOOKUP_RANGE
     if lookup:
@@ -294,25 +309,20 @@ def label_regions(array, labels=None, *, source="array"):
                  "sweeping the label map", source=source,
                  advice="pick fewer labels with labels=, or crop the volume")
     step = max(1, _BLOCK_VOXELS // max(1, ny * nz))
+    ox, oy, oz = (int(o) + _sweep.OFFSET for o in offset)
     blocks = parallel_map(_label_block, [(array, ids, x, min(x + step, nx + 1), len(candidates),
-                                          _sweep.OFFSET, _sweep.OFFSET, _sweep.OFFSET)
-                                         for x in range(0, nx + 1, step)])
+                                          ox, oy, oz) for x in range(0, nx + 1, step)])
     vertex_ids = np.concatenate([b[0] for b in blocks])
     keys = np.concatenate([b[1] for b in blocks])
     counts = np.sum([b[2] for b in blocks], axis=0)
     del blocks
-    if wanted is not None:
-        missing = np.setdiff1d(wanted, candidates[counts > 0])
-        if len(missing):
-            warnings.warn(f"{source}: labels {missing.tolist()} have no voxels", UserWarning,
-                          stacklevel=3)
     grouped, starts = _group(vertex_ids, keys, len(candidates))
     return {int(label): (grouped[starts[i]:starts[i + 1]].copy(), int(counts[i]))
             for i, label in enumerate(candidates) if counts[i] > 0}
 
 
-def _wanted(labels):
-    """The labels asked for as sorted unique int64 (None: all)."""
+def wanted_labels(labels):
+    """The labels asked for as sorted unique int64 (None: all); refuses anything else."""
     if labels is None:
         return None
     if np.iterable(labels) and not isinstance(labels, (str, bytes, np.ndarray)):
@@ -325,6 +335,14 @@ def _wanted(labels):
         raise VolumeEVMError(f"labels must be one or more integers > 0 (0 is the background), "
                              f"got {labels!r}")
     return wanted
+
+
+def warn_missing(wanted, regions, source):
+    """Warn naming the labels ``wanted`` (None: all) that have no region in ``regions``."""
+    if wanted is not None:
+        missing = sorted(set(wanted.tolist()) - set(regions))
+        if missing:
+            warnings.warn(f"{source}: labels {missing} have no voxels", UserWarning, stacklevel=4)
 
 
 def labels_present(array, source="array"):
@@ -376,7 +394,7 @@ def layered_regions(maps, labels=None, *, source="array"):
         return label_regions(maps[0], labels, source=source)
     if len({np.shape(m) for m in maps}) > 1:
         raise VolumeEVMError(f"{source}: the layers of a label map must share one shape")
-    wanted = _wanted(labels)
+    wanted = wanted_labels(labels)
     merged = {}
     for number, array in enumerate(maps):
         present = labels_present(array, f"{source}: layer {number}")
@@ -387,9 +405,6 @@ def layered_regions(maps, labels=None, *, source="array"):
         shared = sorted(set(present.tolist()) & set(merged))
         if shared:
             raise VolumeEVMError(f"{source}: labels {shared} are in more than one layer")
-        merged.update(label_regions(array, present, source=f"{source}: layer {number}"))
-    if wanted is not None:
-        missing = sorted(set(wanted.tolist()) - set(merged))
-        if missing:
-            warnings.warn(f"{source}: labels {missing} have no voxels", UserWarning, stacklevel=3)
+        merged.update(swept_labels(array, present, source=f"{source}: layer {number}"))
+    warn_missing(wanted, merged, source)
     return dict(sorted(merged.items()))
