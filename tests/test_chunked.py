@@ -237,3 +237,92 @@ def test_memory_estimate_is_what_the_build_checks(data_dir, monkeypatch):
     # After the last batch: the whole table held twice (keys add a little), chunks in flight.
     assert checked[-1] >= chunked_build_memory((64, 100, 50), array.dtype, region.voxel_count,
                                                workers=3)
+
+
+# ---------------------------------------------------------------------- label maps
+def assert_same_label_sets(got, expected):
+    """Two LabelSets with the same labels, names and colours, each label's region identical."""
+    assert list(got) == list(expected)
+    assert got.infos == expected.infos
+    for label in expected:
+        assert_identical(got[label], expected[label])
+
+
+def test_lazy_liver_labels_equal_in_memory_for_any_chunks(data_dir):
+    path = data_dir / "seg_liver_cgal.npy"
+    volume = read_volume(path, lazy=True)
+    assert type(volume.array).__module__.startswith("dask")
+    expected = VolumeEVM.from_labels(read_volume(path))
+    assert list(expected) == [84, 85, 127, 255]
+    assert_same_label_sets(VolumeEVM.from_labels(volume), expected)
+    array = np.load(path)
+    rng = np.random.default_rng(22)
+    for chunks in [(64, 64, 64), (100, 71, 33), (438, 353, 7), (1, 353, 165),
+                   random_chunks(rng, array.shape), random_chunks(rng, array.shape)]:
+        lazily = Volume(da.from_array(array, chunks=chunks), spacing=volume.spacing,
+                        origin=volume.origin, orientation=volume.orientation, units=volume.units,
+                        source=volume.source, labels=volume.labels)
+        assert_same_label_sets(VolumeEVM.from_labels(lazily), expected)
+    picked = VolumeEVM.from_labels(Volume(da.from_array(array, chunks=(50, 60, 70))),
+                                   labels=[127, 84])
+    assert_same_label_sets(picked, VolumeEVM.from_labels(array, labels=[127, 84]))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int32, np.uint16])
+def test_lazy_synthetic_label_maps_equal_in_memory(dtype):
+    """Many labels (up to 200) touching across chunk planes, at the grid's borders, speckled
+    points where three or more meet, and labels found in one chunk only."""
+    rng = np.random.default_rng(int(np.dtype(dtype).itemsize))
+    shape = (23, 17, 29)
+    array = np.zeros(shape, dtype)
+    for _ in range(60):
+        lo = [int(rng.integers(0, n)) for n in shape]
+        hi = [int(rng.integers(low + 1, n + 1)) for low, n in zip(lo, shape)]
+        array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = rng.integers(1, 200)
+    speckle = rng.random(shape) < 0.1
+    array[speckle] = rng.integers(0, 200, int(speckle.sum()))
+    array[22, 16, 28] = 250  # one voxel in the last chunk's corner
+    expected = VolumeEVM.from_labels(array, spacing=(0.5, 1.0, 2.0))
+    assert len(expected) > 100
+    for chunks in [(3, 4, 5), (8, 6, 10), (23, 17, 1), (1, 17, 29), (5, 5, 5),
+                   random_chunks(rng, shape)]:
+        got = VolumeEVM.from_labels(lazy(array, chunks, spacing=(0.5, 1.0, 2.0)))
+        assert_same_label_sets(got, expected)
+    with dask.config.set(scheduler="threads", num_workers=1):
+        assert_same_label_sets(VolumeEVM.from_labels(lazy(array, (7, 7, 7),
+                                                          spacing=(0.5, 1.0, 2.0))), expected)
+
+
+def test_bad_lazy_label_maps_refused_by_name_and_chunk():
+    array = np.ones((10, 10, 10), np.int16)
+    array[7, 3, 2] = -4
+    with pytest.raises(VolumeEVMError, match=r"^m\.npy: the chunk at voxel \(5, 0, 0\): a label "
+                                             r"map holds labels >= 0 .* 1 voxels are negative"):
+        VolumeEVM.from_labels(lazy(array, 5, source="m.npy"))
+    with pytest.raises(VolumeEVMError, match=r"^f: a label map must hold integers, got dtype "
+                                             r"float32"):
+        VolumeEVM.from_labels(lazy(np.ones((4, 4, 4), np.float32), 2, source="f"))
+    with pytest.warns(UserWarning, match=r"^z: labels \[3\] have no voxels"):
+        regions = VolumeEVM.from_labels(lazy(np.ones((4, 4, 4), np.uint8), 2, source="z"),
+                                        labels=[1, 3])
+    assert list(regions) == [1] and regions[1].voxel_count == 64
+    many = np.arange(1, 2 * 3 * 10923 + 1, dtype=np.int32).reshape(2, 3, 10923)  # 65538 labels
+    with pytest.raises(VolumeEVMError, match=r"^many: more than the 65536 labels"):
+        VolumeEVM.from_labels(lazy(many, (2, 3, 4000), source="many"))
+
+
+def test_lazy_label_map_memory_checked_before_and_during_the_sweep(data_dir, monkeypatch):
+    array = np.load(data_dir / "seg_liver_cgal.npy")
+    volume = lazy(array, (16, 353, 165), source="liver")
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1M")
+    with pytest.raises(VolumeEVMError, match=r"^liver: building the label map's VolumeEVMs with "
+                                             r"\d+ chunks in flight needs about .* only 1.0 MiB "
+                                             r"is available; pick fewer labels"):
+        VolumeEVM.from_labels(volume)
+    # One chunk in flight fits, the vertices of a speckled map (most of its points) do not.
+    speckled = np.random.default_rng(5).integers(0, 3, (64, 64, 64)).astype(np.uint8)
+    monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "4M")
+    with dask.config.set(scheduler="threads", num_workers=1):
+        with pytest.raises(VolumeEVMError, match=r"^speckle: building the label map's "
+                                                 r"VolumeEVMs chunk by chunk needs about"):
+            VolumeEVM.from_labels(lazy(speckled, (4, 64, 64), source="speckle"))

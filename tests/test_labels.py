@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volumeevm_addon import (
     EVM,
@@ -61,6 +63,32 @@ def test_random_maps_build_every_label_as_its_band_build(seed, shape):
     labels = rng.integers(0, 2 + seed, shape)  # from 2 labels with background to 7
     dtype = [np.uint8, np.int16, np.uint16, np.int32, np.int64, np.uint32][seed]
     array = labels.astype(dtype)
+    assert_same_as_band_builds(VolumeEVM.from_labels(array), array)
+
+
+@st.composite
+def painted_label_maps(draw):
+    """Small label maps painted box by box: many labels (up to 300), touching one another
+    across faces, edges and corners, reaching the grid's borders, and some labels of single
+    voxels; in a dtype drawn from the integer types."""
+    shape = draw(st.tuples(st.integers(1, 9), st.integers(1, 9), st.integers(1, 9)))
+    dtype = draw(st.sampled_from([np.uint8, np.int16, np.uint16, np.int32, np.uint32, np.int64]))
+    top = min(np.iinfo(dtype).max, 300)
+    array = np.full(shape, draw(st.integers(0, 3)), dtype)  # background or a first label
+    for _ in range(draw(st.integers(0, 40))):
+        lo = [draw(st.integers(0, n - 1)) for n in shape]
+        hi = [draw(st.integers(low + 1, n)) for low, n in zip(lo, shape)]
+        array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = draw(st.integers(0, top))
+    if draw(st.booleans()):  # speckle: points where three or more labels meet everywhere
+        noise = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+        speckle = noise.random(shape) < draw(st.sampled_from([0.05, 0.3, 1.0]))
+        array[speckle] = noise.integers(0, top + 1, int(speckle.sum()))
+    return array
+
+
+@settings(max_examples=150, deadline=None)
+@given(painted_label_maps())
+def test_painted_label_maps_build_every_label_as_its_band_build(array):
     assert_same_as_band_builds(VolumeEVM.from_labels(array), array)
 
 

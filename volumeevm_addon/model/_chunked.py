@@ -1,4 +1,5 @@
-"""Chunked exact builds: the VolumeEVM of a lazy (Dask) volume, chunk by chunk.
+"""Chunked exact builds: the VolumeEVM of a lazy (Dask) volume, and the regions of a lazy label
+map, chunk by chunk.
 
 The EVM of a union of disjoint voxel sets is the XOR of their EVMs (a lattice point's parity is
 the XOR of the parities), so each chunk's EVM, found from the chunk's own voxels alone and
@@ -7,11 +8,15 @@ whole region: vertices on a shared chunk plane cancel where the region continues
 
 Each Dask task (:func:`chunk_region`) thresholds one chunk and returns its vertices (sorted
 packed keys), its region's densities in the chunk's C order and how many of them each
-``(x, y)`` row holds. Chunks are computed a few x-slabs of chunks at a time (Dask's scheduler:
-threads by default, a ``dask.distributed`` cluster when a ``Client`` exists): a slab's densities
-are one contiguous stretch of the table (order "xyz"), placed row by row from the row counts,
-and the slabs concatenate. The result is identical to :meth:`VolumeEVM.from_array` on the
-same data in memory, for any chunk shape.
+``(x, y)`` row holds. Chunks are computed a few x-slabs of chunks at a time
+(:func:`chunk_slabs`; Dask's scheduler: threads by default, a ``dask.distributed`` cluster
+when a ``Client`` exists): a slab's densities are one contiguous stretch of the table (order
+"xyz"), placed row by row from the row counts, and the slabs concatenate. The result is
+identical to :meth:`VolumeEVM.from_array` on the same data in memory, for any chunk shape.
+
+A label map goes the same way (:func:`labels_chunked`): a task sweeps its chunk for every
+label at once (:func:`chunk_labels`), and each label's vertices are the XOR of its chunks',
+its voxel count their sum: identical to :meth:`VolumeEVM.from_labels` in memory.
 
 Memory: the chunks in flight (the scheduler's workers, each holding one chunk and what it
 derives from it) plus the result (table and vertices) plus one batch of slabs, checked before
@@ -28,6 +33,7 @@ from .._errors import VolumeEVMError
 from .._memory import check_memory
 from . import _sweep
 from ._evm import _block_keys
+from ._labels import MAX_LABELS, swept_labels
 
 #: Chunks computed per batch, per scheduler worker: enough to keep every worker busy.
 TASKS_PER_WORKER = 4
@@ -135,45 +141,122 @@ def build_chunked(array, threshold, upper, source, progress=None):
     VolumeEVMError
         If a chunk holds NaN or infinite densities or the memory would not suffice.
     """
-    import dask
-
-    workers = _workers(dask)
-    in_flight = chunked_build_memory([max(c) for c in array.chunks], array.dtype, 0,
-                                     workers=workers)
-    check_memory(in_flight, f"building the VolumeEVM with {workers} chunks in flight",
-                 source=source, advice=_ADVICE)
-    starts = [np.r_[0, np.cumsum(c)] for c in array.chunks]
-    blocks = array.to_delayed()
-    task = dask.delayed(chunk_region, pure=True)
-    per_batch = max(1, (TASKS_PER_WORKER * workers) // (blocks.shape[1] * blocks.shape[2]))
     keys, tables = [], []
     low = high = None
-    done = 0
-    for first in range(0, blocks.shape[0], per_batch):
-        slabs = range(first, min(first + per_batch, blocks.shape[0]))
-        tasks = [task(blocks[i, j, k], (int(starts[0][i]), int(starts[1][j]), int(starts[2][k])),
-                      threshold, upper, source)
-                 for i in slabs for j in range(blocks.shape[1]) for k in range(blocks.shape[2])]
-        results = _computed(dask, tasks, progress, done, blocks.size)
-        done += len(tasks)
-        per_slab = blocks.shape[1] * blocks.shape[2]
-        for n, _ in enumerate(slabs):
-            slab = results[n * per_slab:(n + 1) * per_slab]
-            tables.append(_slab_table(slab, blocks.shape[1:], array.dtype))
-            keys.append(_sweep.parity(np.concatenate([r[0] for r in slab]), runs=True))
-            lows, highs = [r[3] for r in slab], [r[4] for r in slab]
-            low = min(lows + ([] if low is None else [low]))
-            high = max(highs + ([] if high is None else [high]))
-        del results, slab
-        held = sum(t.nbytes for t in tables) + sum(k.nbytes for k in keys)
-        # The result so far, the next batch's results (as large again, at most) and workers.
-        check_memory(2 * held + in_flight, "building the VolumeEVM chunk by chunk",
-                     source=source, advice=_ADVICE)
+    # A worker holds its chunk, a contiguous copy, the mask, the densities and the keys.
+    per_voxel = 3 * array.dtype.itemsize + 10
+    slabs = chunk_slabs(array, chunk_region, (threshold, upper, source), per_voxel,
+                        lambda: sum(t.nbytes for t in tables) + sum(k.nbytes for k in keys),
+                        "building the VolumeEVM", source, _ADVICE, progress)
+    for slab in slabs:
+        tables.append(_slab_table(slab, array.numblocks[1:], array.dtype))
+        keys.append(_sweep.parity(np.concatenate([r[0] for r in slab]), runs=True))
+        lows, highs = [r[3] for r in slab], [r[4] for r in slab]
+        low = min(lows + ([] if low is None else [low]))
+        high = max(highs + ([] if high is None else [high]))
     keys = _sweep.parity(np.concatenate(keys), runs=True)
     return keys, _concatenated(tables, array.dtype), low, high
 
 
-def _computed(dask, tasks, progress, done, total):
+def chunk_labels(block, offset, wanted, source):
+    """One chunk's part of a label map (a Dask task): ``label -> (keys, voxel count)`` of the
+    chunk alone, its keys in grid coordinates (:func:`._labels.swept_labels`).
+
+    Raises
+    ------
+    VolumeEVMError
+        If the chunk holds negative labels or too many, naming ``source`` and the chunk.
+    """
+    return swept_labels(np.ascontiguousarray(block), wanted, offset,
+                        source=f"{source}: the chunk at voxel {tuple(offset)}")
+
+
+def labels_chunked(array, wanted, source):
+    """:func:`._labels.label_regions` of a lazy ``(X, Y, Z)`` Dask label map, chunk by chunk:
+    each label's keys are the XOR of its chunks' keys, merged slab by slab, and its voxel
+    count their sum. ``wanted`` are the labels asked for (:func:`._labels.wanted_labels`).
+
+    Returns
+    -------
+    dict
+        ``label -> (keys, voxel_count)`` in increasing label order, as
+        :func:`._labels.label_regions` gives it (without its warning).
+
+    Raises
+    ------
+    VolumeEVMError
+        If a chunk holds negative labels, the map more than :data:`._labels.MAX_LABELS`
+        labels, or the memory would not suffice.
+    """
+    keys, counts = {}, {}  # label -> its slabs' keys (each slab's merged), its voxel count
+    # A worker holds its chunk, a contiguous copy, and label numbers and keys of up to a
+    # vertex per voxel, grouped once.
+    per_voxel = 2 * array.dtype.itemsize + 20
+    slabs = chunk_slabs(array, chunk_labels, (wanted, source), per_voxel,
+                        lambda: sum(k.nbytes for parts in keys.values() for k in parts),
+                        "building the label map's VolumeEVMs", source,
+                        "pick fewer labels with labels=, or use smaller chunks")
+    for slab in slabs:
+        found = {}
+        for regions in slab:
+            for label, (part, count) in regions.items():
+                found.setdefault(label, []).append(part)
+                counts[label] = counts.get(label, 0) + count
+        for label, parts in found.items():
+            keys.setdefault(label, []).append(_sweep.parity(np.concatenate(parts), runs=True))
+        if len(keys) > MAX_LABELS:
+            raise VolumeEVMError(
+                f"{source}: more than the {MAX_LABELS} labels a label map may hold; pick the "
+                f"labels you need with labels=, or build density bands with VolumeEVM.from_volume")
+    return {label: (_sweep.parity(np.concatenate(keys.pop(label)), runs=True), counts[label])
+            for label in sorted(keys)}
+
+
+def chunk_slabs(array, task, arguments, per_voxel, held, what, source, advice, progress=None):
+    """The results of ``task(block, offset, *arguments)`` for every chunk of the lazy array,
+    one x-slab of chunks at a time (a tuple in ``(y, z)`` chunk order), x-slab by x-slab;
+    ``progress(done, total)`` after each chunk (:func:`_computed`).
+
+    Chunks are computed a few x-slabs at a time on Dask's scheduler (threads, or the
+    ``dask.distributed`` cluster of a ``Client``). Memory: ``per_voxel`` bytes per voxel of a
+    chunk for each chunk in flight, checked before the first chunk; after every batch, also
+    twice ``held()`` (what the caller keeps so far, and the next batch's results as large
+    again at most). ``what`` and ``advice`` go into the message.
+
+    Raises
+    ------
+    VolumeEVMError
+        If the memory would not suffice (or as ``task`` raises).
+    """
+    import dask
+
+    workers = _workers(dask)
+    chunk_voxels = int(np.prod([max(c) for c in array.chunks]))
+    in_flight = workers * per_voxel * chunk_voxels
+    check_memory(in_flight, f"{what} with {workers} chunks in flight", source=source,
+                 advice=advice)
+    starts = [np.r_[0, np.cumsum(c)] for c in array.chunks]
+    blocks = array.to_delayed()
+    delayed_task = dask.delayed(task, pure=True)
+    per_slab = blocks.shape[1] * blocks.shape[2]
+    per_batch = max(1, (TASKS_PER_WORKER * workers) // per_slab)
+    done = 0
+    for first in range(0, blocks.shape[0], per_batch):
+        slabs = range(first, min(first + per_batch, blocks.shape[0]))
+        tasks = [delayed_task(blocks[i, j, k],
+                              (int(starts[0][i]), int(starts[1][j]), int(starts[2][k])),
+                              *arguments)
+                 for i in slabs for j in range(blocks.shape[1]) for k in range(blocks.shape[2])]
+        results = _computed(dask, tasks, progress, done, blocks.size, task.__name__)
+        done += len(tasks)
+        for n in range(len(slabs)):
+            yield results[n * per_slab:(n + 1) * per_slab]
+        del results
+        check_memory(2 * held() + in_flight, f"{what} chunk by chunk", source=source,
+                     advice=advice)
+
+
+def _computed(dask, tasks, progress, done, total, name):
     """``dask.compute(*tasks)``, calling ``progress(done + n, total)`` as the n-th task ends.
 
     The local schedulers call back on this thread as each chunk's task ends; a distributed
@@ -185,7 +268,7 @@ def _computed(dask, tasks, progress, done, total):
     ended = [done]
 
     def task_ended(key, *_):
-        if str(key[0] if isinstance(key, tuple) else key).startswith("chunk_region-"):
+        if str(key[0] if isinstance(key, tuple) else key).startswith(f"{name}-"):
             ended[0] += 1
             progress(ended[0], total)
 

@@ -25,11 +25,11 @@ from .._errors import VolumeEVMError
 from .._files import write_atomically
 from .._memory import available_memory, check_memory
 from ._cache import DerivedCache, default_budget
-from ._chunked import build_chunked
+from ._chunked import build_chunked, labels_chunked
 from ._densities import TABLE_ORDERS, TableIndex
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
-from ._labels import layered_regions
+from ._labels import checked_labels, layered_regions, wanted_labels, warn_missing
 from ._levels import checked_factor, coarsen
 from ._measure import measure
 from ._vevm_file import FORMAT, VERSION, checksum, read_vevm
@@ -111,10 +111,25 @@ class VolumeEVM:
         if count != len(table):
             raise VolumeEVMError(f"table: the region has {count} voxels but the table "
                                  f"{len(table)} densities")
-        self.spacing, self.origin, self.orientation = checked_geometry(spacing, origin, orientation)
+        spacing, origin, orientation = checked_geometry(spacing, origin, orientation)
         if not isinstance(units, str):
             raise VolumeEVMError(f"units must be a string (such as 'HU'), got {units!r}")
         threshold, upper = _density_interval(threshold, upper, "", optional=True)
+        self._fill(evm, table, self.shape, (spacing, origin, orientation), units, threshold, upper)
+
+    @classmethod
+    def _checked_parts(cls, evm, table, shape, geometry, units, threshold, upper):
+        """A VolumeEVM of parts right by construction (checked geometry, a table of one
+        density per voxel of ``evm``), without the checks of ``__init__``: counting the voxels
+        sweeps the EVM, which for the many labels of a map costs more than building them."""
+        vevm = cls.__new__(cls)
+        vevm._fill(evm, table, shape, geometry, units, threshold, upper)
+        return vevm
+
+    def _fill(self, evm, table, shape, geometry, units, threshold, upper):
+        """Set the fields from checked parts (the one place that sets them)."""
+        self.shape = shape
+        self.spacing, self.origin, self.orientation = geometry
         self.threshold = None if threshold is None else float(threshold)
         self.upper = None if upper is None else float(upper)
         self.evm = evm
@@ -309,6 +324,9 @@ class VolumeEVM:
         Each is identical to ``VolumeEVM.from_array(array, L, upper=L)`` (vertices, table,
         geometry, interval) but the whole map is swept once (:mod:`._labels`), so a map of 100
         labels costs about one build. Labels that touch share their boundary faces exactly.
+        A lazy label map (a Dask array: ``read_volume(path, lazy=True)``, an OME-Zarr store) is
+        swept chunk by chunk as :meth:`from_volume` builds (:mod:`._chunked`), with the same
+        result for any chunk shape, memory following the chunks in flight and the result.
 
         Parameters
         ----------
@@ -334,9 +352,10 @@ class VolumeEVM:
         Raises
         ------
         VolumeEVMError
-            For a map that is not non-negative integers (floats, booleans, negative labels),
-            more than :data:`._labels.MAX_LABELS` labels, geometry given twice or bad, or no
-            memory for the result.
+            For a map that is not non-negative integers (floats, booleans, negative labels; in
+            a lazy map, the message names the chunk), more than :data:`._labels.MAX_LABELS`
+            labels, geometry given twice or bad, or no memory for the result (for a lazy map,
+            checked before the first chunk and after every batch of chunks).
 
         Examples
         --------
@@ -360,19 +379,27 @@ class VolumeEVM:
             labels_map = maps[0]
         else:
             maps = (labels_map,)
-        geometry = dict(zip(geometry, checked_geometry(
+        geometry = checked_geometry(
             (1.0, 1.0, 1.0) if geometry["spacing"] is None else geometry["spacing"],
             (0.0, 0.0, 0.0) if geometry["origin"] is None else geometry["origin"],
-            geometry["orientation"], source=source)))
+            geometry["orientation"], source=source)
         if not isinstance(units, str):
             raise VolumeEVMError(f"{source}: units must be a string, got {units!r}")
-        regions = layered_regions(maps, labels, source=source)
+        if len(maps) == 1 and is_lazy(labels_map):
+            checked_labels(labels_map, source)
+            wanted = wanted_labels(labels)
+            regions = labels_chunked(labels_map, wanted, source)
+            warn_missing(wanted, regions, source)
+        else:
+            regions = layered_regions(maps, labels, source=source)
         shape = _grid_shape(np.shape(labels_map), f"{source}: ")
         check_memory(sum(count for _, count in regions.values()) * labels_map.dtype.itemsize,
                      "the label tables", source=source, advice="pick fewer labels with labels=")
-        return LabelSet({label: cls(EVM._from_keys(keys), np.full(count, label, labels_map.dtype),
-                                    shape=shape, units=units, threshold=label, upper=label,
-                                    **geometry)
+        spacing, origin, orientation = geometry
+        return LabelSet({label: cls._checked_parts(EVM._from_keys(keys),
+                                                   np.full(count, label, labels_map.dtype), shape,
+                                                   (spacing, origin, orientation.copy()), units,
+                                                   label, label)
                          for label, (keys, count) in regions.items()}, infos)
 
     # ------------------------------------------------------------------ densities
