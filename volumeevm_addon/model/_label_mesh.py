@@ -114,7 +114,18 @@ def _signature_runs(before, n_before, after, n_after, state, active, runs, membe
     while i < n_before or j < n_after:
         c = before[i] >> _sweep.BITS if j == n_after or (
             i < n_before and before[i] < after[j]) else after[j] >> _sweep.BITS
+        changed = False
         while i < n_before or j < n_after:
+            if i < n_before and j < n_after and before[i] == after[j]:
+                # A breakpoint of both rows (most are: a plane changes a row in few places).
+                tag = before[i] & _sweep.MASK
+                if before[i] >> _sweep.BITS != c:
+                    break
+                if state[tag] == 0 or state[tag] == 3:  # in both rows or neither: no face
+                    state[tag] ^= 3
+                    i += 1
+                    j += 1
+                    continue
             from_before = j == n_after or (i < n_before and before[i] < after[j])
             point = before[i] if from_before else after[j]
             if point >> _sweep.BITS != c:
@@ -126,12 +137,13 @@ def _signature_runs(before, n_before, after, n_after, state, active, runs, membe
                 n_active = _set_member(active, n_active, 2 * tag + old - 1, False)
             if state[tag] == 1 or state[tag] == 2:
                 n_active = _set_member(active, n_active, 2 * tag + state[tag] - 1, True)
+            changed = True
             if from_before:
                 i += 1
             else:
                 j += 1
-        if open_run and _same_members(members, runs[n_runs - 1, 2], runs[n_runs - 1, 3],
-                                      active, 0, n_active):
+        if not changed or (open_run and _same_members(members, runs[n_runs - 1, 2],
+                                                      runs[n_runs - 1, 3], active, 0, n_active)):
             continue
         if open_run:
             runs[n_runs - 1, 1] = c
