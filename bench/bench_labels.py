@@ -8,7 +8,8 @@ seeds, seed 0; uint8).
 - ``VolumeEVM.from_labels`` (one sweep, every label) against one ordinary build on the same grid
   (``from_array(map, 1)``: the whole foreground as one region) and against one band build per
   label (what a user did before), on one thread and on all (``kernel_threads``);
-- per-label meshes: the EVM's exact closed mesh per label (``VolumeEVM.mesh``) against
+- per-label meshes: every label's exact closed mesh (``LabelSet.meshes``, made together so that
+  touching labels share their polygons: what Make Label Meshes shows) against
   scikit-image's ``marching_cubes`` run per label on the label's mask (one thread; the peer the
   issue names) and zmesh's multi-label marching cubes (``Mesher``, all labels in one call; the
   mesher Microscopy Nodes uses), on one thread.
@@ -85,7 +86,7 @@ def mesh_row(name, array, spacing, regions, repeat):
     from skimage.measure import marching_cubes
 
     set_kernel_threads(1)
-    ours_s, meshes = best_time(lambda: [region.mesh() for region in regions.values()], repeat)
+    ours_s, meshes = best_time(lambda: list(regions.meshes().values()), repeat)
     set_kernel_threads(None)
 
     def per_label_marching_cubes():

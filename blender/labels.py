@@ -4,8 +4,8 @@ per label.
 :func:`make_label_meshes` reads the volume object's label map (a 3D Slicer ``.seg.nrrd`` brings
 its segments' names and colours; any other integer volume is named and coloured by the core's
 fixed palette), builds every label's VolumeEVM in one sweep (:meth:`VolumeEVM.from_labels`) and
-makes each label's exact closed mesh. Where two labels touch, their meshes bound the same voxel
-faces from both sides: no gap, no overlap.
+makes each label's exact closed mesh, all together (:meth:`LabelSet.meshes`): where two labels
+touch, their meshes carry the same polygons, reversed: no gap, no overlap, no T-junction.
 
 - By default each label is its own mesh object, named after the label, with a material of the
   label's colour, all children of one empty (itself a child of the volume object, so moving the
@@ -24,7 +24,7 @@ import numpy as np
 from ..volumeevm_addon import VolumeEVM, VolumeEVMError
 from ..volumeevm_addon.model import Polygons
 from . import jobs, tool_stack
-from .meshes import Faces, fill_mesh, surface_geometry
+from .meshes import Faces, fill_mesh, label_geometry
 from .objects import volume_object
 from .volumes import read_steps, source_of
 
@@ -33,11 +33,9 @@ def _label_steps(uid, path, options, manifold):
     volume = yield from read_steps(uid, path, options)
     yield 0.2, "building every label"
     regions = VolumeEVM.from_labels(volume)  # refused, naming the file, unless integers >= 0
-    meshes = []
-    for number, (label, region) in enumerate(regions.items()):
-        yield 0.3 + 0.6 * number / len(regions), f"meshing {regions.infos[label].name}"
-        co, faces, _ = surface_geometry(region, manifold=manifold)
-        meshes.append((label, co, faces))
+    yield 0.4, f"meshing {len(regions)} labels"
+    meshes = [(label, co, faces)
+              for label, (co, faces) in label_geometry(regions, manifold).items()]
     return regions.infos, meshes
 
 

@@ -84,6 +84,26 @@ def surface_geometry(vevm, previous=None, manifold=False, smooth=False):
     return co, Faces(boundary.polygons, *boundary.edges()), boundary
 
 
+def label_geometry(regions, manifold=False):
+    """Every label's mesh of a label set (:meth:`LabelSet.meshes`: where labels touch, their
+    polygons are the same, reversed), ready for :func:`fill_mesh`.
+
+    Parameters
+    ----------
+    regions : LabelSet
+    manifold : bool
+        The manifold meshes for 3D printing instead.
+
+    Returns
+    -------
+    dict
+        ``label -> (co, Faces)``, vertices in Blender units (float32), in label order.
+    """
+    return {label: ((vertices * BLENDER_UNITS_PER_MM).astype(np.float32),
+                    Faces(polygons, *polygons.unique_edges()))
+            for label, (vertices, polygons) in regions.meshes(manifold=manifold).items()}
+
+
 def _blender_units(vevm, points):
     """Lattice points of ``vevm``'s grid in Blender units, float32 (as Blender keeps them)."""
     return (vevm.corner_positions(points) * BLENDER_UNITS_PER_MM).astype(np.float32)

@@ -41,7 +41,7 @@ class StackState:
     timing: dict = field(default_factory=dict)  # the last refresh: seconds by part, counts
     problem: str = ""  # why the last evaluation failed ("" if it did not)
     labels: object = None  # a label map's LabelSet (the base of a stack on its label objects)
-    labels_shown: dict = field(default_factory=dict)  # label -> region its object shows
+    labels_shown: dict = field(default_factory=dict)  # label -> (co, Faces) its object shows
 
     def remember_tool(self, digest, evm):
         self.tools[digest] = evm

@@ -30,8 +30,10 @@ removes the tool's voxels from every label, Keep Inside and Clip to Box keep eve
 voxels inside the tool, Add gives them to the entry's ``label`` (taking them from the others),
 Keep Largest Part keeps each label's largest part. The base is the label set of the volume's
 file (no VolumeEVM build needed); the same calls, handlers and undo drive it, and each label
-object's mesh is rewritten only when its region changed (a label the stack empties keeps its
-object, with no faces). Apply is for one region only.
+object's mesh is rewritten only when it changed (a label the stack empties keeps its object,
+with no faces). The label meshes are made together (:meth:`LabelSet.meshes`: where labels touch,
+their polygons are the same), so a label's mesh changes too when a neighbour's region does.
+Apply is for one region only.
 
 Undo and redo restore the entries, ``vevm_path`` and the surface mesh with its signature;
 ``undo_post`` / ``redo_post`` re-sync the runtime stacks from those properties (a new
@@ -62,6 +64,7 @@ from .meshes import (
     BOX_FACES,
     Faces,
     fill_mesh,
+    label_geometry,
     refill_mesh,
     sizes,
     surface_geometry,
@@ -736,6 +739,16 @@ def _label_edit(labels, entry, tool, shown):
     return labels.add(tool, entry.to_label)
 
 
+def _same_geometry(a, b):
+    """Whether two ``(co, Faces)`` (or None: no mesh) hold the same vertices and polygons."""
+    if a is None or b is None:
+        return a is b
+    (co_a, faces_a), (co_b, faces_b) = a, b
+    return (np.array_equal(co_a, co_b)
+            and np.array_equal(faces_a.polygons.indices, faces_b.polygons.indices)
+            and np.array_equal(faces_a.polygons.sizes, faces_b.polygons.sizes))
+
+
 def _refresh_labels(vol_obj, state, depsgraph, extra, force, timing):
     """:func:`refresh` of a volume with label objects: the stack on its label set, each label
     object's mesh rewritten where its region changed (None when nothing needed it)."""
@@ -752,7 +765,7 @@ def _refresh_labels(vol_obj, state, depsgraph, extra, force, timing):
     if shown and not force and extra is None:
         return None
     if not state.labels_shown and not any(o.get("volumeevm_stack") for o in objects.values()):
-        state.labels_shown = dict(base)  # the objects show the label set as made
+        state.labels_shown = label_geometry(base)  # the objects show the label set as made
     result = base
     for entry in entries:
         if not entry.enabled:
@@ -766,22 +779,20 @@ def _refresh_labels(vol_obj, state, depsgraph, extra, force, timing):
         timing["evaluate_s"] += time.perf_counter() - start
     if extra is None:
         start = time.perf_counter()
+        meshes = label_geometry(result)  # a label's mesh depends on its neighbours too
         with jobs.transaction():
             for label, obj in objects.items():
-                region = result.get(label)
-                previous = state.labels_shown.get(label)
-                same = (region is None if previous is None
-                        else region is not None and region.evm == previous.evm)
-                if same and obj.get("volumeevm_stack", "") == signature:
+                mesh = meshes.get(label)
+                if (_same_geometry(mesh, state.labels_shown.get(label))
+                        and obj.get("volumeevm_stack", "") == signature):
                     continue
-                if region is None:
+                if mesh is None:
                     none = np.zeros(0, np.int32)
                     faces = Faces(Polygons(none, none, none), np.zeros((0, 2), np.int32), none)
                     refill_mesh(obj.data, np.zeros((0, 3), np.float32), faces)
                 else:
-                    co, faces, _ = surface_geometry(region)
-                    refill_mesh(obj.data, co, faces)
+                    refill_mesh(obj.data, *mesh)
                 jobs.assign_item(obj, "volumeevm_stack", signature)
-        state.labels_shown = {label: result.get(label) for label in objects}
+        state.labels_shown = {label: meshes.get(label) for label in objects}
         timing["mesh_s"] = time.perf_counter() - start
     return result

@@ -45,7 +45,12 @@ def mesh_arrays(mesh):
 def assert_surface_is(surface, vevm, **options):
     """The Blender surface mesh equals the core's mesh of ``vevm`` (made with ``options``, e.g.
     ``smooth=True``) exactly (x 0.001); returns the core's polygons."""
-    verts_mm, polys = vevm.mesh(**options)
+    return assert_mesh_is(surface, *vevm.mesh(**options))
+
+
+def assert_mesh_is(surface, verts_mm, polys):
+    """The Blender surface mesh equals a core mesh (vertices in mm, polygons) exactly (x 0.001);
+    returns the polygons."""
     co, indices, starts, totals = mesh_arrays(surface.data)
     np.testing.assert_array_equal(co, (verts_mm * 0.001).astype(np.float32))
     np.testing.assert_array_equal(indices, polys.indices)

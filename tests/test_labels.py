@@ -404,51 +404,265 @@ def test_touching_labels_meshes_cover_their_contact_exactly_once_from_each_side(
     assert shared > 1000  # the labels do touch, over many faces
 
 
-def _contact_faces(array, p, q):
-    """The voxel faces between labels ``p`` and ``q`` as ``(axis, plane, b, c)``."""
-    faces = set()
-    for axis in range(3):
-        a = np.moveaxis(array, axis, 0)
-        touching = ((a[:-1] == p) & (a[1:] == q)) | ((a[:-1] == q) & (a[1:] == p))
-        faces.update((axis, plane + 1, b, c) for plane, b, c in zip(*np.nonzero(touching)))
-    return faces
+def _lattice(vertices):
+    """Mesh vertices of the default geometry (1 mm voxels at the origin) back on the lattice."""
+    lattice = vertices + 0.5
+    assert np.array_equal(lattice, np.round(lattice))
+    return lattice.astype(np.int64)
 
 
-def _cycles(evm):
-    """Each polygon of an EVM's mesh as its corner cycle (lattice points), from its smallest
-    corner: the same polygon with the opposite orientation is the reversed cycle."""
-    vertices, polygons = evm.mesh()
+def _cycles(mesh):
+    """Each polygon of a mesh (default geometry) as its corner cycle (lattice points), from its
+    smallest corner: the same polygon with the opposite orientation is the reversed cycle."""
+    vertices, polygons = mesh
+    points = [tuple(p) for p in _lattice(vertices).tolist()]
     cycles = []
     for loop in polygons:
-        corners = [tuple(int(x) for x in vertices[i]) for i in loop]
+        corners = [points[i] for i in loop]
         first = corners.index(min(corners))
         cycles.append(tuple(corners[first:] + corners[:first]))
     return cycles
 
 
-def _squares(cycle):
-    """The unit faces a polygon covers, as ``(axis, plane, b, c)``."""
-    corners = np.array(cycle)
-    axis = int(np.flatnonzero(np.ptp(corners, axis=0) == 0)[0])
-    b_axis, c_axis = [a for a in range(3) if a != axis]
-    lo, hi = corners.min(axis=0), corners.max(axis=0)
-    return {(axis, int(lo[axis]), b, c) for b in range(lo[b_axis], hi[b_axis])
-            for c in range(lo[c_axis], hi[c_axis])}
+def _reversed(cycle):
+    return (cycle[0],) + tuple(reversed(cycle[1:]))
 
 
-@pytest.mark.xfail(strict=True, reason="each label's mesh merges its coplanar faces into "
-                   "rectangles on its own: a rectangle can span the contact with one label and "
-                   "faces beside it, so the touching meshes cover the same unit faces (tested "
-                   "above) but not always with the same polygons")
+def _assert_closed(mesh):
+    """Every directed edge of the mesh matched by the opposite one (an edge where voxels touch
+    only along it has two each way)."""
+    vertices, polygons = mesh
+    u, v = polygons.edges()
+    assert not (u == v).any()
+    n = len(vertices)
+    assert np.array_equal(np.sort(u.astype(np.int64) * n + v), np.sort(v.astype(np.int64) * n + u))
+
+
+def _rectangles(mesh):
+    """Each polygon's axis, plane, and extent ``[lo, hi)`` along the two other axes (in
+    increasing axis order), as rows ``(axis, plane, lo b, hi b, lo c, hi c)``."""
+    vertices, polygons = mesh
+    corners = _lattice(vertices)[polygons.indices]
+    lo = np.minimum.reduceat(corners, polygons.starts)
+    hi = np.maximum.reduceat(corners, polygons.starts)
+    axis = np.argmax(lo == hi, axis=1)
+    assert ((lo == hi).sum(axis=1) == 1).all()
+    others = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    rows = np.arange(len(axis))
+    return np.stack([axis, lo[rows, axis], lo[rows, others[:, 0]], hi[rows, others[:, 0]],
+                     lo[rows, others[:, 1]], hi[rows, others[:, 1]]], axis=1)
+
+
+def _face_codes(shape, axis, plane, b, c):
+    """Unit faces ``(axis, plane, b, c)`` of a grid of ``shape`` voxels as distinct integers
+    (``b`` and ``c`` along the other two axes, in increasing axis order)."""
+    n = max(shape) + 1
+    return ((np.asarray(axis, np.int64) * n + plane) * n + b) * n + c
+
+
+def _contacts(array):
+    """The voxel faces between every two touching labels, as :func:`_face_codes`:
+    ``{(p, q): codes}`` with ``p < q``."""
+    found = {}
+    for axis in range(3):
+        a = np.moveaxis(array, axis, 0)
+        plane, b, c = np.nonzero((a[:-1] != a[1:]) & (a[:-1] > 0) & (a[1:] > 0))
+        lo, hi = a[:-1][plane, b, c], a[1:][plane, b, c]
+        codes = _face_codes(array.shape, axis, plane + 1, b, c)
+        for pair in set(zip(np.minimum(lo, hi).tolist(), np.maximum(lo, hi).tolist())):
+            at = (np.minimum(lo, hi) == pair[0]) & (np.maximum(lo, hi) == pair[1])
+            found[pair] = np.concatenate([found.get(pair, np.zeros(0, np.int64)), codes[at]])
+    return found
+
+
+def assert_touching_labels_carry_the_same_polygons(array, meshes):
+    """For every ordered pair of labels ``p, q``: each polygon of ``p``'s mesh that covers a
+    voxel face between them lies wholly within their contact and is, reversed, a polygon of
+    ``q``'s mesh; each mesh is closed and covers its label's boundary once. Returns the number
+    of contact polygons seen."""
+    cycles = {label: _cycles(mesh) for label, mesh in meshes.items()}
+    faces = {}
+    for label, mesh in meshes.items():
+        _assert_closed(mesh)
+        axis, plane, b0, b1, c0, c1 = _rectangles(mesh).T
+        area = (b1 - b0) * (c1 - c0)
+        polygon = np.repeat(np.arange(len(area)), area)  # each unit face's polygon
+        k = np.arange(len(polygon)) - np.repeat(np.cumsum(area) - area, area)
+        width = (c1 - c0)[polygon]
+        codes = _face_codes(array.shape, axis[polygon], plane[polygon], b0[polygon] + k // width,
+                            c0[polygon] + k % width)
+        assert len(np.unique(codes)) == len(codes) == EVM.from_mask(array == label).area()
+        faces[label] = codes, polygon, area
+    contacts = _contacts(array)
+    seen = 0
+    for p, q in itertools.permutations(meshes, 2):
+        codes, polygon, area = faces[p]
+        contact = contacts.get((min(p, q), max(p, q)), np.zeros(0, np.int64))
+        count = np.bincount(polygon[np.isin(codes, contact)], minlength=len(area))
+        touching = np.flatnonzero(count)
+        assert np.array_equal(count[touching], area[touching]), (p, q)  # within the contact
+        theirs = set(cycles[q])
+        assert all(_reversed(cycles[p][k]) in theirs for k in touching), (p, q)
+        seen += len(touching)
+    return seen
+
+
 def test_touching_labels_meshes_carry_the_same_polygons_reversed(liver):
+    """The label meshes (LabelSet.meshes, what Make Label Meshes shows) of the liver crop where
+    three labels meet and of the whole map: every polygon at a contact lies within it and is
+    the neighbour's polygon reversed, vertex for vertex."""
     array, _ = liver
-    crop = array[150:260, 120:230, 40:120]
-    regions = VolumeEVM.from_labels(crop)
-    cycles = {label: _cycles(region.evm) for label, region in regions.items()}
-    for p, q in itertools.permutations(regions, 2):
-        contact = _contact_faces(crop, p, q)
-        reversed_q = {(c[0],) + tuple(reversed(c[1:])) for c in cycles[q]}
-        for cycle in cycles[p]:
-            covered = _squares(cycle)
-            if covered & contact:
-                assert covered <= contact and cycle in reversed_q, (p, q, cycle)
+    for part in (array[150:260, 120:230, 40:120], array):
+        regions = VolumeEVM.from_labels(part)
+        meshes = regions.meshes()
+        assert list(meshes) == list(regions)
+        assert assert_touching_labels_carry_the_same_polygons(part, meshes) > 1000
+
+
+def _face_cycles(rectangles, points):
+    """The cycles of axis-aligned rectangles given as ``(axis, plane, (lo, hi) along the next
+    axis, (lo, hi) along the one after, sign of the normal)``, counter-clockwise seen from
+    outside, with every one of ``points`` that lies strictly inside a side inserted (the
+    T-junction rule), each from its smallest corner."""
+    cycles = set()
+    for axis, plane, (b0, b1), (c0, c1), sign in rectangles:
+        def point(b, c):
+            p = [0, 0, 0]
+            p[axis], p[(axis + 1) % 3], p[(axis + 2) % 3] = plane, b, c
+            return tuple(p)
+
+        corners = [point(b0, c0), point(b1, c0), point(b1, c1), point(b0, c1)]
+        if sign < 0:
+            corners.reverse()
+        loop = []
+        for start, end in zip(corners, corners[1:] + corners[:1]):
+            loop.append(start)
+            step = np.sign(np.subtract(end, start))
+            inside = [x for x in points if np.array_equal(np.sign(np.subtract(x, start)), step)
+                      and np.array_equal(np.sign(np.subtract(end, x)), step)
+                      and np.count_nonzero(np.subtract(x, start)) == 1]
+            loop += sorted(inside, key=lambda x: np.abs(np.subtract(x, start)).sum())
+        first = loop.index(min(loop))
+        cycles.add(tuple(loop[first:] + loop[:first]))
+    return cycles
+
+
+def _box_rectangles(lo, hi):
+    """The six faces of the box ``[lo, hi)`` for :func:`_face_cycles`."""
+    faces = []
+    for axis in range(3):
+        b, c = (axis + 1) % 3, (axis + 2) % 3
+        faces += [(axis, hi[axis], (lo[b], hi[b]), (lo[c], hi[c]), 1),
+                  (axis, lo[axis], (lo[b], hi[b]), (lo[c], hi[c]), -1)]
+    return faces
+
+
+def _all_corners(rectangles):
+    return {corner for cycle in _face_cycles(rectangles, ()) for corner in cycle}
+
+
+def test_two_boxes_of_different_sizes_share_one_polygon():
+    """A 4-voxel cube with a 2 x 2 x 1 box on its side x = 4: that side is the contact square
+    and the four rectangles of the background around it (cut along y first, then z), whose
+    corners on the neighbouring faces' edges are inserted there."""
+    array = np.zeros((7, 6, 6), np.uint8)
+    array[0:4, 0:4, 0:4] = 1
+    array[4:6, 1:3, 1:2] = 2
+    meshes = VolumeEVM.from_labels(array).meshes()
+    cube = [f for f in _box_rectangles((0, 0, 0), (4, 4, 4)) if f[:2] != (0, 4)]
+    side = [(0, 4, (0, 1), (0, 4), 1), (0, 4, (1, 3), (0, 1), 1), (0, 4, (1, 3), (2, 4), 1),
+            (0, 4, (3, 4), (0, 4), 1), (0, 4, (1, 3), (1, 2), 1)]
+    small = _box_rectangles((4, 1, 1), (6, 3, 2))
+    corners = _all_corners(cube + side + small)
+    assert set(_cycles(meshes[1])) == _face_cycles(cube + side, corners)
+    assert set(_cycles(meshes[2])) == _face_cycles(small, corners)
+    assert len(meshes[1][1]) == 10 and len(meshes[2][1]) == 6
+    contact = _face_cycles([side[-1]], corners).pop()
+    assert contact == ((4, 1, 1), (4, 3, 1), (4, 3, 2), (4, 1, 2))
+    assert _reversed(contact) in _cycles(meshes[2])
+    assert assert_touching_labels_carry_the_same_polygons(array, meshes) == 2
+    # A label's own mesh merges the cube's side into one square, across the contact.
+    assert len(VolumeEVM.from_labels(array)[1].mesh()[1]) == 6
+
+
+def test_a_slab_under_a_checkerboard_of_two_labels():
+    """Label 1 fills x < 2 of a 6 x 6 cross-section; above it, blocks of 2 x 2 x 2 voxels
+    alternate between labels 2 and 3. The slab's top is cut into the nine blocks' squares (no
+    merging across a change of neighbour), its four sides take the blocks' corners on their top
+    edges, and every block is its six squares."""
+    array = np.ones((4, 6, 6), np.uint8)
+    blocks = {2: [], 3: []}
+    for yb, zb in itertools.product(range(3), range(3)):
+        label = 2 + (yb + zb) % 2
+        array[2:4, 2 * yb:2 * yb + 2, 2 * zb:2 * zb + 2] = label
+        blocks[label].append(((2, 2 * yb, 2 * zb), (4, 2 * yb + 2, 2 * zb + 2)))
+    meshes = VolumeEVM.from_labels(array).meshes()
+    slab = [f for f in _box_rectangles((0, 0, 0), (2, 6, 6)) if f[:2] != (0, 2)]
+    slab += [(0, 2, (y, y + 2), (z, z + 2), 1) for y, z in itertools.product((0, 2, 4), repeat=2)]
+    expected = {1: slab, 2: [], 3: []}
+    for label, boxes in blocks.items():
+        for lo, hi in boxes:
+            expected[label] += _box_rectangles(lo, hi)
+    corners = _all_corners([f for faces in expected.values() for f in faces])
+    for label, faces in expected.items():
+        assert sorted(_cycles(meshes[label])) == sorted(_face_cycles(faces, corners)), label
+    assert [len(meshes[label][1]) for label in (1, 2, 3)] == [14, 30, 24]
+    sides = [c for c in _cycles(meshes[1]) if len(c) == 6]
+    assert len(sides) == 4  # each side: 4 corners and the 2 block corners on its top edge
+    assert assert_touching_labels_carry_the_same_polygons(array, meshes) == 2 * (9 + 12)
+
+
+def test_one_label_alone_gets_its_own_mesh_exactly():
+    """With nothing to agree with, a label's mesh is EVM.mesh's, array for array."""
+    mask = np.random.default_rng(4).random((12, 11, 10)) < 0.5
+    (label, (vertices, polygons)), = VolumeEVM.from_labels(mask.astype(np.uint8)).meshes().items()
+    lattice, own = EVM.from_mask(mask).mesh()
+    assert np.array_equal(vertices, lattice - 0.5)
+    for field in ("indices", "starts", "sizes"):
+        assert np.array_equal(getattr(polygons, field), getattr(own, field))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_label_maps_carry_the_same_polygons(seed):
+    array = np.random.default_rng(seed).integers(0, 3 + seed, (9, 8, 7))  # 2 to 5 labels
+    meshes = VolumeEVM.from_labels(array).meshes()
+    assert assert_touching_labels_carry_the_same_polygons(array, meshes) > 0
+
+
+def test_manifold_and_smooth_label_meshes(liver):
+    """The label meshes made 2-manifold (for 3D printing) and smooth (for display), label by
+    label: each is the core's split, or relaxation, of that label's mesh."""
+    from test_manifold import assert_near_lattice, assert_two_manifold
+    from test_smooth_mesh import walk_faces
+
+    array, _ = liver
+    regions = VolumeEVM.from_labels(array[150:260, 120:230, 40:120])
+    exact = {label: (vertices + 0.5, polygons)
+             for label, (vertices, polygons) in regions.meshes().items()}
+    for label, (vertices, polygons) in regions.meshes(manifold=True).items():
+        assert_two_manifold(vertices, polygons)
+        assert_near_lattice((vertices + 0.5, polygons), exact[label])
+    for label, (vertices, polygons) in regions.meshes(smooth=True).items():
+        moved = vertices + 0.5
+        centres = walk_faces(exact[label], (moved, polygons))
+        offset = np.abs(moved - np.concatenate([exact[label][0], centres]))
+        assert 0.1 < offset.max() <= 0.5 + 1e-12
+
+
+def test_overlapping_segments_each_get_a_closed_mesh_of_their_own_faces(data_dir):
+    """The Slicer segmentation in two layers, whose segments overlap: each segment's mesh is
+    closed and covers its own boundary once, whatever lies across it."""
+    from volumeevm_addon import read_volume
+
+    path = data_dir / "slicer" / "SegmentationOverlapping.seg.nrrd"
+    regions = VolumeEVM.from_labels(read_volume(path))
+    masks = {label: region.evm.to_mask(region.shape) for label, region in regions.items()}
+    assert any((masks[p] & masks[q]).any() for p, q in itertools.combinations(masks, 2))
+    for label, (vertices, polygons) in regions.meshes().items():
+        matrix = regions[label].index_to_physical()
+        lattice = np.linalg.solve(matrix[:3, :3], (vertices - matrix[:3, 3]).T).T + 0.5
+        assert np.abs(lattice - np.round(lattice)).max() < 1e-6
+        mesh = np.round(lattice) - 0.5, polygons  # as in the default geometry
+        _assert_closed(mesh)
+        r = _rectangles(mesh)
+        assert ((r[:, 3] - r[:, 2]) * (r[:, 5] - r[:, 4])).sum() == regions[label].evm.area()

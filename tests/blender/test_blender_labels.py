@@ -1,6 +1,7 @@
 """Label maps in the real bpy: a Slicer segmentation becomes named, coloured mesh objects (one
-per segment, each exactly the core's mesh), or one mesh with a material per label; a volume that
-is not a label map is refused with the scene left as it was.
+per segment, each exactly the core's label mesh, LabelSet.meshes: touching segments share their
+polygons), or one mesh with a material per label; a volume that is not a label map is refused
+with the scene left as it was.
 
 Runs under both pinned bpy versions (4.5 on Python 3.11, 5.2 on Python 3.13).
 """
@@ -9,7 +10,7 @@ import bpy
 import numpy as np
 import pytest
 
-from blender_helpers import assert_surface_is, mesh_arrays
+from blender_helpers import assert_mesh_is, mesh_arrays
 
 
 @pytest.fixture
@@ -26,10 +27,11 @@ def test_a_segmentation_becomes_one_named_coloured_object_per_segment(api, core,
     collection = bpy.data.collections["Segmentation.seg labels"]
     parent = bpy.data.objects["Segmentation.seg labels"]
     assert parent.parent == vol and parent.name in collection.objects
-    for obj, (label, region) in zip(made, regions.items()):
+    meshes = regions.meshes()
+    for obj, label in zip(made, regions):
         assert obj.parent == parent and obj.name in collection.objects
         assert obj["volumeevm_label"] == label
-        assert_surface_is(obj, region)  # exactly the core's mesh of that label
+        assert_mesh_is(obj, *meshes[label])  # exactly the core's label mesh
         color = volume.labels[label].color
         assert tuple(obj.color)[:3] == pytest.approx(color, abs=1e-6)
         material = obj.data.materials[0]
@@ -48,7 +50,8 @@ def test_one_mesh_with_a_material_and_a_label_per_face(api, core, segmentation):
     vol = api.import_volume(segmentation)
     (obj,) = api.make_label_meshes(vol, single_mesh=True)
     regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
-    counts = [len(region.mesh()[1]) for region in regions.values()]
+    meshes = list(regions.meshes().values())
+    counts = [len(polygons) for _, polygons in meshes]
     mesh = obj.data
     labels = np.empty(len(mesh.polygons), np.int32)
     mesh.attributes["label"].data.foreach_get("value", labels)
@@ -58,9 +61,8 @@ def test_one_mesh_with_a_material_and_a_label_per_face(api, core, segmentation):
     names = [mesh.materials[s].name for s in slots[np.cumsum(counts) - 1]]
     assert names == [f"Segmentation.seg {regions.infos[label].name}" for label in regions]
     co, indices, _, _ = mesh_arrays(mesh)
-    first_vertices = len(regions[next(iter(regions))].mesh()[0])
-    np.testing.assert_array_equal(
-        co[:first_vertices], (regions[next(iter(regions))].mesh()[0] * 0.001).astype(np.float32))
+    first_vertices = len(meshes[0][0])
+    np.testing.assert_array_equal(co[:first_vertices], (meshes[0][0] * 0.001).astype(np.float32))
 
 
 def test_a_volume_that_is_not_a_label_map_is_refused_and_nothing_changes(api, core, data_dir):
@@ -98,9 +100,8 @@ def test_manifold_label_meshes_for_3d_printing(api, core, segmentation):
     assert sum(_non_manifold_edges(obj) for obj in api.make_label_meshes(vol)) > 0  # plain
     made = api.make_label_meshes(vol, manifold=True)
     regions = core.VolumeEVM.from_labels(core.read_volume(segmentation))
-    for obj, region in zip(made, regions.values()):
-        vertices, polygons = region.mesh(manifold=True)
-        assert len(obj.data.vertices) == len(vertices) and len(obj.data.polygons) == len(polygons)
+    for obj, (vertices, polygons) in zip(made, regions.meshes(manifold=True).values()):
+        assert_mesh_is(obj, vertices, polygons)
         assert _non_manifold_edges(obj) == 0, obj.name
 
 
@@ -111,8 +112,8 @@ def test_a_segmentation_in_layers_becomes_one_object_per_segment(api, core, data
     made = api.make_label_meshes(vol)
     regions = core.VolumeEVM.from_labels(core.read_volume(path))
     assert [o.name for o in made][-2:] == ["tissue", "overlapping sphere"]
-    for obj, region in zip(made, regions.values()):
-        assert_surface_is(obj, region)  # every segment its exact solid, overlaps and all
+    for obj, (vertices, polygons) in zip(made, regions.meshes().values()):
+        assert_mesh_is(obj, vertices, polygons)  # every segment its exact solid, overlaps and all
     assert made[-1]["volumeevm_label"] == 8
 
 
@@ -181,9 +182,10 @@ def test_tools_cut_keep_and_add_on_every_label_live(ext, api, core, data_dir, se
                       at=world_of_voxel(core, grid, (64, 70, 17), vol))
 
     def assert_objects_show(expected):
+        meshes = expected.meshes()  # each label's mesh depends on its neighbours too
         for label, obj in made.items():
             if label in expected:
-                assert_surface_is(obj, expected[label])
+                assert_mesh_is(obj, *meshes[label])
             else:
                 assert len(obj.data.polygons) == len(obj.data.vertices) == 0, obj.name
 

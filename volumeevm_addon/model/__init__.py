@@ -9,6 +9,8 @@ Blender's units. One private module per concept:
 - ``_evm.py``: the Extreme Vertices Model of a voxel region (:class:`~volumeevm_addon.EVM`).
 - ``_sweep.py``: plane sweeps over sorted extreme vertices (compiled kernels): Booleans, boxes.
 - ``_mesh.py``: the boundary of an EVM as a closed, outward polygon mesh with merged faces.
+- ``_label_mesh.py``: the meshes of a label set's regions made together, so that touching
+  labels carry the same polygons (reversed) at their contact.
 - ``_manifold.py``: that mesh made 2-manifold (for 3D printing): non-manifold edges and
   vertices split.
 - ``_smooth.py``: that mesh relaxed into a smooth display surface within half a voxel.

@@ -15,8 +15,11 @@ from collections.abc import Mapping
 import numpy as np
 
 from .._errors import VolumeEVMError
+from ._label_mesh import label_meshes
 from ._label_table import default_label_info
+from ._manifold import split_non_manifold
 from ._measure import measure_labels, write_measurements_csv
+from ._smooth import smooth_mesh
 
 
 class LabelSet(Mapping):
@@ -73,6 +76,53 @@ class LabelSet(Mapping):
 
     def __repr__(self):
         return f"LabelSet({len(self)} labels: {', '.join(str(label) for label in self)})"
+
+    # ------------------------------------------------------------------ meshes
+    def meshes(self, manifold=False, smooth=False):
+        """Every label's boundary mesh in physical mm, made together so that where two labels
+        touch their meshes carry the same polygons, reversed (see :mod:`._label_mesh`).
+
+        A label's own :meth:`VolumeEVM.mesh` merges its faces by itself: the same surface, but
+        a polygon of it may span a contact and the faces beside it. These are the meshes to
+        show or export a label map with.
+
+        Parameters
+        ----------
+        manifold : bool
+            Each mesh made 2-manifold for 3D printing (:meth:`EVM.mesh`); split vertices move
+            by 1e-3 voxel, so contacts no longer share them exactly.
+        smooth : bool
+            Each mesh relaxed into a smooth display surface (:meth:`EVM.mesh`), label by label.
+
+        Returns
+        -------
+        dict
+            ``label -> (vertices, polygons)`` in increasing label order, as
+            :meth:`VolumeEVM.mesh` returns them: closed, outward, vertices in mm.
+
+        Raises
+        ------
+        VolumeEVMError
+            When the meshes would need more memory than is available.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from volumeevm_addon import VolumeEVM
+        >>> array = np.zeros((4, 4, 4), np.uint8); array[:2] = 1; array[2:, 1:3, 1:3] = 2
+        >>> meshes = VolumeEVM.from_labels(array).meshes()
+        >>> [len(polygons) for _, polygons in meshes.values()]  # label 1's side x = 2 in 5 parts
+        [10, 6]
+        """
+        lattice = label_meshes([region.evm for region in self._regions.values()])
+        out = {}
+        for (label, region), (vertices, polygons) in zip(self._regions.items(), lattice):
+            if manifold:
+                vertices, polygons = split_non_manifold(vertices, polygons)
+            if smooth:
+                vertices, polygons = smooth_mesh(vertices, polygons)
+            out[label] = region.corner_positions(vertices), polygons
+        return out
 
     # ------------------------------------------------------------------ measurements
     def measure(self):
