@@ -33,6 +33,7 @@ from ..volumeevm_addon import (
     read_volume,
 )
 from . import jobs, runtime, sidecar
+from .label_table import store_labels
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object
 from .tool_stack import refresh_quietly
@@ -138,6 +139,10 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         s.histogram = counts.tolist()
         s.threshold = threshold
         s.upper = hi
+        if vol.is_label_map:
+            store_labels(obj, vol.labels)
+            if vol.labels:  # Build's region holds every label
+                s.threshold = min(vol.labels)
         link(context, obj)
         runtime.put_volume(s.uid, vol)
         runtime.forget_except({o.volumeevm.uid for o in bpy.data.objects})
