@@ -6,7 +6,9 @@ button give the same objects.
 
 - ``import_volume`` makes a *volume object*: a wire box around the grid, in physical
   millimetres scaled by :data:`BLENDER_UNITS_PER_MM` (1 mm = 0.001 BU), LPS axes = Blender X, Y, Z,
-  object matrix identity. The dense array stays in a runtime cache (not in the .blend).
+  object matrix identity. The dense array stays in a runtime cache (not in the .blend). A label
+  map's label table goes on the object (:mod:`.label_table`), its threshold at the smallest
+  label so that ``build`` holds every label.
 - ``build`` makes the VolumeEVM of ``threshold <= density (<= upper)`` and keeps it in a sidecar
   ``.vevm`` file (see :mod:`.sidecar`).
 - ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
