@@ -20,6 +20,8 @@ imports the core, never the reverse. One module per concept:
 - ``images.py``: Image datablocks and image files written inside a job's transaction.
 - ``exr.py``: OpenEXR through the core, or through Blender's OpenImageIO.
 - ``transfer.py``: the transfer function as the Render settings' colour ramp.
+- ``label_table.py``: a label map's label table on its volume object (colour, opacity, shown)
+  and the categorical transfer function the renderers take from it.
 - ``compositor.py``: the compositor set-up for F12 and its stale-image check.
 - ``sidecar.py``: where VolumeEVM files live beside the .blend, and the save/load handlers.
 - ``jobs.py``: long work as steps and an all-or-nothing commit; the operators' job mix-in.

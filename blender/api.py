@@ -31,6 +31,13 @@ material from the Render settings' transfer function (both follow their changes)
 
     native = api.make_volume_object(vol)
 
+A label map's look in the volume renders (its labels' colours by default, saved in the .blend)::
+
+    seg = api.import_volume("/data/seg.seg.nrrd"); api.build(seg, seg.volumeevm.threshold)
+    api.set_label(seg, 3, visible=False)            # hide the skin, show the organs
+    api.set_label(seg, 5, color=(1, 0, 0), opacity=0.8)
+    result = api.render_dvr(seg)                    # the label colours (no tf given)
+
 Direct volume rendering into the scene::
 
     from bl_ext.user_default.volumeevm.volumeevm_addon import TransferFunction
@@ -43,6 +50,7 @@ scene as it was. Under ``blender --background`` progress lines ``[volumeevm] 42%
 are printed. Each function is documented where it lives: :mod:`.volumes` (import, build, mesh),
 :mod:`.labels` (label maps), :mod:`.tool_stack` (CAD tools), :mod:`.framing` (camera),
 :mod:`.dvr` (rendering), :mod:`.transfer` (the Render settings' transfer function),
+:mod:`.label_table` (a label map's colours),
 :mod:`.compositor` (F12).
 """
 
@@ -55,6 +63,7 @@ import bpy
 from .compositor import setup_compositor
 from .dvr import DVRResult, render_dvr, render_dvr_animation
 from .framing import enclosing_objects, frame_volume, hide_enclosing
+from .label_table import get_label, label_transfer_function, set_label
 from .labels import export_label_measurements, make_label_meshes, measure_labels
 from .native_volume import make_volume_object
 from .objects import get_vevm, volume_object
@@ -67,11 +76,17 @@ from .tool_stack import (
     stack_state,
     tool_problem,
 )
-from .transfer import load_preset, set_transfer_function, transfer_function
+from .transfer import (
+    load_preset,
+    set_transfer_function,
+    transfer_function,
+    volume_transfer_function,
+)
 from .volumes import build, get_volume, import_volume, make_mesh
 
 __all__ = ["import_volume", "build", "make_mesh", "make_label_meshes", "measure_labels",
-           "export_label_measurements", "make_volume_object", "volume_object", "get_vevm",
+           "export_label_measurements", "set_label", "get_label", "label_transfer_function",
+           "volume_transfer_function", "make_volume_object", "volume_object", "get_vevm",
            "get_volume",
            "add_tool", "evaluate", "apply_stack", "remove_tool", "move_tool", "tool_problem",
            "stack_state", "render_dvr", "render_dvr_animation", "DVRResult",

@@ -47,7 +47,7 @@ from .camera import camera_from_blender
 from .objects import get_vevm, own_surface, render_volume, volume_object
 from .scene import SceneRender, render_layer, render_scene
 from .tool_stack import evaluate
-from .transfer import ensure_ramp, transfer_function
+from .transfer import ensure_ramp, volume_transfer_function
 
 #: Name of the composite Image datablock (the DVR alone is ``DEFAULT_IMAGE + " DVR"``).
 DEFAULT_IMAGE = "VolumeEVM Render"
@@ -240,7 +240,7 @@ def job_arguments(context, settings, volume_name=""):
             raise VolumeEVMError("choose the volume to render (or select one)")
     vol = volume_object(vol)
     ensure_ramp(settings)
-    tf = transfer_function(settings)
+    tf = volume_transfer_function(settings, vol)
     return vol, tf, dict(
         method=settings.method, mode=settings.mode,
         options=settings_options(settings, vol, settings.method),
@@ -250,8 +250,8 @@ def job_arguments(context, settings, volume_name=""):
         overwrite=settings.overwrite, hide_surface=settings.hide_surface)
 
 
-def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", options=None,
-               camera_object=None, image_name=DEFAULT_IMAGE, exr_path="", png_path="",
+def render_dvr(volume_obj, tf=None, *, scene=None, method="raycast", mode="over",
+               options=None, camera_object=None, image_name=DEFAULT_IMAGE, exr_path="", png_path="",
                overwrite=False, hide_surface=True):
     """Render a volume object's VolumeEVM into the scene: scene pass, DVR, composite, image.
 
@@ -259,9 +259,11 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
     ----------
     volume_obj : bpy.types.Object
         A volume object (or its surface) with a built VolumeEVM.
-    tf : TransferFunction
+    tf : TransferFunction, optional
         Classification in the data's own units (``TransferFunction.preset(...)``, or
-        :func:`.transfer.transfer_function` for the sidebar's colour ramp).
+        :func:`.transfer.transfer_function` for the sidebar's colour ramp). Default: what the
+        sidebar renders the volume with (:func:`.transfer.volume_transfer_function`: a label
+        map's label colours, else the scene's colour ramp).
     scene : bpy.types.Scene, optional
         Default: the context's scene.
     method, mode : str
@@ -296,13 +298,17 @@ def render_dvr(volume_obj, tf, *, scene=None, method="raycast", mode="over", opt
         after it).
     """
     scene = bpy.context.scene if scene is None else scene
+    if tf is None:
+        settings = scene.volumeevm_render
+        ensure_ramp(settings)
+        tf = volume_transfer_function(settings, volume_object(volume_obj))
     return jobs.run(render_dvr_job(
         scene, volume_obj, tf, method=method, mode=mode, options=options,
         camera_object=camera_object, image_name=image_name, exr_path=exr_path,
         png_path=png_path, overwrite=overwrite, hide_surface=hide_surface))
 
 
-def render_dvr_animation(volume_obj, tf, *, scene=None, frames=None, exr_path="", png_path="",
+def render_dvr_animation(volume_obj, tf=None, *, scene=None, frames=None, exr_path="", png_path="",
                          overwrite=False, **options):
     """Render VolumeEVM for every frame: frame set, scene pass, DVR, composite, files.
 

@@ -2,7 +2,8 @@
 
 With the Render settings' Viewport DVR on (``Scene.volumeevm_render.viewport``), every 3D
 viewport draws each selected volume (the tool stack's live result when it has tools) after the
-scene (``POST_VIEW``), with the Render settings' transfer function, mode, quality, resolution
+scene (``POST_VIEW``), with the Render settings' transfer function (a label map: its label
+colours, :func:`.transfer.volume_transfer_function`), mode, quality, resolution
 level and early termination, through the GPU method's one draw routine
 (:func:`.gpu_dvr.draw`):
 
@@ -53,7 +54,7 @@ from ..volumeevm_addon.rendering import axial_from_window, camera_from_viewport
 from . import display_lut, gpu_dvr, runtime
 from .dvr import settings_options
 from .objects import get_vevm, volume_object
-from .transfer import transfer_function
+from .transfer import volume_transfer_function
 
 #: While a view moves the viewport casts one ray per ``MOVING_PIXEL²`` pixels, each with a step
 #: ``MOVING_STEP`` times the Render settings': on llvmpipe the CT head's frame took 84 ms instead
@@ -222,26 +223,22 @@ def draw_view(scene, volumes, key, size, projection, view_matrix):
     settings = getattr(scene, "volumeevm_render", None)
     if settings is None or not settings.viewport or not volumes:
         return
-    try:
-        tf = None if settings.mode == "xray" else transfer_function(settings)
-    except VolumeEVMError as error:
-        _problems.update((vol.name, str(error)) for vol in volumes)
-        return
     shown = []
     for vol in volumes:
         try:
-            shown.append((vol, _live_vevm(vol)))
-        except VolumeEVMError as error:  # e.g. imported, no VolumeEVM built yet
+            tf = None if settings.mode == "xray" else volume_transfer_function(settings, vol)
+            shown.append((vol, _live_vevm(vol), tf))
+        except VolumeEVMError as error:  # e.g. no ramp yet, no VolumeEVM built yet
             _problems[vol.name] = str(error)
     signature = (tuple(map(tuple, projection)), tuple(map(tuple, view_matrix)), tuple(size),
                  tuple((vol.name, tuple(map(tuple, vol.matrix_world)), id(vevm))
-                       for vol, vevm in shown))
+                       for vol, vevm, _ in shown))
     display, _ = display_lut.table(scene)
     wait = _motion.observe(key, signature, time.monotonic())
     moving = wait > 0.0 and settings.viewport_fast
     if moving:
         _redraw_after(wait)
-    for vol, vevm in shown:
+    for vol, vevm, tf in shown:
         try:
             options = draw_options(settings_options(settings, vol, gpu_dvr.METHOD), moving)
             _levels[vol.name] = draw_volume(vevm, tf, projection, view_matrix, size,

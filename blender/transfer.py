@@ -4,13 +4,15 @@ The ramp is a Blend texture's ``color_ramp``: element position ``p`` stands for 
 ``lo + p (hi - lo)`` in the data's own units (``value_lo``, ``value_hi``), its colour for the
 straight colour and its alpha for the opacity per ``unit_length_mm`` mm of ray.
 :func:`transfer_function` reads it as the core's :class:`TransferFunction`;
-:func:`set_transfer_function` and :func:`load_preset` write one into it.
+:func:`set_transfer_function` and :func:`load_preset` write one into it. A label map is rendered
+with its own label table instead (:func:`volume_transfer_function`, :mod:`.label_table`).
 """
 
 import bpy
 import numpy as np
 
 from ..volumeevm_addon import PRESETS, TransferFunction, VolumeEVMError
+from .label_table import label_transfer_function, uses_labels
 from .objects import render_volume
 
 #: The Hounsfield range the CT presets are written for; stretched onto a volume's value range
@@ -63,6 +65,33 @@ def transfer_function(settings):
     values = lo + (positions + nudge) * (hi - lo)
     points = np.column_stack([values, colours])
     return TransferFunction(points, unit_length_mm=settings.unit_length_mm, name=settings.preset)
+
+
+def volume_transfer_function(settings, vol_obj):
+    """The transfer function ``vol_obj`` is rendered with: its label table's categorical one
+    for a label map that uses its label colours (:func:`.label_table.uses_labels`; opacity per
+    the settings' ``unit_length_mm``), else the settings' colour ramp (:func:`transfer_function`).
+    Render VolumeEVM, :func:`.dvr.render_dvr` without a ``tf`` and the Viewport DVR use it.
+
+    Parameters
+    ----------
+    settings : VolumeEVMRenderSettings
+        The scene's Render settings (``scene.volumeevm_render``).
+    vol_obj : bpy.types.Object or None
+        The volume object to render.
+
+    Returns
+    -------
+    TransferFunction
+
+    Raises
+    ------
+    VolumeEVMError
+        As :func:`transfer_function` (no ramp yet, a bad value range).
+    """
+    if uses_labels(vol_obj):
+        return label_transfer_function(vol_obj, unit_length_mm=settings.unit_length_mm)
+    return transfer_function(settings)
 
 
 def load_preset(settings, name, vol_obj=None, *, stretch=None):

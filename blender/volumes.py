@@ -11,6 +11,8 @@ button give the same objects.
   its coarsest level (for the histogram and the suggested threshold); the object keeps the
   store's path, its levels (``zarr_levels``, JSON) and the level, channel and time to build
   (``level`` and ``reader_options``), all saved in the .blend.
+  A label map's label table goes on the object (:mod:`.label_table`), its threshold at the
+  smallest label so that ``build`` holds every label.
 - ``build`` makes the VolumeEVM of ``threshold <= density (<= upper)`` and keeps it in a sidecar
   ``.vevm`` file (see :mod:`.sidecar`).
 - ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
@@ -40,6 +42,7 @@ from ..volumeevm_addon import (
 )
 from ..volumeevm_addon.model import BLENDER_UNITS_PER_MM, chunked_build_memory, index_to_physical
 from . import jobs, runtime, sidecar
+from .label_table import store_labels
 from .meshes import fill_mesh, surface_geometry, wire_mesh
 from .objects import attach_surface, link, require_enabled, volume_object
 from .preview import Preview
@@ -187,6 +190,10 @@ def import_job(context, path, *, name=None, units=None, **reader_options):
         s.histogram = counts.tolist()
         s.threshold = threshold
         s.upper = hi
+        if vol.is_label_map:
+            store_labels(obj, vol.labels)
+            if vol.labels:  # Build's region holds every label
+                s.threshold = min(vol.labels)
         link(context, obj)
         if not levels:  # a store's levels are read chunk by chunk when built, never kept
             runtime.put_volume(s.uid, vol)

@@ -135,6 +135,22 @@ def _level_picked(settings, context):
     settings.spacing = picked["spacing"]
 
 
+class VolumeEVMLabel(bpy.types.PropertyGroup):
+    """One label of a label map as the volume renders show it (``Object.volumeevm.labels``,
+    filled on import, :mod:`..blender.label_table`); a change redraws the viewports."""
+
+    label: IntProperty(name="Label", description="The label's value in the label map")
+    name: StringProperty(name="Name", description="The label's name from the file")
+    color: FloatVectorProperty(name="Colour", size=3, subtype="COLOR", min=0.0, max=1.0,
+                               update=gpu_viewport.redraw,
+                               description="The label's colour in the volume renders")
+    opacity: FloatProperty(name="Opacity", min=0.0, max=1.0, default=0.5,
+                           update=gpu_viewport.redraw,
+                           description="The label's opacity per Opacity Length of ray")
+    show: BoolProperty(name="Show", default=True, update=gpu_viewport.redraw,
+                       description="Show the label in the volume renders (off: transparent)")
+
+
 class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     """Per-object VolumeEVM state (``Object.volumeevm``).
 
@@ -196,6 +212,14 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
     label_measurement_index: IntProperty(
         name="Picked Label", default=-1, update=_label_row_picked,
         description="The row picked in the list: selects the label's object")
+    labels: CollectionProperty(
+        name="Label Colours", type=VolumeEVMLabel,
+        description="A label map's labels: the colour and opacity the volume renders give each")
+    label_index: IntProperty(name="Active Label", default=0)
+    use_label_colors: BoolProperty(
+        name="Label Colours", default=True, update=gpu_viewport.redraw,
+        description="Render the label map with its labels' colours and opacities (each sample "
+                    "the nearest voxel's label); off: with the Render settings' colour ramp")
     units: StringProperty(
         name="Units",
         description="The data's units (e.g. HU), as the file said unless you set them; CT "
@@ -406,5 +430,5 @@ class VolumeEVMRenderSettings(bpy.types.PropertyGroup):
 
 
 CLASSES = [VolumeEVMSceneSettings, VolumeEVMToolEntry, VolumeEVMLabelMeasurement,
-           VolumeEVMObjectSettings,
+           VolumeEVMLabel, VolumeEVMObjectSettings,
            VolumeEVMRenderSettings]

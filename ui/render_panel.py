@@ -1,10 +1,12 @@
 """The sidebar's Render section: the settings of ``Scene.volumeevm_render`` (``props.py``), the
-transfer function's colour ramp with the volume's histogram beside it, the render buttons."""
+transfer function's colour ramp with the volume's histogram beside it (a label map: its label
+list, each label's visibility, colour and opacity), the render buttons."""
 
 import bpy
 
 from ..blender import gpu_viewport, jobs
 from ..blender.compositor import stale_dvr
+from ..blender.label_table import uses_labels
 from ..blender.objects import render_volume
 from ..blender.transfer import preset_note
 from ..volumeevm_addon.rendering import render_options
@@ -64,27 +66,13 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
 
         box = layout.box()
         box.label(text="Transfer Function", icon="COLOR")
-        row = box.row(align=True)
-        row.prop(settings, "preset", text="")
-        row.operator("volumeevm.load_tf_preset", text="", icon="FILE_REFRESH")
-        box.prop(settings, "preset_stretch")
-        note = preset_note(settings, vol)
-        if note:
-            box.label(text=note, icon="ERROR" if not settings.preset_stretch else "INFO")
-        if settings.ramp is not None and settings.ramp.color_ramp is not None:
-            box.template_color_ramp(settings.ramp, "color_ramp", expand=True)
+        if vol is not None and len(vol.volumeevm.labels):
+            box.prop(vol.volumeevm, "use_label_colors")
+        if uses_labels(vol):
+            draw_label_colors(box, vol)
         else:
-            box.label(text="Load a preset to edit the ramp")
-        units = vol.volumeevm.units if vol is not None else ""
-        row = box.row(align=True)
-        row.prop(settings, "value_lo", text="")
-        row.prop(settings, "value_hi", text="")
-        if units:
-            row.label(text=units)
+            draw_ramp(box, context, settings, vol)
         box.prop(settings, "unit_length_mm", text="Alpha per mm")
-        if vol is not None:
-            draw_histogram(box, context, vol.volumeevm, HISTOGRAM_ROWS, low=settings.value_lo,
-                           high=settings.value_hi)
 
         col = layout.column(align=True)
         col.prop(settings, "image_name")
@@ -114,4 +102,52 @@ class VOLUMEEVM_PT_render(bpy.types.Panel):
             layout.label(text="The scene has no camera", icon="ERROR")
 
 
-CLASSES = [VOLUMEEVM_PT_render]
+def draw_ramp(box, context, settings, vol):
+    """The colour ramp's part of the Transfer Function box: preset, ramp, value range and the
+    volume's histogram beside it."""
+    row = box.row(align=True)
+    row.prop(settings, "preset", text="")
+    row.operator("volumeevm.load_tf_preset", text="", icon="FILE_REFRESH")
+    box.prop(settings, "preset_stretch")
+    note = preset_note(settings, vol)
+    if note:
+        box.label(text=note, icon="ERROR" if not settings.preset_stretch else "INFO")
+    if settings.ramp is not None and settings.ramp.color_ramp is not None:
+        box.template_color_ramp(settings.ramp, "color_ramp", expand=True)
+    else:
+        box.label(text="Load a preset to edit the ramp")
+    units = vol.volumeevm.units if vol is not None else ""
+    row = box.row(align=True)
+    row.prop(settings, "value_lo", text="")
+    row.prop(settings, "value_hi", text="")
+    if units:
+        row.label(text=units)
+    if vol is not None:
+        draw_histogram(box, context, vol.volumeevm, HISTOGRAM_ROWS, low=settings.value_lo,
+                       high=settings.value_hi)
+
+
+class VOLUMEEVM_UL_label_colors(bpy.types.UIList):
+    """A label map's labels as the volume renders show them: shown, colour, name, opacity."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname,
+                  index=0, flt_flag=0):
+        row = layout.row(align=True)
+        row.prop(item, "show", text="", emboss=False,
+                 icon="HIDE_OFF" if item.show else "HIDE_ON")
+        sub = row.row(align=True)
+        sub.active = item.show
+        sub.prop(item, "color", text="")
+        sub.label(text=item.name)
+        sub.prop(item, "opacity", text="", slider=True)
+
+
+def draw_label_colors(box, vol):
+    """A label map's part of the Transfer Function box: its label list."""
+    s = vol.volumeevm
+    box.template_list("VOLUMEEVM_UL_label_colors", "", s, "labels", s, "label_index",
+                      rows=min(8, len(s.labels)))
+    box.label(text="Each sample takes its nearest voxel's label", icon="INFO")
+
+
+CLASSES = [VOLUMEEVM_UL_label_colors, VOLUMEEVM_PT_render]
