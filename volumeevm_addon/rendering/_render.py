@@ -61,11 +61,9 @@ frame (3840 x 2160) of a 512³ volume at the ray casters' default step (half a v
 _IMAGE_BYTES_PER_PIXEL = 20
 """The float32 RGBA image and depth every method returns."""
 _GRID_BYTES = {
-    # padded complex64 sampling table written in place, and the region mask (the space-leaping
-    # blocks, made first, need less: a float32 grid and the mask, filtered a plane at a time)
-    "raycast": 10,
-    # no dense table; the block grid is made through a temporary float32 grid and the mask
-    "raycast_navigate": 7,
+    # the ray casters' tables follow the region, not the grid: _raycast.table_bytes
+    "raycast": 0,
+    "raycast_navigate": 0,
     # the region's runs come from the EVM's boxes beside the axis's densities table
     # (_TABLE_METHODS); post-classification's mixed codes take an int32 grid per axis; with
     # skip_empty=False the dense layout made for each render: the transposed dense grid, its
@@ -81,9 +79,10 @@ _GRID_BYTES = {
 _TABLE_METHODS = ("shear_warp", "splat")
 """Methods that read the densities table of the principal axis (:meth:`VolumeEVM.table`),
 made through a transient grid of the table's type and the mask: ``1 + itemsize`` per voxel."""
-_SHADING_GRID_BYTES = {"raycast": 14, "shear_warp": 32, "reference": 32}
+_SHADING_GRID_BYTES = {"shear_warp": 32, "reference": 32}
 """Per grid voxel, with ``shading``: the gradient tables and their temporaries (counted even
-when cached: shear-warp lights every voxel per view)."""
+when cached: shear-warp lights every voxel per view; ray casting's are in
+:func:`._raycast.table_bytes`)."""
 _REGION_BYTES = {"splat": 56}
 """Per region voxel: splatting's sections (cells per slab) and culled voxel lists, per axis."""
 _PIXEL_BYTES = {"raycast": 32, "raycast_navigate": 32, "shear_warp": 24, "splat": 340,
@@ -388,10 +387,16 @@ def render_memory(method, vevm, camera, tf, grid_to_world, options):
     grid = int(np.prod(np.asarray(vevm.shape, dtype=np.int64) + 2))
     needed = pixels * (_IMAGE_BYTES_PER_PIXEL + _PIXEL_BYTES[method])
     needed += _FIXED_BYTES[method]
-    per_set = grid * _GRID_BYTES[method] + int(vevm.voxel_count) * _REGION_BYTES.get(method, 0)
-    if method in _TABLE_METHODS:
-        per_set += grid * (1 + vevm.table(0).dtype.itemsize)
-    needed += _tables_to_build(method, vevm, camera, tf, grid_to_world, options) * per_set
+    sets = _tables_to_build(method, vevm, camera, tf, grid_to_world, options)
+    if sets:
+        per_set = grid * _GRID_BYTES[method] + int(vevm.voxel_count) * _REGION_BYTES.get(method, 0)
+        if method in _TABLE_METHODS:
+            per_set += grid * (1 + vevm.table(0).dtype.itemsize)
+        if method in ("raycast", "raycast_navigate"):
+            from . import _raycast  # loaded on first use, as render() loads it
+
+            per_set += _raycast.table_bytes(vevm, options, navigate=method == "raycast_navigate")
+        needed += sets * per_set
     if options.get("shading") not in (None, False):
         needed += grid * _SHADING_GRID_BYTES.get(method, 0)
     if method in ("raycast", "raycast_navigate") and options.get("skip_empty", True):
