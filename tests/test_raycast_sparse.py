@@ -4,8 +4,9 @@ replaced, bit for bit, in memory that follows the region.
 The dense way is kept here as the reference: the padded complex64 grid ``density·r + i·r``
 made from the region mask (what ``_raycast._dense_table`` built) and its gradients from
 :func:`region_gradients` over the whole padded grid. It is compared with the sparse table
-block by block, and rendered: the dense grid cut into blocks with every block stored, put in
-the VolumeEVM's cache in place of the sparse table, gives the image the old table gave."""
+block by block (the sparse table stores NaN where the dense one had ``r = 0``), and rendered:
+the dense grid cut into blocks with every block stored, put in the VolumeEVM's cache in place
+of the sparse table, gives the image the old table gave."""
 
 import json
 
@@ -60,10 +61,16 @@ class DenseAsBlocks:
         self.shape = tuple(int(n) // TABLE_BLOCK + 1 for n in vevm.shape)
         self.strides = (self.shape[1] * self.shape[2], self.shape[2], 1)
         self.index = np.arange(np.prod(self.shape), dtype=np.int32)
-        self.table = blocks_of(self.tab, self.shape).view(np.float32).ravel()
+        self.table = blocks_of(nan_outside(self.tab), self.shape).ravel()
 
     def gradients(self):
         return blocks_of(dense_gradients(self.tab), self.shape).ravel()
+
+
+def nan_outside(tab):
+    """The dense complex64 table as the sparse table stores voxels: the density, NaN outside
+    the region."""
+    return np.where(tab.imag > 0, tab.real, np.float32(np.nan)).astype(np.float32)
 
 
 def bits(a):
@@ -106,8 +113,8 @@ def test_sparse_table_holds_the_dense_table_block_by_block(volumes, name):
     stored = index >= 0
     assert np.array_equal(index[stored], np.arange(stored.sum()))  # pool order: C order
     dense = blocks_of(tab, sparse.shape).reshape(sparse.shape + (EDGE,) * 3)
-    pool = sparse.table.view(np.complex64).reshape((-1,) + (EDGE,) * 3)
-    assert np.array_equal(bits(pool.view(np.float32)), bits(dense[stored].view(np.float32)))
+    pool = sparse.table.reshape((-1,) + (EDGE,) * 3)
+    assert np.array_equal(bits(pool), bits(nan_outside(dense[stored])))
     assert not dense[~stored].any()
     assert stored.sum() < stored.size  # something is left out
     grad = blocks_of(dense_gradients(tab), sparse.shape).reshape(sparse.shape + (EDGE,) * 3 + (3,))
@@ -172,8 +179,8 @@ def test_table_memory_follows_the_region():
     stored = int((sparse.index >= 0).sum())
     # The sphere (13 voxels across) and its aprons touch at most 3 blocks per axis.
     assert stored <= 27
-    assert sparse.table.nbytes == stored * BLOCK_VOXELS * 8
-    dense_bytes = 8 * (n + 2) ** 3
+    assert sparse.table.nbytes == stored * BLOCK_VOXELS * 4
+    dense_bytes = 8 * (n + 2) ** 3  # the complex64 dense table it replaced
     assert sparse.table.nbytes + sparse.index.nbytes < dense_bytes / 200
     estimate = _raycast.table_bytes(vevm, {"skip_empty": False}, navigate=False)
     assert sparse.table.nbytes + sparse.index.nbytes <= estimate < dense_bytes / 50

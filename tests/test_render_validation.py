@@ -260,11 +260,11 @@ def test_ray_casting_tables_are_built_without_grid_sized_temporaries():
     vevm = VolumeEVM.from_array(_blob(64), 0.0)
     boxes = len(vevm.evm.boxes()[0])
     table, peak = _traced_peak(lambda: _SamplingTable(vevm))
-    assert table.table.nbytes == 8 * BLOCK_VOXELS * int((table.index >= 0).sum())
+    assert table.table.nbytes == 4 * BLOCK_VOXELS * int((table.index >= 0).sum())
     estimate = table_bytes(vevm, {"skip_empty": False}, navigate=False)
     assert peak <= estimate <= 1.5 * (table.table.nbytes + table.index.nbytes) + (256 << 10)
     blocks, peak = _traced_peak(lambda: _Blocks(vevm, 8))
-    assert peak <= 14 * blocks.range_lo.size + 224 * boxes + (64 << 10)
+    assert peak <= 10 * blocks.range_lo.size + 224 * boxes + (64 << 10)
 
 
 def test_small_budget_refuses_mesh_naming_what_and_how_much(monkeypatch):

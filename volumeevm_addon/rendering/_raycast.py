@@ -74,15 +74,15 @@ Each ray is a loop of its own in a compiled kernel (:mod:`._ray_march`), which h
 in registers: a render allocates its image and little else. The image is cut into square
 tiles of at most ``chunk_rays`` pixels, cast on all threads (:func:`.._jit.parallel_map`); no
 ray depends on another, so the image does not depend on the tiles or the number of threads.
-The sampling table (complex64 density and weight, float32 gradients when shading) is
-block-sparse (:class:`_SamplingTable`): only the blocks of 8³ voxels of the padded grid that
-hold region voxels, with a one-voxel apron so that every sample reads one block, are stored,
-and a block index (int32 over the grid of blocks, -1 for empty) leads to them; the samples are
+The sampling table (float32 densities, NaN outside the region; float32 gradients when
+shading) is block-sparse (:class:`_SamplingTable`): only the blocks of 8³ voxels of the padded
+grid that hold region voxels, with a one-voxel apron so that every sample reads one block, are
+stored, and a block index (int32 over the grid of blocks, -1 for empty) leads to them; the samples are
 those of the dense table, bit for bit. It, the navigation variant's float32 densities and the
 space-leaping blocks are built on first use straight from the EVM's boxes and the densities
-table (no grid-sized array), and kept in the VolumeEVM's cache, ``vevm.cache``: about 8 bytes
-per voxel of the stored blocks (20 with gradients; measured 1.7 times the region's voxels on
-the CT head at 1024³) and 4 per block of the grid; :func:`tables_to_build` tells whether a
+table (no grid-sized array), and kept in the VolumeEVM's cache, ``vevm.cache``: 4 bytes per
+voxel of the stored blocks (16 with gradients; they hold 2.4 times the region's voxels on the
+CT head at 1024³) and 4 per block of the grid; :func:`tables_to_build` tells whether a
 render would build them, :func:`table_bytes` what building them costs.
 
 References
@@ -146,31 +146,34 @@ def _box_chunks(lo, hi, parts):
 
 def _rasterised(first, stop, shape):
     """The 3-D bool grid of ``shape`` set in the union of the boxes ``first <= cell < stop``
-    ((m, 3) each): +-1 at the corners of each box, then prefix sums (a 3-D difference array,
-    summed in place)."""
-    diff = np.zeros(tuple(int(s) + 1 for s in shape), np.int32)
-    for cx in (0, 1):
-        for cy in (0, 1):
-            for cz in (0, 1):
-                pts = np.where([cx, cy, cz], stop, first)
-                np.add.at(diff, (pts[:, 0], pts[:, 1], pts[:, 2]), (-1) ** (cx + cy + cz))
-    for axis in range(3):
-        np.cumsum(diff, axis=axis, out=diff)
-    return diff[:-1, :-1, :-1] > 0
+    ((m, 3) each)."""
+    grid = np.zeros(tuple(int(s) for s in shape), np.bool_)
+    _mark_boxes(first, stop, grid)
+    return grid
+
+
+@kernel
+def _mark_boxes(first, stop, grid):
+    """Set the cells of the boxes ``first <= cell < stop`` in ``grid``."""
+    for k in range(len(first)):
+        for i in range(first[k, 0], stop[k, 0]):
+            for j in range(first[k, 1], stop[k, 1]):
+                for m in range(first[k, 2], stop[k, 2]):
+                    grid[i, j, m] = True
 
 
 class _SamplingTable:
     """The block-sparse sampling table ray casting reads (:data:`._ray_march.Volume`): the
-    complex64 ``density·r + i·r`` of the grid padded by one voxel each side (``r`` = in the
-    region), stored only in the blocks of :data:`._ray_march.TABLE_BLOCK`³ padded voxels that
-    hold a region voxel in the block or its apron; every other voxel reads 0, as in the dense
-    table it replaces (so samples are identical, bit for bit). Memory follows the region:
-    about 8 bytes per voxel of the stored blocks (:data:`._ray_march.BLOCK_VOXELS` each) and 4
-    per block of the grid.
+    float32 densities of the grid padded by one voxel each side, NaN outside the region,
+    stored only in the blocks of :data:`._ray_march.TABLE_BLOCK`³ padded voxels that hold a
+    region voxel in the block or its apron; a sample reads every other voxel as density and
+    weight 0, as it read the dense complex64 table ``density·r + i·r`` this replaces (so
+    samples are identical, bit for bit). Memory follows the region: 4 bytes per voxel of the
+    stored blocks (:data:`._ray_march.BLOCK_VOXELS` each) and 4 per block of the grid.
 
     ``index`` (int32, flat, strides ``strides``): each block's place in the pool, -1 when not
-    stored; ``shape``: blocks per axis; ``table``: the pool as float32 pairs, flat. Written
-    straight from the EVM's boxes and the densities table (no grid-sized array)."""
+    stored; ``shape``: blocks per axis; ``table``: the pool, flat. Written straight from the
+    EVM's boxes and the densities table (no grid-sized array)."""
 
     def __init__(self, vevm):
         lo, hi, rows = _box_rows(vevm)
@@ -182,7 +185,7 @@ class _SamplingTable:
         del stored
         self.index = index.ravel()
         self.strides = (self.shape[1] * self.shape[2], self.shape[2], 1)
-        self.table = np.zeros(2 * BLOCK_VOXELS * count, np.float32)
+        self.table = np.full(BLOCK_VOXELS * count, np.nan, np.float32)
         dens = vevm.table(0)
         parallel_map(_fill_table, [(lo, hi, rows, dens, first, stop, self.index, self.strides,
                                     self.table) for first, stop in _box_chunks(lo, hi, 16)])
@@ -194,7 +197,7 @@ class _SamplingTable:
         :func:`.region_gradients` takes batches of blocks, so the gradients are those of the
         dense table, bit for bit. Kept apart from the table, so that renders with and without
         shading share the table."""
-        count = len(self.table) // (2 * BLOCK_VOXELS)
+        count = len(self.table) // BLOCK_VOXELS
         edge = TABLE_BLOCK + 1
         grad = np.zeros((count, edge, edge, edge, 3), np.float32)
         blocks = np.argwhere(self.index.reshape(self.shape) >= 0)
@@ -239,10 +242,8 @@ def _fill_table(lo, hi, rows, dens, first, stop, index, strides, table):
                                 if lz > size:
                                     break
                                 slot = index[bx * strides[0] + by * strides[1] + bz]
-                                at = 2 * (np.int64(slot) * BLOCK_VOXELS + (lx * edge + ly) * edge
-                                          + lz)
-                                table[at] = d
-                                table[at + 1] = np.float32(1)
+                                table[np.int64(slot) * BLOCK_VOXELS + (lx * edge + ly) * edge
+                                      + lz] = d
 
 
 @kernel
@@ -250,8 +251,8 @@ def _gather(table, index, strides, shape, blocks, window):
     """Into ``window`` (2, m, E + 2, E + 2, E + 2) (``E`` = :data:`._ray_march.TABLE_BLOCK` +
     1): the densities (``window[0]``) and region flags (``window[1]``) of the voxels of the
     stored ``blocks`` (m, 3) and one voxel around them, from the pool ``table``; zeros where
-    the padded grid has no voxel or the block holding one is not stored (outside the
-    region)."""
+    the padded grid has no voxel, the block holding one is not stored or the voxel is NaN
+    (outside the region)."""
     size, edge = TABLE_BLOCK, TABLE_BLOCK + 1
     for s in range(len(blocks)):
         for u in range(edge + 2):
@@ -272,10 +273,11 @@ def _gather(table, index, strides, shape, blocks, window):
                     slot = index[bx * strides[0] + by * strides[1] + bz]
                     if slot < 0:
                         continue
-                    at = 2 * (np.int64(slot) * BLOCK_VOXELS
-                              + ((px - bx * size) * edge + py - by * size) * edge + pz - bz * size)
-                    window[0, s, u, v, w] = table[at]
-                    window[1, s, u, v, w] = table[at + 1]
+                    d = table[np.int64(slot) * BLOCK_VOXELS
+                              + ((px - bx * size) * edge + py - by * size) * edge + pz - bz * size]
+                    if d == d:
+                        window[0, s, u, v, w] = d
+                        window[1, s, u, v, w] = np.float32(1)
 
 
 # ---------------------------------------------------------------------------- blocks
@@ -343,10 +345,9 @@ class _Blocks:
         one invisible block on each side."""
         vis = self.occupied.copy()
         if mode in ("over", "under"):
-            has = vis & np.isfinite(self.range_lo)
-            lo = np.where(has, self.range_lo - lut_step, 0.0)
-            hi = np.where(has, self.range_hi + lut_step, 0.0)
-            vis &= ~tf.transparent_between(lo, hi)
+            # Only occupied blocks are classified; each has a density range (reach >= 1).
+            vis[vis] = ~tf.transparent_between(self.range_lo[vis] - lut_step,
+                                               self.range_hi[vis] + lut_step)
         elif mode == "xray":
             vis &= (self.range_hi > xray_offset) & (xray_scale > 0)
         return np.pad(vis, 1)
@@ -390,26 +391,32 @@ def _block_ranges(lo_box, hi_box, rows, dens, size, reach, lo, hi):
     """Per block of ``size``³ cells, the smallest and largest density as float32 (into ``lo``
     and ``hi``, which start at +inf and -inf) of the region voxels within ``reach`` voxels of
     its cells along every axis: one pass over the region's boxes (:func:`_box_rows`) and the
-    densities table ``dens``, each voxel reaching the blocks
-    ``(i - reach) // size .. (i + reach) // size`` along each axis."""
+    densities table ``dens``, row by row: each block along a row takes the extremes of the
+    row's voxels ``b·size - reach .. (b + 1)·size + reach - 1`` and passes them to the blocks
+    ``(i - reach) // size .. (i + reach) // size`` of the row's other two coordinates."""
     bx, by, bz = lo.shape
     for k in range(len(lo_box)):
+        z_lo, z_hi = lo_box[k, 2], hi_box[k, 2]
         for x in range(lo_box[k, 0], hi_box[k, 0]):
             x0, x1 = max(x - reach, 0) // size, min((x + reach) // size, bx - 1)
             for y in range(lo_box[k, 1], hi_box[k, 1]):
                 y0, y1 = max(y - reach, 0) // size, min((y + reach) // size, by - 1)
                 start = (rows[k, 0] + (x - lo_box[k, 0]) * rows[k, 1]
-                         + (y - lo_box[k, 1]) * rows[k, 2] - lo_box[k, 2])
-                for z in range(lo_box[k, 2], hi_box[k, 2]):
-                    d = np.float32(dens[start + z])
-                    z0, z1 = max(z - reach, 0) // size, min((z + reach) // size, bz - 1)
+                         + (y - lo_box[k, 1]) * rows[k, 2] - z_lo)
+                for m in range(max(z_lo - reach, 0) // size,
+                               min((z_hi - 1 + reach) // size, bz - 1) + 1):
+                    least, most = np.float32(np.inf), np.float32(-np.inf)
+                    for z in range(max(m * size - reach, z_lo),
+                                   min((m + 1) * size + reach, z_hi)):
+                        d = np.float32(dens[start + z])
+                        least = min(least, d)
+                        most = max(most, d)
                     for i in range(x0, x1 + 1):
                         for j in range(y0, y1 + 1):
-                            for m in range(z0, z1 + 1):
-                                if d < lo[i, j, m]:
-                                    lo[i, j, m] = d
-                                if d > hi[i, j, m]:
-                                    hi[i, j, m] = d
+                            if least < lo[i, j, m]:
+                                lo[i, j, m] = least
+                            if most > hi[i, j, m]:
+                                hi[i, j, m] = most
 
 
 def _reach(spacing, step_mm, preintegrate):
@@ -443,12 +450,12 @@ def tables_to_build(vevm, options, *, navigate):
 _BOX_BYTES = 224
 """Per box of the EVM, while the tables are built: the relation v (:class:`TableIndex`, about
 150 bytes with its temporaries) and the boxes' table rows (:func:`_box_rows`, 24)."""
-_LEAP_BLOCK_BYTES = 14
-"""Per space-leaping block, while the blocks are built: the float32 density ranges, the
-occupancy and its int32 difference array (:func:`_rasterised`)."""
-_TABLE_BLOCK_BYTES = 13
+_LEAP_BLOCK_BYTES = 10
+"""Per space-leaping block, while the blocks are built: the float32 density ranges and the
+occupancy (:func:`_rasterised`)."""
+_TABLE_BLOCK_BYTES = 9
 """Per block of the grid of the sampling table, while it is built: the int32 index, the bool
-grid of stored blocks and its int32 difference array."""
+grid of stored blocks and the pool numbers."""
 _GATHER_BYTES = 64 << 20
 """The gradients' working set: a batch's window (:data:`_GATHER_BLOCKS`) and the temporaries
 of :func:`.region_gradients` on it (measured: 35 MiB)."""
@@ -456,8 +463,8 @@ of :func:`.region_gradients` on it (measured: 35 MiB)."""
 
 def table_bytes(vevm, options, *, navigate):
     """Estimated peak bytes of building the tables a render with ``options`` (the renderer's
-    keywords) reads, none cached: the sampling table's pool (8 bytes per voxel of the stored
-    blocks, 20 with shading's gradients; the stored blocks are counted from the EVM's boxes,
+    keywords) reads, none cached: the sampling table's pool (4 bytes per voxel of the stored
+    blocks, 16 with shading's gradients; the stored blocks are counted from the EVM's boxes,
     no grid is made) and its block index, or with ``navigate`` the float32 densities and the
     relation v; the space-leaping blocks with ``skip_empty``; the construction's temporaries
     (per box of the EVM and per block)."""
@@ -474,7 +481,7 @@ def table_bytes(vevm, options, *, navigate):
                                                   shape)))
         shaded = (options.get("mode", "over") in ("over", "under")
                   and options.get("shading") not in (None, False))
-        needed += stored * BLOCK_VOXELS * (20 if shaded else 8) + math.prod(shape) \
+        needed += stored * BLOCK_VOXELS * (16 if shaded else 4) + math.prod(shape) \
             * _TABLE_BLOCK_BYTES + (stored * 24 + _GATHER_BYTES if shaded else 0)
     if options.get("skip_empty", True):
         block = max(1, int(options.get("block", BLOCK)))  # a block of 0 is the render's to refuse
