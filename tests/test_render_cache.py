@@ -22,6 +22,7 @@ from volumeevm_addon import (
 )
 from volumeevm_addon.model import DerivedCache
 from volumeevm_addon.model._cache import held_bytes
+from volumeevm_addon.rendering._ray_march import BLOCK_VOXELS
 from volumeevm_addon.rendering._render import _tables_to_build
 
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the CT head
@@ -103,12 +104,15 @@ def test_renders_fill_the_cache_it_counts_and_clearing_changes_no_image(head, me
     np.testing.assert_array_equal(again[1], depth)
 
 
-def test_the_dense_sampling_table_is_counted(head):
-    """Ray casting keeps a complex64 table over the padded grid: the count includes it."""
+def test_the_sampling_table_is_counted(head):
+    """Ray casting keeps a float32 table over the stored blocks of the padded grid and their
+    int32 index: the count includes both."""
     vevm = fresh(head[0])
     draw(vevm, head[1], "x", "raycast", {})
-    padded = np.prod(np.array(vevm.shape) + 2)
-    assert vevm.size_report()["cache_bytes"] >= 8 * padded
+    table = vevm.cache.get(("raycast", "table"), lambda: None)
+    stored = int((table.index >= 0).sum())
+    assert stored > 0 and table.table.nbytes == 4 * BLOCK_VOXELS * stored
+    assert vevm.size_report()["cache_bytes"] >= table.table.nbytes + table.index.nbytes
 
 
 @pytest.mark.parametrize("method, options", CASES, ids=lambda c: str(c))

@@ -22,7 +22,8 @@ from volumeevm_addon import (
 )
 from volumeevm_addon._memory import format_bytes
 from volumeevm_addon.rendering import openexr_module
-from volumeevm_addon.rendering._raycast import _Blocks, _dense_table
+from volumeevm_addon.rendering._ray_march import BLOCK_VOXELS
+from volumeevm_addon.rendering._raycast import _Blocks, _SamplingTable, table_bytes
 from volumeevm_addon.rendering._render import check_samples, render_memory
 
 
@@ -263,16 +264,18 @@ def test_estimate_counts_the_tables_a_render_would_still_build():
 
 
 def test_ray_casting_tables_are_built_without_grid_sized_temporaries():
-    """The dense sampling table (complex64, written in place) and the space-leaping blocks
-    (a float32 grid filtered a plane at a time) cost about their own size, not the 34 and 18
-    bytes per voxel that whole-grid temporaries took."""
+    """The block-sparse sampling table (written straight from the EVM's boxes) and the
+    space-leaping blocks (ranges from the boxes too) cost about their own size and the EVM's
+    boxes' (the estimate of the memory check covers it): no grid-sized array, not even the
+    region mask, is made on the way."""
     vevm = VolumeEVM.from_array(_blob(64), 0.0)
-    voxels = 66 ** 3  # the padded grid
-    table, peak = _traced_peak(lambda: _dense_table(vevm))
-    assert table.nbytes == 8 * voxels
-    assert peak <= 12 * voxels + (256 << 10)
-    _, peak = _traced_peak(lambda: _Blocks(vevm, 8))
-    assert peak <= 8 * voxels + (256 << 10)
+    boxes = len(vevm.evm.boxes()[0])
+    table, peak = _traced_peak(lambda: _SamplingTable(vevm))
+    assert table.table.nbytes == 4 * BLOCK_VOXELS * int((table.index >= 0).sum())
+    estimate = table_bytes(vevm, {"skip_empty": False}, navigate=False)
+    assert peak <= estimate <= 1.5 * (table.table.nbytes + table.index.nbytes) + (256 << 10)
+    blocks, peak = _traced_peak(lambda: _Blocks(vevm, 8))
+    assert peak <= 10 * blocks.range_lo.size + 224 * boxes + (64 << 10)
 
 
 def test_small_budget_refuses_mesh_naming_what_and_how_much(monkeypatch):

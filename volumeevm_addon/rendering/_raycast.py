@@ -58,27 +58,32 @@ first lattice sample past the block's exit, or past the largest aligned cube of 
 invisible blocks holding it (hierarchical leaping, :func:`leap_levels`; in a cube of visible
 blocks, the samples are marched without a look at their blocks). Skipped samples would add
 exact zeros, so the image equals ``skip_empty=False`` (every lattice sample in the volume's
-box, the dense grid with the region mask, no EVM) up to float rounding, which is the exactness
-contract.
+box, read from the sampling table alone, no look at the EVM's blocks) up to float rounding,
+which is the exactness contract.
 
 Navigation (``render_raycast_navigate``)
 ----------------------------------------
 The report's baseline: the same caster, but every density is located through the EVM: the 8
 neighbours of each sample (the 64 around it with shading) go through the relation v (that of
 :meth:`VolumeEVM.index`, from the EVM's boxes by binary search) into the densities table,
-``-1`` meaning "outside, not readable". No dense array is sampled (the space-leaping block
-grid, shared with :func:`render_raycast`, is made once through a temporary grid). Slow by
-design; the same image as :func:`render_raycast`, bit for bit.
+``-1`` meaning "outside, not readable". No sampling table is made (the space-leaping block
+grid is shared with :func:`render_raycast`). Slow by design; the same image as
+:func:`render_raycast`, bit for bit.
 
 Each ray is a loop of its own in a compiled kernel (:mod:`._ray_march`), which holds its state
 in registers: a render allocates its image and little else. The image is cut into square
 tiles of at most ``chunk_rays`` pixels, cast on all threads (:func:`.._jit.parallel_map`); no
 ray depends on another, so the image does not depend on the tiles or the number of threads.
-The padded sampling tables (complex64 density and weight, float32 gradients when shading), the
-navigation variant's float32 densities and the block grid are built on first use, in place (no
-grid-sized temporaries beside the region mask), and kept in the VolumeEVM's cache,
-``vevm.cache`` (about 8 bytes per grid voxel, 20 with gradients); :func:`tables_to_build`
-tells whether a render would build them.
+The sampling table (float32 densities, NaN outside the region; float32 gradients when
+shading) is block-sparse (:class:`_SamplingTable`): only the blocks of 8³ voxels of the padded
+grid that hold region voxels, with a one-voxel apron so that every sample reads one block, are
+stored, and a block index (int32 over the grid of blocks, -1 for empty) leads to them; the
+samples are those of the dense table, bit for bit. It, the navigation variant's float32 densities and the
+space-leaping blocks are built on first use straight from the EVM's boxes and the densities
+table (no grid-sized array), and kept in the VolumeEVM's cache, ``vevm.cache``: 4 bytes per
+voxel of the stored blocks (16 with gradients; they hold 2.4 times the region's voxels on the
+CT head at 1024³) and 4 per block of the grid; :func:`tables_to_build` tells whether a
+render would build them, :func:`table_bytes` what building them costs.
 
 References
 ----------
@@ -88,6 +93,7 @@ J. Rodríguez, D. Ayala, "VolumeEVM: a new surface/volume integrated model", UPC
 report (density location through the EVM).
 """
 
+import functools
 import math
 
 import numpy as np
@@ -107,7 +113,16 @@ from ._depth import visible_threshold
 from ._gradients import region_gradients
 from ._method import MemoryModel, Method, keyword_options, step_quality, step_samples
 from ._modes import MODE_CODES, finish_mode
-from ._ray_march import RELATION_FIELDS, Lattice, Optics, View, Volume, march_rays
+from ._ray_march import (
+    BLOCK_VOXELS,
+    RELATION_FIELDS,
+    TABLE_BLOCK,
+    Lattice,
+    Optics,
+    View,
+    Volume,
+    march_rays,
+)
 from ._shading import Lighting, checked_shading
 
 __all__ = ["render_raycast", "render_raycast_navigate", "RAYCAST_METHOD", "NAVIGATE_METHOD"]
@@ -122,32 +137,168 @@ _PREINT_SIZE = 256
 
 
 # ---------------------------------------------------------------------------- tables
-def _dense_table(vevm):
-    """The padded dense table ray casting samples: the complex64 ``density·r + i·r`` of the
-    grid padded by one voxel each side (``r`` = in the region), flat; written in place into
-    its real and imaginary parts (no grid-sized temporaries beside the mask)."""
-    mask = vevm.evm.to_mask(vevm.shape)
-    tab = np.zeros(tuple(int(n) + 2 for n in vevm.shape), np.complex64)
-    inner = tab[1:-1, 1:-1, 1:-1]
-    inner.real[mask] = vevm.table(0)
-    inner.imag[...] = mask
-    return tab.ravel()
+def _box_rows(vevm):
+    """The EVM's boxes of order "xyz" (:meth:`EVM.boxes`) and where their densities sit in the
+    densities table of that order: voxel ``(a, b, c)`` of box ``k`` is entry ``rows[k, 0] +
+    (a - lo[k, 0])·rows[k, 1] + (b - lo[k, 1])·rows[k, 2] + c - lo[k, 2]`` (the relation v,
+    :class:`..model._densities.TableIndex`, per box). Returns ``lo, hi, rows``, (m, 3) int64."""
+    index = TableIndex(vevm.evm, TABLE_ORDERS[0])
+    lo, hi = (np.asarray(c, dtype=np.int64) for c in vevm.evm.boxes(TABLE_ORDERS[0]))
+    sub = np.asarray(index.run_sub, dtype=np.int64)
+    slab = np.asarray(index.sub_slab, dtype=np.int64)[sub]
+    rows = np.stack([index.slab_base[slab] + index.sub_base[sub] + index.run_before,
+                     index.slab_area[slab], index.line_length[sub]], axis=1).astype(np.int64)
+    return lo, hi, rows
 
 
-def _dense_gradients(vevm, table):
-    """The per-voxel gradients shading reads (:func:`.region_gradients`) from the padded dense
-    ``table`` (:func:`_dense_table`): three float32 per padded voxel side by side, flat. Kept
-    apart from the table, so that renders with and without shading share the table."""
-    pad = tuple(int(n) + 2 for n in vevm.shape)
-    tab = table.reshape(pad)
-    grad = np.zeros(pad + (3,), np.float32)
-    region_gradients(tab.real, tab.imag, np.moveaxis(grad, -1, 0)[:, 1:-1, 1:-1, 1:-1])
-    return grad.ravel()
+def _box_chunks(lo, hi, parts):
+    """Boxes ``0 .. m`` cut into at most ``parts`` runs of about equal voxel counts, as
+    ``(first, stop)`` pairs (tasks of :func:`.._jit.parallel_map`)."""
+    ends = np.cumsum(np.prod(hi - lo, axis=1))
+    cuts = np.searchsorted(ends, np.linspace(0, ends[-1], parts + 1)[1:-1], side="right")
+    bounds = np.unique(np.r_[0, cuts, len(lo)])
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+
+
+def _rasterised(first, stop, shape):
+    """The 3-D bool grid of ``shape`` set in the union of the boxes ``first <= cell < stop``
+    ((m, 3) each)."""
+    grid = np.zeros(tuple(int(s) for s in shape), np.bool_)
+    _mark_boxes(first, stop, grid)
+    return grid
+
+
+@kernel
+def _mark_boxes(first, stop, grid):
+    """Set the cells of the boxes ``first <= cell < stop`` in ``grid``."""
+    for k in range(len(first)):
+        for i in range(first[k, 0], stop[k, 0]):
+            for j in range(first[k, 1], stop[k, 1]):
+                for m in range(first[k, 2], stop[k, 2]):
+                    grid[i, j, m] = True
+
+
+class _SamplingTable:
+    """The block-sparse sampling table ray casting reads (:data:`._ray_march.Volume`): the
+    float32 densities of the grid padded by one voxel each side, NaN outside the region,
+    stored only in the blocks of :data:`._ray_march.TABLE_BLOCK`³ padded voxels that hold a
+    region voxel in the block or its apron; a sample reads every other voxel as density and
+    weight 0, as it read the dense complex64 table ``density·r + i·r`` this replaces (so
+    samples are identical, bit for bit). Memory follows the region: 4 bytes per voxel of the
+    stored blocks (:data:`._ray_march.BLOCK_VOXELS` each) and 4 per block of the grid.
+
+    ``index`` (int32, flat, strides ``strides``): each block's place in the pool, -1 when not
+    stored; ``shape``: blocks per axis; ``table``: the pool, flat. Written straight from the
+    EVM's boxes and the densities table (no grid-sized array)."""
+
+    def __init__(self, vevm):
+        lo, hi, rows = _box_rows(vevm)
+        self.shape = tuple(int(n) // TABLE_BLOCK + 1 for n in vevm.shape)
+        stored = _rasterised(lo // TABLE_BLOCK, hi // TABLE_BLOCK + 1, self.shape)
+        count = int(np.count_nonzero(stored))
+        index = np.full(self.shape, -1, np.int32)
+        index[stored] = np.arange(count, dtype=np.int32)
+        del stored
+        self.index = index.ravel()
+        self.strides = (self.shape[1] * self.shape[2], self.shape[2], 1)
+        self.table = np.full(BLOCK_VOXELS * count, np.nan, np.float32)
+        dens = vevm.table(0)
+        parallel_map(_fill_table, [(lo, hi, rows, dens, first, stop, self.index, self.strides,
+                                    self.table) for first, stop in _box_chunks(lo, hi, 16)])
+
+    def gradients(self):
+        """The per-voxel gradients shading reads (:func:`.region_gradients`), three float32
+        per voxel of the pool (flat, the table's block order): each block's voxels and one
+        more voxel around them are gathered from the table (:func:`_gather`), and
+        :func:`.region_gradients` takes batches of blocks, so the gradients are those of the
+        dense table, bit for bit. Kept apart from the table, so that renders with and without
+        shading share the table."""
+        count = len(self.table) // BLOCK_VOXELS
+        edge = TABLE_BLOCK + 1
+        grad = np.zeros((count, edge, edge, edge, 3), np.float32)
+        blocks = np.argwhere(self.index.reshape(self.shape) >= 0)
+        for first in range(0, count, _GATHER_BLOCKS):
+            stop = min(count, first + _GATHER_BLOCKS)
+            window = np.zeros((2, stop - first) + (edge + 2,) * 3, np.float32)
+            _gather(self.table, self.index, self.strides, self.shape, blocks[first:stop], window)
+            region_gradients(window[0], window[1], np.moveaxis(grad[first:stop], -1, 0))
+        return grad.ravel()
+
+
+_GATHER_BLOCKS = 1024
+"""Blocks per batch of the gradients' computation (a window of 11 MB)."""
+
+
+@kernel
+def _fill_table(lo, hi, rows, dens, first, stop, index, strides, table):
+    """Write the densities of boxes ``first .. stop - 1`` (:func:`_box_rows`) into the pool
+    ``table`` (:class:`_SamplingTable`): each voxel into the block holding it in the padded
+    grid and, on a block's first face along an axis, into the apron of the block before."""
+    size, edge = TABLE_BLOCK, TABLE_BLOCK + 1
+    for k in range(first, stop):
+        for a in range(lo[k, 0], hi[k, 0]):
+            for b in range(lo[k, 1], hi[k, 1]):
+                start = (rows[k, 0] + (a - lo[k, 0]) * rows[k, 1] + (b - lo[k, 1]) * rows[k, 2]
+                         - lo[k, 2])
+                for c in range(lo[k, 2], hi[k, 2]):
+                    d = np.float32(dens[start + c])
+                    for i in range(2):
+                        bx = (a + 1) // size - i
+                        lx = a + 1 - bx * size
+                        if lx > size:
+                            break
+                        for j in range(2):
+                            by = (b + 1) // size - j
+                            ly = b + 1 - by * size
+                            if ly > size:
+                                break
+                            for m in range(2):
+                                bz = (c + 1) // size - m
+                                lz = c + 1 - bz * size
+                                if lz > size:
+                                    break
+                                slot = index[bx * strides[0] + by * strides[1] + bz]
+                                table[np.int64(slot) * BLOCK_VOXELS + (lx * edge + ly) * edge
+                                      + lz] = d
+
+
+@kernel
+def _gather(table, index, strides, shape, blocks, window):
+    """Into ``window`` (2, m, E + 2, E + 2, E + 2) (``E`` = :data:`._ray_march.TABLE_BLOCK` +
+    1): the densities (``window[0]``) and region flags (``window[1]``) of the voxels of the
+    stored ``blocks`` (m, 3) and one voxel around them, from the pool ``table``; zeros where
+    the padded grid has no voxel, the block holding one is not stored or the voxel is NaN
+    (outside the region)."""
+    size, edge = TABLE_BLOCK, TABLE_BLOCK + 1
+    for s in range(len(blocks)):
+        for u in range(edge + 2):
+            px = blocks[s, 0] * size - 1 + u
+            bx = px // size
+            if px < 0 or bx >= shape[0]:
+                continue
+            for v in range(edge + 2):
+                py = blocks[s, 1] * size - 1 + v
+                by = py // size
+                if py < 0 or by >= shape[1]:
+                    continue
+                for w in range(edge + 2):
+                    pz = blocks[s, 2] * size - 1 + w
+                    bz = pz // size
+                    if pz < 0 or bz >= shape[2]:
+                        continue
+                    slot = index[bx * strides[0] + by * strides[1] + bz]
+                    if slot < 0:
+                        continue
+                    d = table[np.int64(slot) * BLOCK_VOXELS
+                              + ((px - bx * size) * edge + py - by * size) * edge + pz - bz * size]
+                    if d == d:
+                        window[0, s, u, v, w] = d
+                        window[1, s, u, v, w] = np.float32(1)
 
 
 # ---------------------------------------------------------------------------- blocks
 class _NavigationTables:
-    """What the navigation variant reads instead of dense tables: ``densities``, the densities
+    """What the navigation variant reads instead of sampling tables: ``densities``, the densities
     table of order "xyz" as float32 (the kernels' type), and ``relation`` (int64), the arrays
     of the relation v (:class:`..model._densities.TableIndex`, :data:`._ray_march.
     RELATION_FIELDS`) one after another, array ``i`` at ``relation_at[i] .. relation_at[i + 1]``:
@@ -175,31 +326,17 @@ class _Blocks:
         self.last = None  # (what decides visibility, leap levels) of the last view (leaping)
         shape = np.array(vevm.shape, dtype=np.int64)
         self.nb = -(-shape // size)
-        lo, hi = vevm.evm.boxes()
-        lo = lo.astype(np.int64)
-        hi = hi.astype(np.int64)
-        # Rasterise the boxes, grown by one voxel (a sample's segment may reach a neighbouring
-        # cell), into blocks: +-1 at the corners of each box's block range, then prefix sums
-        # (a 3-D difference array).
-        diff = np.zeros(tuple(self.nb + 1), np.int64)
-        blo = np.maximum(lo - 1, 0) // size
-        bhi = np.minimum(hi, shape - 1) // size + 1
-        for cx in (0, 1):
-            for cy in (0, 1):
-                for cz in (0, 1):
-                    sign = (-1) ** (cx + cy + cz)
-                    pts = np.where([cx, cy, cz], bhi, blo)
-                    np.add.at(diff, (pts[:, 0], pts[:, 1], pts[:, 2]), sign)
-        occ = diff.cumsum(0).cumsum(1).cumsum(2)[:-1, :-1, :-1] > 0
-        self.occupied = occ
+        lo, hi, rows = _box_rows(vevm)
+        # The boxes, grown by one voxel (a sample's segment may reach a neighbouring cell), in
+        # blocks.
+        self.occupied = _rasterised(np.maximum(lo - 1, 0) // size,
+                                    np.minimum(hi, shape - 1) // size + 1, self.nb)
         self.bbox = np.stack([lo.min(axis=0), hi.max(axis=0)]) if len(lo) else None
         # Density ranges per block: every region voxel within `reach` voxels of the block's
         # cells (:func:`_block_ranges`).
         self.range_lo = np.full(tuple(int(b) for b in self.nb), np.inf, np.float32)
         self.range_hi = np.full(tuple(int(b) for b in self.nb), -np.inf, np.float32)
-        _block_ranges(vevm.evm.to_mask(vevm.shape),
-                      np.asarray(vevm.table(0), dtype=np.float32), size, reach, self.range_lo,
-                      self.range_hi)
+        _block_ranges(lo, hi, rows, vevm.table(0), size, reach, self.range_lo, self.range_hi)
 
     def leaping(self, lattice, mode, tf, lut_step, compositing):
         """``lattice`` (:data:`._ray_march.Lattice`) with space leaping over these blocks for
@@ -224,10 +361,9 @@ class _Blocks:
         one invisible block on each side."""
         vis = self.occupied.copy()
         if mode in ("over", "under"):
-            has = vis & np.isfinite(self.range_lo)
-            lo = np.where(has, self.range_lo - lut_step, 0.0)
-            hi = np.where(has, self.range_hi + lut_step, 0.0)
-            vis &= ~tf.transparent_between(lo, hi)
+            # Only occupied blocks are classified; each has a density range (reach >= 1).
+            vis[vis] = ~tf.transparent_between(self.range_lo[vis] - lut_step,
+                                               self.range_hi[vis] + lut_step)
         elif mode == "xray":
             vis &= (self.range_hi > xray_offset) & (xray_scale > 0)
         return np.pad(vis, 1)
@@ -267,32 +403,36 @@ def _all_pairs(flags):
 
 
 @kernel
-def _block_ranges(mask, dens, size, reach, lo, hi):
-    """Per block of ``size``³ cells, the smallest and largest density (into ``lo`` and ``hi``,
-    which start at +inf and -inf) of the region voxels within ``reach`` voxels of its cells
-    along every axis: one pass over the region ``mask`` (C order, as the densities ``dens`` of
-    the table of order "xyz" run), each voxel reaching the blocks
-    ``(i - reach) // size .. (i + reach) // size`` along each axis."""
-    nx, ny, nz = mask.shape
+def _block_ranges(lo_box, hi_box, rows, dens, size, reach, lo, hi):
+    """Per block of ``size``³ cells, the smallest and largest density as float32 (into ``lo``
+    and ``hi``, which start at +inf and -inf) of the region voxels within ``reach`` voxels of
+    its cells along every axis: one pass over the region's boxes (:func:`_box_rows`) and the
+    densities table ``dens``, row by row: each block along a row takes the extremes of the
+    row's voxels ``b·size - reach .. (b + 1)·size + reach - 1`` and passes them to the blocks
+    ``(i - reach) // size .. (i + reach) // size`` of the row's other two coordinates."""
     bx, by, bz = lo.shape
-    k = 0
-    for x in range(nx):
-        x0, x1 = max(x - reach, 0) // size, min((x + reach) // size, bx - 1)
-        for y in range(ny):
-            y0, y1 = max(y - reach, 0) // size, min((y + reach) // size, by - 1)
-            for z in range(nz):
-                if not mask[x, y, z]:
-                    continue
-                d = dens[k]
-                k += 1
-                z0, z1 = max(z - reach, 0) // size, min((z + reach) // size, bz - 1)
-                for i in range(x0, x1 + 1):
-                    for j in range(y0, y1 + 1):
-                        for m in range(z0, z1 + 1):
-                            if d < lo[i, j, m]:
-                                lo[i, j, m] = d
-                            if d > hi[i, j, m]:
-                                hi[i, j, m] = d
+    for k in range(len(lo_box)):
+        z_lo, z_hi = lo_box[k, 2], hi_box[k, 2]
+        for x in range(lo_box[k, 0], hi_box[k, 0]):
+            x0, x1 = max(x - reach, 0) // size, min((x + reach) // size, bx - 1)
+            for y in range(lo_box[k, 1], hi_box[k, 1]):
+                y0, y1 = max(y - reach, 0) // size, min((y + reach) // size, by - 1)
+                start = (rows[k, 0] + (x - lo_box[k, 0]) * rows[k, 1]
+                         + (y - lo_box[k, 1]) * rows[k, 2] - z_lo)
+                for m in range(max(z_lo - reach, 0) // size,
+                               min((z_hi - 1 + reach) // size, bz - 1) + 1):
+                    least, most = np.float32(np.inf), np.float32(-np.inf)
+                    for z in range(max(m * size - reach, z_lo),
+                                   min((m + 1) * size + reach, z_hi)):
+                        d = np.float32(dens[start + z])
+                        least = min(least, d)
+                        most = max(most, d)
+                    for i in range(x0, x1 + 1):
+                        for j in range(y0, y1 + 1):
+                            if least < lo[i, j, m]:
+                                lo[i, j, m] = least
+                            if most > hi[i, j, m]:
+                                hi[i, j, m] = most
 
 
 def _reach(spacing, step_mm, preintegrate):
@@ -304,7 +444,7 @@ def _reach(spacing, step_mm, preintegrate):
 
 
 def tables_to_build(vevm, options, *, navigate):
-    """1 when the render would build tables (the dense sampling tables, or with ``navigate``
+    """1 when the render would build tables (the sampling tables, or with ``navigate``
     the float32 densities and the relation v; the space-leaping blocks with ``skip_empty``)
     that are not cached for ``vevm`` yet, else 0. Changes nothing: it only looks at the cache.
 
@@ -323,9 +463,51 @@ def tables_to_build(vevm, options, *, navigate):
     return int(not all(key in vevm.cache for key in keys))
 
 
+_BOX_BYTES = 224
+"""Per box of the EVM, while the tables are built: the relation v (:class:`TableIndex`, about
+150 bytes with its temporaries) and the boxes' table rows (:func:`_box_rows`, 24)."""
+_LEAP_BLOCK_BYTES = 10
+"""Per space-leaping block, while the blocks are built: the float32 density ranges and the
+occupancy (:func:`_rasterised`)."""
+_TABLE_BLOCK_BYTES = 9
+"""Per block of the grid of the sampling table, while it is built: the int32 index, the bool
+grid of stored blocks and the pool numbers."""
+_GATHER_BYTES = 64 << 20
+"""The gradients' working set: a batch's window (:data:`_GATHER_BLOCKS`) and the temporaries
+of :func:`.region_gradients` on it (measured: 35 MiB)."""
+
+
+def table_bytes(vevm, options, *, navigate):
+    """Estimated peak bytes of building the tables a render with ``options`` (the renderer's
+    keywords) reads, none cached: the sampling table's pool (4 bytes per voxel of the stored
+    blocks, 16 with shading's gradients; the stored blocks are counted from the EVM's boxes,
+    no grid is made) and its block index, or with ``navigate`` the float32 densities and the
+    relation v; the space-leaping blocks with ``skip_empty``; the construction's temporaries
+    (per box of the EVM and per block)."""
+    if vevm.evm.is_empty():
+        return 0
+    boxes = len(vevm.evm.boxes(TABLE_ORDERS[0])[0])
+    needed = boxes * _BOX_BYTES
+    if navigate:
+        needed += int(vevm.voxel_count) * 4 + boxes * 8 * len(RELATION_FIELDS)
+    else:
+        lo, hi = vevm.evm.boxes(TABLE_ORDERS[0])
+        shape = tuple(int(n) // TABLE_BLOCK + 1 for n in vevm.shape)
+        stored = int(np.count_nonzero(_rasterised(lo // TABLE_BLOCK, hi // TABLE_BLOCK + 1,
+                                                  shape)))
+        shaded = (options.get("mode", "over") in ("over", "under")
+                  and options.get("shading") not in (None, False))
+        needed += stored * BLOCK_VOXELS * (16 if shaded else 4) + math.prod(shape) \
+            * _TABLE_BLOCK_BYTES + (stored * 24 + _GATHER_BYTES if shaded else 0)
+    if options.get("skip_empty", True):
+        block = max(1, int(options.get("block", BLOCK)))  # a block of 0 is the render's to refuse
+        needed += math.prod(-(-int(n) // block) for n in vevm.shape) * _LEAP_BLOCK_BYTES
+    return int(needed)
+
+
 def _cache_keys(spacing, navigate, shaded, skip_empty, block, step_mm, preintegrate):
     """The ``vevm.cache`` keys of the tables a render reads, ``(tables, blocks)``: the keys of
-    the sampling tables (:func:`_dense_table`, and :func:`_dense_gradients` when ``shaded``;
+    the sampling tables (:class:`_SamplingTable`, and its gradients when ``shaded``;
     :class:`_NavigationTables` when ``navigate``) and of the space-leaping blocks (None without
     ``skip_empty``). One function for the render and :func:`tables_to_build`, so that the
     memory check sees the same cache the render uses."""
@@ -435,19 +617,17 @@ def _view(camera, grid_to_world, shape, spacing, depth_in):
 
 def _volume(vevm, keys):
     """The :data:`._ray_march.Volume` record of a render, from the tables of ``keys``
-    (:func:`_cache_keys`) in the cache: the dense table (and gradients), or for the navigation
-    variant the densities table and the relation v."""
+    (:func:`_cache_keys`) in the cache: the block-sparse sampling table (and gradients), or for
+    the navigation variant the densities table and the relation v."""
     n = tuple(int(s) for s in vevm.shape)
-    strides = ((n[1] + 2) * (n[2] + 2), n[2] + 2, 1)
     nothing = np.zeros(0, np.float32)
     if keys[0] == ("raycast", "navigation"):
         tables = vevm.cache.get(keys[0], lambda: _NavigationTables(vevm))
-        return Volume(n, strides, nothing, nothing, True, tables.densities, tables.relation,
-                      tables.relation_at)
-    table = vevm.cache.get(keys[0], lambda: _dense_table(vevm))
-    grad = vevm.cache.get(keys[1], lambda: _dense_gradients(vevm, table)) if len(keys) > 1 \
-        else nothing
-    return Volume(n, strides, table.view(np.float32), grad, False, nothing,
+        return Volume(n, (0, 0, 0), np.zeros(0, np.int32), nothing, nothing, True,
+                      tables.densities, tables.relation, tables.relation_at)
+    table = vevm.cache.get(keys[0], lambda: _SamplingTable(vevm))
+    grad = vevm.cache.get(keys[1], table.gradients) if len(keys) > 1 else nothing
+    return Volume(n, table.strides, table.index, table.table, grad, False, nothing,
                   np.zeros(0, np.int64), (0,) * (len(RELATION_FIELDS) + 1))
 
 
@@ -499,7 +679,7 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
         Sample spacing along rays in mm (default: half the smallest voxel size).
     skip_empty : bool
         True: leap over blocks the EVM shows empty or invisible. False: every sample in the
-        volume's box, from the dense grid with the region mask. Same image (module docstring).
+        volume's box, from the sampling table alone. Same image (module docstring).
     termination : float
         ``"over"``: a ray stops once its opacity reaches this value (1 = never); the error
         this makes is at most ``1 - termination`` per channel.
@@ -543,7 +723,7 @@ def render_raycast_navigate(vevm, camera, tf, grid_to_world, *, mode="over", dep
 
     The same caster as :func:`render_raycast` (same parameters, same image within float
     rounding), but each sample's 8 trilinear neighbours (64 with ``shading``) are found through
-    the relation v (:meth:`VolumeEVM.index`) in the densities table; no dense array exists.
+    the relation v (:meth:`VolumeEVM.index`) in the densities table; no sampling table exists.
     ``skip_empty=False`` marches every lattice sample in the volume's box.
     """
     return _render(vevm, camera, tf, grid_to_world, navigate=True, mode=mode, depth_in=depth_in,
@@ -583,10 +763,11 @@ RAYCAST_METHOD = Method(
     name="raycast", label="Ray Casting",
     description="Trilinear ray casting with the EVM as space-leaping structure",
     render=render_raycast, options=keyword_options(render_raycast),
-    # The padded complex64 sampling table written in place, and the region mask (the
-    # space-leaping blocks, made first, need less: a float32 grid and the mask, filtered a
-    # plane at a time); per pixel, the ray set-up and per-ray state.
-    memory=MemoryModel(pixel=32, grid=10, shading_grid=14, per_view=_block_view_bytes),
+    # The tables follow the region, not the grid (:func:`table_bytes`: the block-sparse
+    # sampling table, its gradients with shading, the space-leaping blocks); per pixel, the ray
+    # set-up and per-ray state.
+    memory=MemoryModel(pixel=32, per_set=functools.partial(table_bytes, navigate=False),
+                       per_view=_block_view_bytes),
     tables_to_build=_tables, check_samples=step_samples(RAY_STEPS_PER_VOXEL),
     quality=step_quality(RAY_STEPS_PER_VOXEL), categorical=True)
 """Ray casting with the EVM as space-leaping structure."""
@@ -596,8 +777,9 @@ NAVIGATE_METHOD = Method(
     description="Ray casting that finds every density through the EVM (the report's slow "
                 "baseline)",
     render=render_raycast_navigate, options=keyword_options(render_raycast_navigate),
-    # No dense table; the block grid is made through a temporary float32 grid and the mask.
-    memory=MemoryModel(pixel=32, grid=7, per_view=_block_view_bytes),
+    # No sampling table: float32 densities, the relation v and the blocks (:func:`table_bytes`).
+    memory=MemoryModel(pixel=32, per_set=functools.partial(table_bytes, navigate=True),
+                       per_view=_block_view_bytes),
     tables_to_build=_navigate_tables, check_samples=step_samples(RAY_STEPS_PER_VOXEL),
     quality=step_quality(RAY_STEPS_PER_VOXEL), categorical=True)
 """Ray casting that finds every density through the EVM (no dense array)."""
