@@ -11,8 +11,8 @@ import pytest
 from volumeevm_addon import (BACKGROUND_DEPTH, BLENDER_UNITS_PER_MM, Camera, TransferFunction,
                              VolumeEVM, VolumeEVMError, grid_to_world, render, set_kernel_threads)
 from volumeevm_addon.rendering import _shear_warp
-from volumeevm_addon.rendering import _shear_warp_kernels as kernels
 from volumeevm_addon.rendering._modes import MODE_CODES
+from volumeevm_addon.rendering._shear_warp import _kernels as kernels
 from volumeevm_addon.rendering._shear_warp import _View, _region_layout, render_shear_warp
 from render_helpers import MODES, reference
 

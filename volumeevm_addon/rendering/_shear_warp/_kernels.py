@@ -39,9 +39,9 @@ from collections import namedtuple
 
 import numpy as np
 
-from .._jit import kernel
-from ._shading import fade
-from ._modes import MODE_CODES, MODES
+from ..._jit import kernel
+from .._modes import MODE_CODES, MODES
+from .._shading import fade
 
 __all__ = ["Runs", "Plan", "Voxels", "Light", "Optics", "Frame", "NEVER",
            "box_runs", "mask_runs", "flagged_runs", "mixed_codes", "lit_colours", "tap", "span",

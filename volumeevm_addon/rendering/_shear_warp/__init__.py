@@ -4,7 +4,7 @@ The view is factored into a shear (perspective: a shear and a per-slice scale) t
 ray perpendicular to the slices of the **principal axis**, and one 2-D warp from the
 intermediate image (one pixel per voxel of a slice, or ``intermediate_scale`` pixels per voxel
 along each in-slice axis) to the final image. The loops are compiled kernels
-(:mod:`._shear_warp_kernels`); this module factors the view and builds their tables.
+(:mod:`._kernels`); this module factors the view and builds their tables.
 
 Pipeline
 --------
@@ -33,11 +33,11 @@ Pipeline
    scanlines, and the densities table ``vevm.table(c)`` lists them in that order. What depends
    only on the principal axis is computed once and kept in the VolumeEVM's cache,
    ``vevm.cache``: the runs of every scanline with the table position of their first voxel
-   (:func:`._shear_warp_kernels.box_runs`). Per transfer function (also kept) the runs of the
+   (:func:`._kernels.box_runs`). Per transfer function (also kept) the runs of the
    voxels worth compositing: pre-classification, the voxels the function does not make
    transparent; post-classification, the voxels where a sample may be visible
-   (:func:`._shear_warp_kernels.mixed_codes`); X-ray and MIP, every region voxel. The kernel
-   (:func:`._shear_warp_kernels.composite`) samples, per slice and intermediate scanline, only
+   (:func:`._kernels.mixed_codes`); X-ray and MIP, every region voxel. The kernel
+   (:func:`._kernels.composite`) samples, per slice and intermediate scanline, only
    the pixels whose bilinear taps touch such a run, reads the taps through the region's runs,
    and skips the pixels that are opaque already ("over", early ray termination) by pointers
    to the next pixel that is not (VolPack). Bands of intermediate scanlines are composited in
@@ -123,19 +123,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._errors import VolumeEVMError
-from .._jit import parallel_map
-from ..model._densities import TABLE_ORDERS
-from ..model._volume import transform
-from . import _depth
-from ._camera import BACKGROUND_DEPTH
-from ._checks import categorical, checked_view, flag, positive_integer
-from ._gradients import region_gradients
-from ._modes import MODE_CODES, finish_mode
-from ._shading import Shading, checked_shading, fade_magnitudes
-from ._shear_warp_kernels import (NEVER, Frame, Light, Optics, Plan, Runs, Voxels,
-                                  box_runs, composite, flagged_runs, lit_colours, mask_runs,
-                                  mixed_codes, ray_points, warp)
+from ..._errors import VolumeEVMError
+from ..._jit import parallel_map
+from ...model._densities import TABLE_ORDERS
+from ...model._volume import transform
+from .. import _depth
+from .._camera import BACKGROUND_DEPTH
+from .._checks import categorical, checked_view, flag, positive_integer
+from .._gradients import region_gradients
+from .._modes import MODE_CODES, finish_mode
+from .._shading import Shading, checked_shading, fade_magnitudes
+from ._kernels import (NEVER, Frame, Light, Optics, Plan, Runs, Voxels, box_runs, composite,
+                       flagged_runs, lit_colours, mask_runs, mixed_codes, ray_points, warp)
 
 __all__ = ["render_shear_warp", "SLICES_PER_VOXEL", "CLASSIFICATIONS"]
 
@@ -169,7 +168,7 @@ class _Layout:
     shape : tuple of int
         Slices, scanlines per slice and columns per scanline.
     runs : Runs
-        The region's runs per scanline (:data:`._shear_warp_kernels.Runs`), each voxel's code
+        The region's runs per scanline (:data:`._kernels.Runs`), each voxel's code
         its position in ``values`` (``values[0]``: outside).
     values : (N + 1,) ndarray
         ``values[0] = 0``, then the densities the codes point at: the densities table of the
@@ -341,7 +340,7 @@ def _classes(vevm, layout, tf, lut_size):
 
 def _mixed(vevm, layout, tf, lut_size):
     """Post-classification: the runs of the voxels where a sample may be visible
-    (:func:`._shear_warp_kernels.mixed_codes`) for ``tf`` and ``lut_size``, kept
+    (:func:`._kernels.mixed_codes`) for ``tf`` and ``lut_size``, kept
     (:func:`_kept`); every region voxel on the dense layout."""
 
     def make():
@@ -488,7 +487,7 @@ class _View:
         """Perspective: the intermediate coordinates of every pixel's ray, ``(2, H*W)`` before
         the origin shift (0 for rays that do not cross the slices towards the reference plane),
         which rays do (those of ``rays``, a flat mask or None for all) and their ``(p min,
-        p max, q min, q max)`` (:func:`._shear_warp_kernels.ray_points`)."""
+        p max, q min, q max)`` (:func:`._kernels.ray_points`)."""
         h, w = camera.shape
         x, y = camera.pixel_centres()
         m = camera.matrix_world
@@ -873,7 +872,7 @@ def _light(view, shading, tf):
 def _lit_voxels(classes, gradients, optics):
     """Shaded pre-classification: the lit colours of the visible voxels, ``(1 + visible, 4)``
     (row 0 transparent, then by :attr:`_Classes.index`), in parallel over chunks of them
-    (:func:`._shear_warp_kernels.lit_colours`)."""
+    (:func:`._kernels.lit_colours`)."""
     codes = classes.codes
     out = np.zeros((len(codes) + 1, 4), np.float32)
     chunk = 1 << 16
@@ -952,7 +951,7 @@ def _finish(frame, mode, tf):
 def _warp(view, camera, frame, front, rgba_out, depth_out):
     """Final image: bilinear interpolation of the intermediate colour at each pixel's ray, and
     the depth of the nearest intermediate pixel's depth sample
-    (:func:`._shear_warp_kernels.warp`), :data:`_WARP_CHUNK` pixels per task."""
+    (:func:`._kernels.warp`), :data:`_WARP_CHUNK` pixels per task."""
     h, w = camera.shape
     k0, kp, kq = view.depth_coefficients(front)
     none = np.zeros((0, 2))  # (unused: orthographic rows and columns, or perspective points)
