@@ -5,7 +5,10 @@ Private modules; the public names (:func:`~volumeevm_addon.render`, ``Camera``,
 method; ``_render.py`` is the entry point that checks the inputs and dispatches to them:
 
 - ``_render.py``: :func:`~volumeevm_addon.render`, whatever the method (checks, memory, levels).
-- ``_shear_warp.py``: shear-warp (Lacroute & Levoy), parallel and perspective.
+- ``_shear_warp/``: shear-warp (Lacroute & Levoy), parallel and perspective, a package by
+  stage: ``_view.py`` (the view's factorization), ``_layouts.py`` (the run layouts and class
+  caches), ``_composite.py`` (compositing), ``_warp.py`` (the warp), each with its compiled
+  loops; ``__init__.py`` checks the options and runs the stages.
 - ``_splat.py``: sheet-buffer splatting (Westover), post-classified.
 - ``_raycast.py``: ray casting with the EVM as space-leaping structure, and its navigation mode
   (their compiled per-ray loops in ``_ray_march.py``).
