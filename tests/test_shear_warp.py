@@ -19,10 +19,11 @@ from volumeevm_addon import (
     set_kernel_threads,
 )
 from volumeevm_addon.model import BLENDER_UNITS_PER_MM
-from volumeevm_addon.rendering import BACKGROUND_DEPTH, _shear_warp
-from volumeevm_addon.rendering import _shear_warp_kernels as kernels
+from volumeevm_addon.rendering import BACKGROUND_DEPTH
 from volumeevm_addon.rendering._modes import MODE_CODES
-from volumeevm_addon.rendering._shear_warp import _region_layout, _View, render_shear_warp
+from volumeevm_addon.rendering._shear_warp import _composite, _layouts, _warp, render_shear_warp
+from volumeevm_addon.rendering._shear_warp._layouts import region_layout
+from volumeevm_addon.rendering._shear_warp._view import View
 
 BU = BLENDER_UNITS_PER_MM
 
@@ -391,7 +392,7 @@ def test_principal_axis_switch_at_45_degrees(brain_half):
         ref, _ = fine_reference(vevm, cam, MRI, g, mode="over")
         assert np.abs(rgba - ref).mean() < 0.009
         frames.append(rgba)
-        axes.append(_View.principal_axis(vevm, cam, g))
+        axes.append(View.principal_axis(vevm, cam, g))
     assert axes == [1, 1, 0]
     same_axis = np.abs(frames[1] - frames[0]).mean()
     across = np.abs(frames[2] - frames[1]).mean()
@@ -402,7 +403,7 @@ def test_principal_axis_switch_at_45_degrees(brain_half):
 def test_runs_are_the_table_in_order(brain_half, axis):
     """The runs read from the EVM's boxes cover exactly the region's voxels of each scanline,
     and their positions number the densities table of the axis in its order."""
-    layout = _region_layout(brain_half, axis)
+    layout = region_layout(brain_half, axis)
     runs = layout.runs
     grid = np.full(layout.shape, np.nan)
     for line in range(layout.shape[0] * runs.lines):
@@ -454,14 +455,14 @@ def test_axis_cache_is_reused(brain_half):
     first = orbit_camera(g, vevm.shape, vevm.spacing, (0.3, -1.0, 0.2), "ORTHO", res=(16, 12))
     moved = orbit_camera(g, vevm.shape, vevm.spacing, (-0.2, -1.0, 0.4), "PERSP", res=(16, 12))
     render_shear_warp(vevm, first, MRI, g)
-    layout = _region_layout(vevm, 1)  # the one the render kept in vevm.cache
+    layout = region_layout(vevm, 1)  # the one the render kept in vevm.cache
 
     def kept(part):
         return [key[2:] for key in vevm.cache.keys() if key[:2] == ("shear_warp", part)]
 
     render_shear_warp(vevm, moved, MRI, g)
     render_shear_warp(vevm, moved, CT_BONE, g)
-    assert kept("layout") == [(1,)] and _region_layout(vevm, 1) is layout
+    assert kept("layout") == [(1,)] and region_layout(vevm, 1) is layout
     assert len(kept("classes")) == 2
 
 
@@ -471,25 +472,26 @@ def composited_slice(rows, lut, f, g):
     the voxels' table ``rows`` (0: outside the region) index ``lut`` (channels first), read
     through the runs of the region; the image covers the slice and a margin around it."""
     n, m = rows.shape
-    runs = kernels.Runs(n, m, *kernels.mask_runs(rows[None] > 0))
-    voxels = kernels.Voxels(np.r_[0, rows.ravel()].astype(np.int32),
-                            np.ascontiguousarray(lut[:4].T), 4)
+    runs = _layouts.Runs(n, m, *_layouts.mask_runs(rows[None] > 0))
+    voxels = _composite.Voxels(np.r_[0, rows.ravel()].astype(np.int32),
+                               np.ascontiguousarray(lut[:4].T), 4)
     beta_a, beta_b = 3.0 + f, -2.0 + g
     origin = (-6, 0)  # the image starts 3 rows and 2 columns before the slice
-    plan = kernels.Plan(np.zeros(1, np.int64), np.full(1, -1), np.ones(1, np.float32),
-                        np.zeros(1, np.float32), np.ones(1), np.array([beta_a]),
-                        np.array([beta_b]), np.zeros(1), np.zeros(1), np.zeros(1),
-                        np.zeros(1, np.int32), np.zeros(1, bool))
-    optics = kernels.Optics(MODE_CODES["over"], False, False, False, np.float32(1.0),
-                            np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
-                            0.0, 0.0, 64.0, _shear_warp._light(None, None, None), np.float32(0.0),
-                            np.float32(0.0), np.float32(0.0))
+    plan = _composite.Plan(np.zeros(1, np.int64), np.full(1, -1), np.ones(1, np.float32),
+                           np.zeros(1, np.float32), np.ones(1), np.array([beta_a]),
+                           np.array([beta_b]), np.zeros(1), np.zeros(1), np.zeros(1),
+                           np.zeros(1, np.int32), np.zeros(1, bool))
+    optics = _composite.Optics(MODE_CODES["over"], False, False, False, np.float32(1.0),
+                               np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
+                               0.0, 0.0, 64.0, _composite._light(None, None, None),
+                               np.float32(0.0), np.float32(0.0), np.float32(0.0))
     size = (n + 4, m + 4)
-    frame = kernels.Frame(origin[0], origin[1], np.zeros((0, 0), np.float32),
-                          np.float32(-np.inf), np.float32(np.inf), np.zeros((0, 0), np.float32),
-                          np.zeros(size + (4,), np.float32), np.full(size, kernels.NEVER, np.int32),
-                          np.zeros((0, 0), np.int32))
-    kernels.composite(0, 1, size[0], plan, runs, runs, voxels, optics, frame)
+    frame = _composite.Frame(origin[0], origin[1], np.zeros((0, 0), np.float32),
+                             np.float32(-np.inf), np.float32(np.inf),
+                             np.zeros((0, 0), np.float32), np.zeros(size + (4,), np.float32),
+                             np.full(size, _composite.NEVER, np.int32),
+                             np.zeros((0, 0), np.int32))
+    _composite.composite(0, 1, size[0], plan, runs, runs, voxels, optics, frame)
     return frame.image, origin, (beta_a, beta_b)
 
 
@@ -527,7 +529,7 @@ def test_warp_chunks_do_not_change_the_image(brain_half, monkeypatch):
     cam = orbit_camera(g, brain_half.shape, brain_half.spacing, (0.4, -1.0, 0.3), "ORTHO",
                        res=(37, 29))
     rgba, depth = render_shear_warp(brain_half, cam, MRI, g)
-    monkeypatch.setattr(_shear_warp, "_WARP_CHUNK", 100)
+    monkeypatch.setattr(_warp, "_WARP_CHUNK", 100)
     rgba_chunked, depth_chunked = render_shear_warp(brain_half, cam, MRI, g)
     np.testing.assert_array_equal(rgba_chunked, rgba)
     np.testing.assert_array_equal(depth_chunked, depth)
@@ -547,15 +549,15 @@ def test_span_and_shift_move_indices_only():
         t1 = t0 + int(rng.integers(1, 30))
         origin = int(rng.integers(-80, 80))
         lo, hi = int(rng.integers(-5, 20)), int(rng.integers(30, 120))
-        span = kernels.span(t0, t1, alpha, beta, origin, lo, hi)
+        span = _composite.span(t0, t1, alpha, beta, origin, lo, hi)
         for k in (1, 2, 7, -3):
-            moved = kernels.span(t0, t1, alpha, beta, origin - k, lo + k, hi + k)
+            moved = _composite.span(t0, t1, alpha, beta, origin - k, lo + k, hi + k)
             assert (span[1] <= span[0]) == (moved[1] <= moved[0])
             if span[1] <= span[0]:
                 continue
             assert (moved[0], moved[1]) == (span[0] + k, span[1] + k)
-            taps = [kernels.tap(p + origin, alpha, beta, False) for p in range(*span)]
-            moved_taps = [kernels.tap(p + origin - k, alpha, beta, False) for p in range(*moved)]
+            taps = [_composite.tap(p + origin, alpha, beta, False) for p in range(*span)]
+            moved_taps = [_composite.tap(p + origin - k, alpha, beta, False) for p in range(*moved)]
             assert moved_taps == taps
 
 
@@ -583,13 +585,13 @@ def test_intermediate_origin_moves_nothing(ct_head, monkeypatch, kind, mode, opt
         opts["depth_in"] = np.full(cam.shape, np.median(depth[depth < BACKGROUND_DEPTH]))
     rgba, depth = render_shear_warp(ct_head, cam, CT_BONE, g, mode=mode, **opts)
     assert rgba[..., 3].max() > 0.3 and (depth < BACKGROUND_DEPTH).sum() > 200
-    extent = _View.extent
+    extent = View.extent
     for shift in ((1, 0), (2, 7)):
         def earlier(foot, img, shift=shift):
             origin, size = extent(foot, img)
             return origin - shift, (size[0] + shift[0] + 2, size[1] + shift[1] + 3)
 
-        monkeypatch.setattr(_View, "extent", staticmethod(earlier))
+        monkeypatch.setattr(View, "extent", staticmethod(earlier))
         moved_rgba, moved_depth = render_shear_warp(ct_head, cam, CT_BONE, g, mode=mode, **opts)
         np.testing.assert_array_equal(moved_rgba, rgba)
         np.testing.assert_array_equal(moved_depth, depth)

@@ -11,7 +11,10 @@ the inputs and dispatches to them through their records:
 - ``_method.py``: the :class:`Method` record, its :class:`MemoryModel` and the pieces records
   share (the sample bound, the ray casters' quality mapping); ``_registry.py``: the records,
   one line each (:func:`~volumeevm_addon.rendering.methods`).
-- ``_shear_warp.py``: shear-warp (Lacroute & Levoy), parallel and perspective.
+- ``_shear_warp/``: shear-warp (Lacroute & Levoy), parallel and perspective, a package by
+  stage: ``_view.py`` (the view's factorization), ``_layouts.py`` (the run layouts and class
+  caches), ``_composite.py`` (compositing), ``_warp.py`` (the warp), each with its compiled
+  loops; ``__init__.py`` checks the options and runs the stages.
 - ``_splat.py``: sheet-buffer splatting (Westover), post-classified.
 - ``_raycast.py``: ray casting with the EVM as space-leaping structure, and its navigation mode
   (their compiled per-ray loops in ``_ray_march.py``).

@@ -1,16 +1,59 @@
-"""Shear-warp's loops, compiled (:mod:`.._jit`): the EVM's runs per scanline, the runs worth
-compositing for a transfer function, the slices composited into bands of intermediate
-scanlines, and the warp to the final image.
+"""Shear-warp's compositing: the samples of one view classified (and lit) and composited, slice
+by slice, into the intermediate image; its driver and its compiled loops.
 
-:mod:`._shear_warp` factors the view, builds the tables and describes the optical model; here
-is the report's loop (Lacroute & Levoy, Figure 4): per band of intermediate scanlines, per
-sample slice front to back, per intermediate scanline, per run of the two (four, between two
+This is the stage VolPack keeps in ``vp_compA*.c`` (and ``vp_shade.c``): per band of
+intermediate scanlines, per sample slice, it reads the runs of :mod:`._layouts` through the
+maps of :mod:`._view` and leaves an intermediate image (:data:`Frame`) for :mod:`._warp`.
+
+1. **Samples along the rays** (``slices_per_voxel = k``, Shear-Warp Deluxe's intermediate
+   slices): each voxel slice ``s`` owns the slab of its cells, ``c`` in ``[s - 1/2, s + 1/2)``,
+   and takes ``k`` samples at the centres of ``k`` equal parts of it; a sample between the
+   slice planes is the linear blend of the bilinear samples of ``s`` and its neighbour (so
+   trilinear, with the clamp policy of the sample's nearest voxel, which is in ``s``). ``k = 1``
+   is VolPack's one sample per slice, on the plane. The opacity is corrected for ``Δ / k``
+   (``Δ``: the view's slice spacing along the ray, :class:`._view.View`).
+2. **Classification** ``"pre"`` (VolPack): each voxel's density is quantized once per transfer
+   function (:meth:`TransferFunction.quantize`) and looked up in the premultiplied table
+   :meth:`TransferFunction.table` computed once per view with the opacity corrected for the
+   physical distance between consecutive samples along the ray. Perspective rays have
+   their own ``Δ``; the table is made for the central ray and each sample is corrected to its
+   ray's ``Δ`` by ``α' = 1 - (1 - α)^(Δ/Δ_table)`` (colour scaled by ``α'/α``).
+   With ``shading``, each visible voxel's colour is lit once per view before interpolation
+   (the reference's Blinn–Phong headlight on per-voxel 3x3x3 Sobel gradients, which are
+   computed once per principal axis and cached; the light is the view direction, for
+   perspective the eye-to-region-centre direction).
+   ``"mip"`` and ``"xray"`` interpolate densities instead (post-classification, as the
+   reference does): MIP classifies the maximum with the transfer function's opacity as given,
+   X-ray accumulates ``μ·Δ`` with ``μ = xray_scale · max(d - xray_offset, 0)`` per mm and gives
+   ``1 - exp(-Σ μΔ)`` as grey premultiplied RGBA. ``"post"`` does the same for ``"over"`` and
+   ``"under"``: densities (and, with shading, the per-voxel gradients) are interpolated, then
+   classified through the table and lit per sample, the reference's order.
+   A **categorical** transfer function (label maps) puts all of a sample's bilinear weight on
+   the slice's voxel nearest to it (one sample per slice), and its table has a row per label.
+3. **Boundary policy "clamp"** (:mod:`.._reference`), in the slice: a sample is transparent if
+   the voxel nearest to it (its cell) is outside the region; otherwise the bilinear weights of
+   outside voxels are dropped and the others renormalised. Outside voxels are never read: they
+   have no code in the runs.
+4. **Compositing** into one float32 intermediate image: ``"over"`` front to back,
+   ``C += (1 - A)·c``, with early ray termination: a pixel whose opacity reached
+   ``termination`` takes nothing more (so its error is at most ``1 - termination``) and is
+   skipped from then on. ``"under"`` back to front, ``C = c + (1 - a)·C``; ``"xray"`` sums
+   ``μΔ``; ``"mip"`` keeps the maximum and its slice.
+5. **Depth**: ``depth_in`` (and the camera's clip range): a sample is dropped when its axial
+   depth is not in ``[clip_start, min(clip_end, depth_in))``. ``depth_in`` is brought into the
+   intermediate image once per view (each intermediate pixel takes the value of the final pixel
+   its ray passes through, nearest); per slice the sample depth is affine in ``(p, q)`` and is
+   only evaluated per pixel on slices whose depth range crosses a limit. Each intermediate pixel
+   keeps the rank of its first visible sample (:mod:`.._depth`: opacity per unit length at least
+   ``VISIBLE_ALPHA``; ``"xray"``: attenuation; ``"mip"``: the frontmost sample holding the
+   maximum, if its class is visible), from which the warp takes the output depth.
+
+The loop (Lacroute & Levoy, Figure 4; :func:`composite`): per band of intermediate scanlines,
+per sample slice front to back, per intermediate scanline, per run of the two (four, between two
 slices) voxel scanlines its bilinear taps read:
 
-- **transparent voxels are skipped with the runs**: the region's runs are the 1-D sections of
-  the EVM's sections, in the densities table's order (:func:`box_runs`); a transfer function
-  keeps the runs of the voxels worth compositing (:func:`flagged_runs`), and only intermediate
-  pixels whose taps touch one of them are sampled;
+- **transparent voxels are skipped with the runs**: only intermediate pixels whose taps touch a
+  run worth compositing (:mod:`._layouts`) are sampled;
 - **opaque intermediate pixels are skipped with pointers** to the next pixel that is not
   opaque (VolPack's trick): a pixel whose opacity reaches the termination threshold points
   past itself, and a search follows and shortens the chain;
@@ -23,29 +66,34 @@ slices) voxel scanlines its bilinear taps read:
   slice); then the samples are composited pixel by pixel.
 
 The arithmetic is the vectorized compositing's it replaced, in float32 where that was (the
-largest difference in the images was of the order of 1e-7). A band writes only its own
-intermediate scanlines and reads nothing another band writes, so the image does not depend on
-how the bands are spread over threads. (The loops are written out in :func:`composite`: a
-compiled helper that takes arrays costs their reference counting on every call, more than the
-work of a pixel; the helpers take numbers.)
+largest difference in the images was of the order of 1e-7). Bands of intermediate scanlines are
+composited in parallel (:func:`..._jit.parallel_map`), each through every slice; a band writes
+only its own intermediate scanlines and reads nothing another band writes, so the image does not
+depend on how the bands are spread over threads. (The loops are written out in
+:func:`composite`: a compiled helper that takes arrays costs their reference counting on every
+call, more than the work of a pixel; the helpers take numbers.)
 
 The kernels take their inputs as records of arrays and numbers with fixed types, so that one
 compiled kernel serves every render (what a render does not use is an empty array):
-:data:`Runs`, :data:`Plan`, :data:`Voxels`, :data:`Light`, :data:`Optics` and :data:`Frame`.
+:data:`._layouts.Runs`, :data:`Plan`, :data:`Voxels`, :data:`Light`, :data:`Optics` and
+:data:`Frame`.
 """
 
 import math
 from collections import namedtuple
+from dataclasses import dataclass
 
 import numpy as np
 
-from .._jit import kernel
-from ._modes import MODE_CODES, MODES
-from ._shading import fade
+from ..._jit import kernel, parallel_map
+from .. import _depth
+from .._checks import categorical
+from .._modes import MODE_CODES, MODES, finish_mode
+from .._shading import Shading, fade, fade_magnitudes
+from ._layouts import mixed_runs, post_table, voxel_classes, voxel_gradients
 
-__all__ = ["Runs", "Plan", "Voxels", "Light", "Optics", "Frame", "NEVER",
-           "box_runs", "mask_runs", "flagged_runs", "mixed_codes", "lit_colours", "tap", "span",
-           "composite", "ray_points", "warp"]
+__all__ = ["Plan", "Voxels", "Light", "Optics", "Frame", "NEVER", "Sampling", "Clip",
+           "intermediate_image", "lit_colours", "tap", "span", "composite"]
 
 _OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
 NEVER = np.iinfo(np.int32).max
@@ -58,16 +106,14 @@ _ONE = np.float32(1.0)
 _ZERO = np.float32(0.0)
 _HALF = np.float32(0.5)
 _EIGHT = np.uint64(8)
-
-Runs = namedtuple("Runs", "lines columns starts lo hi pos box")
-Runs.__doc__ = """Runs of voxels along the scanlines of the slices of one principal axis.
-
-Scanline ``a`` of slice ``s`` (``lines`` scanlines of ``columns`` voxels per slice) is line
-``s·lines + a``; its runs are ``starts[line] .. starts[line + 1] - 1``, sorted; run ``r``
-covers the columns ``lo[r] .. hi[r] - 1``. ``pos`` (region runs): the position in the
-densities table of each run's first voxel (a voxel's *code* is its position + 1; 0 is outside
-the region); empty for the runs a transfer function keeps. ``box`` (slices, 4): per slice the
-rows ``[a0, a1)`` and columns ``[b0, b1)`` its runs span (``a1 <= a0`` when it has none)."""
+_BAND = 4
+"""Intermediate scanlines per band of the compositing (a band goes through every slice)."""
+_TASKS = 16
+"""Tasks the bands are dealt to, in turn (task ``k`` takes bands ``k, k + 16, ...``): the
+image's middle, where the volume is, is shared out evenly whatever the number of threads."""
+_UNSEEN = -np.finfo(np.float32).max
+"""MIP maximum before any sample (finite, so that the tie margin stays a number)."""
+_EMPTY = np.zeros((0, 0), np.float32)
 
 Plan = namedtuple("Plan", "slice other keep blend alpha beta_a beta_b k0 kp kq rank test")
 Plan.__doc__ = """The samples of a view, in compositing order (front to back; back to front for
@@ -92,19 +138,19 @@ post-classification's density (and index-space gradient)."""
 Light = namedtuple("Light", "normal towards ambient diffuse specular shininess fade_lo fade_hi")
 Light.__doc__ = """A view's headlight, numbers only (float32): ``normal`` (9,), the matrix taking
 an index-space gradient to a world normal, row by row (``n = g @ normal``); ``towards`` (3,),
-the unit world direction of the light; the Blinn–Phong weights (:class:`._shading.Shading`);
-the fade's gradient magnitudes (float64, :attr:`._shading.Lighting.fade`)."""
+the unit world direction of the light; the Blinn–Phong weights (:class:`.._shading.Shading`);
+the fade's gradient magnitudes (float64, :attr:`.._shading.Lighting.fade`)."""
 
 Optics = namedtuple("Optics", "mode post nearest shaded termination visible lut straight lut_lo "
                               "lut_scale lut_rows light xray_offset xray_factor xray_visible")
 Optics.__doc__ = """How samples become colour.
 
-``mode``: :data:`._modes.MODE_CODES`; ``post``: classify interpolated densities through ``lut``
+``mode``: :data:`.._modes.MODE_CODES`; ``post``: classify interpolated densities through ``lut``
 ((rows + 1, 4) float32, premultiplied for the view's step, row 0 transparent), the row
 ``clip(rint((d - lut_lo)·lut_scale), 0, lut_rows - 1) + 1``; ``shaded`` (post): light each
 sample with ``light`` (:data:`Light`) on the straight colours ``straight`` (rows + 1, 3);
 ``termination`` (float32): "over" stops a pixel at this opacity (1: never); ``visible``
-(float32): the opacity from which a sample is visible (:mod:`._depth`); ``xray_offset``,
+(float32): the opacity from which a sample is visible (:mod:`.._depth`); ``xray_offset``,
 ``xray_factor`` (float32): X-ray's ``μ·Δ = max(d - offset, 0)·factor`` and ``xray_visible``
 its visibility threshold; ``nearest``: samples take the nearest voxel of the slice (all the
 bilinear weight on it: categorical transfer functions, one sample per slice)."""
@@ -121,192 +167,189 @@ none); ``next`` (hi, wi + 1) int32: per pixel itself, or, once opaque, a later p
 pixel between that is not opaque (column ``wi``: the end)."""
 
 
-# ---------------------------------------------------------------------------- runs
-@kernel
-def box_runs(lo, hi, slices, lines):
-    """The region's runs per scanline from the EVM's ordered boxes, in the table's order.
-
-    ``lo``, ``hi`` (m, 3): the boxes of :meth:`EVM.boxes` in the table order, columns
-    permuted to (slice, scanline, column): slabs of boxes sharing a slice range, split in
-    sub-slabs sharing a scanline range, split in runs. The table lists each slice's voxels
-    scanline by scanline, each scanline run by run, so a running count gives every run's
-    position. Returns ``(starts, run_lo, run_hi, pos, box)`` of :data:`Runs`.
-    """
-    m = lo.shape[0]
-    starts = np.zeros(slices * lines + 1, np.int64)
-    for k in range(m):
-        for s in range(lo[k, 0], hi[k, 0]):
-            for a in range(lo[k, 1], hi[k, 1]):
-                starts[s * lines + a + 1] += 1
-    for line in range(slices * lines):
-        starts[line + 1] += starts[line]
-    total = starts[slices * lines]
-    run_lo = np.empty(total, np.int32)
-    run_hi = np.empty(total, np.int32)
-    pos = np.empty(total, np.int64)
-    fill = starts[:-1].copy()
-    at = 0
-    k = 0
-    while k < m:
-        slab = k
-        while slab < m and lo[slab, 0] == lo[k, 0] and hi[slab, 0] == hi[k, 0]:
-            slab += 1
-        for s in range(lo[k, 0], hi[k, 0]):
-            u = k
-            while u < slab:
-                v = u
-                while v < slab and lo[v, 1] == lo[u, 1] and hi[v, 1] == hi[u, 1]:
-                    v += 1
-                for a in range(lo[u, 1], hi[u, 1]):
-                    w = fill[s * lines + a]
-                    for r in range(u, v):
-                        run_lo[w] = lo[r, 2]
-                        run_hi[w] = hi[r, 2]
-                        pos[w] = at
-                        at += hi[r, 2] - lo[r, 2]
-                        w += 1
-                    fill[s * lines + a] = w
-                u = v
-        k = slab
-    return starts, run_lo, run_hi, pos, _boxes(starts, run_lo, run_hi, slices, lines)
+def intermediate_image(vevm, view, layout, tf, compositing, sampling, clip):
+    """The slice loop: returns the intermediate image as a :data:`Frame` (premultiplied RGBA,
+    the front-to-back rank of each pixel's depth sample, :data:`NEVER` where none) and, per
+    rank, the slice coordinate of the front end of its samples."""
+    mode = compositing.mode
+    per_voxel = sampling.per_voxel
+    owner, offset = _samples(view.slices, view.step, per_voxel)
+    front = owner + offset - 0.5 * view.step / per_voxel
+    ranks = np.arange(len(owner))
+    if mode == "under":
+        owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
+    work, voxels, optics = _optics(vevm, view, layout, tf, compositing, sampling,
+                                   view.delta / per_voxel)
+    plan = _plan(view, layout, work, clip, owner, offset, ranks)
+    hi, wi = view.size
+    image = np.zeros((hi, wi, 4), np.float32)
+    if mode == "mip":
+        image[..., 0] = _UNSEEN
+    following = _EMPTY.astype(np.int32)
+    if mode == "over" and compositing.termination < 1.0:
+        following = np.empty((hi, wi + 1), np.int32)
+        following[:] = np.arange(wi + 1, dtype=np.int32)
+    frame = Frame(int(view.origin[0]), int(view.origin[1]),
+                  _EMPTY if view.ratio is None else view.ratio,
+                  np.float32(clip.near), np.float32(clip.far),
+                  _EMPTY if clip.limit is None else clip.limit, image,
+                  np.full((hi, wi), NEVER, np.int32), following)
+    tasks = min(_TASKS, -(-hi // _BAND))
+    parallel_map(lambda first: composite(first, tasks, _BAND, plan, layout.runs, work, voxels,
+                                         optics, frame),
+                 [(first,) for first in range(tasks)])
+    if mode in ("xray", "mip"):
+        _finish(frame, mode, tf)
+    return frame, front
 
 
-@kernel
-def mask_runs(mask):
-    """The runs of a dense mask ``(slices, lines, columns)`` (the dense side of the exactness
-    contract): each run's position is the flat index of its first voxel in the grid. Returns
-    ``(starts, run_lo, run_hi, pos, box)`` of :data:`Runs`."""
-    slices, lines, columns = mask.shape
-    starts = np.zeros(slices * lines + 1, np.int64)
-    for s in range(slices):
-        for a in range(lines):
-            count = 0
-            inside = False
-            for b in range(columns):
-                if mask[s, a, b] and not inside:
-                    count += 1
-                inside = mask[s, a, b]
-            starts[s * lines + a + 1] = starts[s * lines + a] + count
-    total = starts[slices * lines]
-    run_lo = np.empty(total, np.int32)
-    run_hi = np.empty(total, np.int32)
-    pos = np.empty(total, np.int64)
-    w = 0
-    for s in range(slices):
-        for a in range(lines):
-            b = 0
-            while b < columns:
-                if mask[s, a, b]:
-                    first = b
-                    while b < columns and mask[s, a, b]:
-                        b += 1
-                    run_lo[w] = first
-                    run_hi[w] = b
-                    pos[w] = (s * lines + a) * columns + first
-                    w += 1
-                else:
-                    b += 1
-    return starts, run_lo, run_hi, pos, _boxes(starts, run_lo, run_hi, slices, lines)
+def _samples(slices, step, per_voxel):
+    """Front-to-back samples of the slice loop: ``(slice, offset)`` per sample, the sample at
+    ``c = slice + offset``. Each voxel slice owns the slab ``[s - 1/2, s + 1/2)`` (its cells)
+    and takes ``per_voxel`` samples at the centres of equal parts of it; one sample per slice
+    is the slice plane itself."""
+    offsets = (np.arange(per_voxel) + 0.5) / per_voxel - 0.5
+    if step < 0:
+        offsets = offsets[::-1]
+    owner = np.repeat(slices, per_voxel)
+    return owner, np.tile(offsets, len(slices))
 
 
-@kernel
-def flagged_runs(region, flags, slices):
-    """The runs of the region's voxels whose ``flags[code]`` is set, per scanline: the voxels a
-    transfer function makes worth compositing. Returns ``(starts, run_lo, run_hi, box)``."""
-    lines = region.lines
-    run_starts, run_lo, run_hi, run_pos = region.starts, region.lo, region.hi, region.pos
-    starts = np.zeros(slices * lines + 1, np.int64)
-    for line in range(slices * lines):
-        count = 0
-        for r in range(run_starts[line], run_starts[line + 1]):
-            inside = False
-            for b in range(run_lo[r], run_hi[r]):
-                flag = flags[run_pos[r] + b - run_lo[r] + 1]
-                if flag and not inside:
-                    count += 1
-                inside = flag
-        starts[line + 1] = starts[line] + count
-    total = starts[slices * lines]
-    lo = np.empty(total, np.int32)
-    hi = np.empty(total, np.int32)
-    w = 0
-    for line in range(slices * lines):
-        for r in range(run_starts[line], run_starts[line + 1]):
-            code = run_pos[r] + 1 - run_lo[r]
-            b = run_lo[r]
-            while b < run_hi[r]:
-                if flags[code + b]:
-                    lo[w] = b
-                    while b < run_hi[r] and flags[code + b]:
-                        b += 1
-                    hi[w] = b
-                    w += 1
-                else:
-                    b += 1
-    return starts, lo, hi, _boxes(starts, lo, hi, slices, lines)
+@dataclass(frozen=True, slots=True, eq=False)
+class Sampling:
+    """How a render samples and classifies (checked): ``per_voxel`` samples per voxel slice,
+    ``classification`` (the package's ``CLASSIFICATIONS``), ``lut_size`` rows of the
+    classification table, ``shading`` (None: unshaded)."""
+
+    per_voxel: int
+    classification: str
+    lut_size: int
+    shading: Shading
 
 
-@kernel
-def _boxes(starts, run_lo, run_hi, slices, lines):
-    """Per slice, the rows and columns ``(a0, a1, b0, b1)`` its runs span (empty: ``a1 <= a0``)."""
-    box = np.zeros((slices, 4), np.int64)
-    for s in range(slices):
-        a0, a1, b0, b1 = lines, 0, np.iinfo(np.int32).max, 0
-        for a in range(lines):
-            first, stop = starts[s * lines + a], starts[s * lines + a + 1]
-            if stop > first:
-                a0 = min(a0, a)
-                a1 = a + 1
-                b0 = min(b0, run_lo[first])
-                b1 = max(b1, run_hi[stop - 1])
-        if a1 > a0:
-            box[s, 0], box[s, 1], box[s, 2], box[s, 3] = a0, a1, b0, b1
-    return box
+@dataclass(frozen=True, slots=True, eq=False)
+class Clip:
+    """The depth test of a view: a sample counts where its axial depth is in ``[near,
+    min(far, limit))``; ``limit``: ``depth_in`` per intermediate pixel
+    (:meth:`._view.View.depth_limit`) or None; ``far_min``: the smallest of the far limits."""
+
+    near: float
+    far: float
+    far_min: float
+    limit: np.ndarray
+
+    @classmethod
+    def of_view(cls, view, camera, g, depth_in):
+        """The camera's clip range and ``depth_in`` (None: no geometry) for ``view``."""
+        limit = None if depth_in is None else view.depth_limit(camera, g, depth_in)
+        far_min = camera.clip_end if limit is None else float(limit.min())
+        return cls(camera.clip_start, camera.clip_end, far_min, limit)
+
+    def cuts(self, view, k0, kp, kq):
+        """Per sample of axial depth ``k0 + kp p + kq q``, whether its depth over the
+        intermediate image crosses a limit (then each pixel is tested)."""
+        hi, wi = view.size
+        p0, q0 = view.origin
+        corners = [k0 + kp * p + kq * q for p in (p0, p0 + hi - 1) for q in (q0, q0 + wi - 1)]
+        low, high = np.minimum.reduce(corners), np.maximum.reduce(corners)
+        return (low < self.near) | (high >= self.far_min)
 
 
-@kernel
-def mixed_codes(region, ids, slices, columns):
-    """Post-classification: per code, whether a sample with a tap on this voxel may be visible.
+def _optics(vevm, view, layout, tf, compositing, sampling, delta):
+    """What the samples of a view read and how they become colour: the runs worth compositing
+    (:data:`._layouts.Runs`), the voxels' channels (:data:`Voxels`) and the :data:`Optics`, for
+    samples ``delta`` mm apart."""
+    mode, shading, lut_size = compositing.mode, sampling.shading, sampling.lut_size
+    post = mode in ("xray", "mip") or sampling.classification == "post"
+    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
+    lut = np.zeros((lut_size + 1, 4), np.float32)
+    straight = np.zeros((lut_size + 1, 3), np.float32)
+    lut_lo = lut_scale = 0.0
+    if mode in ("over", "under"):
+        lut[1:] = tf.table(n=lut_size, step_mm=delta)
+        straight[1:] = tf.straight_table(n=lut_size)[:, :3]
+        lo, hi, _ = tf._range(None, None, lut_size)  # the rows of quantize
+        lut_lo, lut_scale = lo, (lut_size - 1) / (hi - lo)
+    optics = Optics(MODE_CODES[mode], post, categorical(tf, mode), shading is not None,
+                    np.float32(compositing.termination),
+                    _depth.visible_threshold(1.0 if units is None else units, np.float32),
+                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading, tf),
+                    np.float32(compositing.xray_offset),
+                    np.float32(compositing.xray_scale * delta),
+                    _depth.attenuation_threshold(delta, np.float32))
+    if post:
+        table = post_table(layout, vevm, shading is not None)
+        work = layout.runs if mode in ("xray", "mip") else mixed_runs(vevm, layout, tf, lut_size)
+        return work, Voxels(np.zeros(0, np.int32), table, table.shape[1]), optics
+    classes = voxel_classes(vevm, layout, tf, lut_size)
+    if shading is None:
+        return classes.work, Voxels(classes.rows, lut, 4), optics
+    lit = _lit_voxels(classes, voxel_gradients(layout, vevm), optics)
+    return classes.work, Voxels(classes.index, lit, 4), optics
 
-    ``ids[code]``: -1 where the voxel's table row is visible, else the index of the run of
-    transparent rows its row is in. A sample's density lies between its taps' densities, so
-    its row between theirs: when all its taps are in one run of transparent rows, it is
-    transparent. A voxel is flagged when it is visible or a region voxel next to it (the 26
-    around it: every tap of a sample is next to the others) is in another run or visible;
-    a sample without a flagged tap is transparent.
-    """
-    lines = region.lines
-    run_starts, run_lo, run_hi, run_pos = region.starts, region.lo, region.hi, region.pos
-    grid = np.full((slices, lines, columns), -2, np.int32)  # -2: outside the region
-    for s in range(slices):
-        for a in range(lines):
-            for r in range(run_starts[s * lines + a], run_starts[s * lines + a + 1]):
-                code = run_pos[r] + 1 - run_lo[r]
-                for b in range(run_lo[r], run_hi[r]):
-                    grid[s, a, b] = ids[code + b]
-    out = np.zeros(ids.size, np.bool_)
-    for s in range(slices):
-        for a in range(lines):
-            for r in range(run_starts[s * lines + a], run_starts[s * lines + a + 1]):
-                code = run_pos[r] + 1 - run_lo[r]
-                for b in range(run_lo[r], run_hi[r]):
-                    own = grid[s, a, b]
-                    mixed = own < 0
-                    for ds in range(max(s - 1, 0), min(s + 2, slices)):
-                        for da in range(max(a - 1, 0), min(a + 2, lines)):
-                            for db in range(max(b - 1, 0), min(b + 2, columns)):
-                                other = grid[ds, da, db]
-                                mixed |= other != own and other != -2
-                    out[code + b] = mixed
+
+def _light(view, shading, tf):
+    """The view's headlight with the transfer function ``tf`` as the kernels take it
+    (:data:`Light`; zeros without shading)."""
+    if shading is None:
+        return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4,
+                     0.0, 0.0)
+    return Light(tuple(view.inv[:3, :3].astype(np.float32).ravel()),
+                 tuple(view.light.astype(np.float32)),
+                 *(np.float32(w) for w in (shading.ambient, shading.diffuse, shading.specular,
+                                           shading.shininess)),
+                 *fade_magnitudes(shading, tf))
+
+
+def _lit_voxels(classes, gradients, optics):
+    """Shaded pre-classification: the lit colours of the visible voxels, ``(1 + visible, 4)``
+    (row 0 transparent, then by :attr:`._layouts.Classes.index`), in parallel over chunks of
+    them (:func:`lit_colours`)."""
+    codes = classes.codes
+    out = np.zeros((len(codes) + 1, 4), np.float32)
+    chunk = 1 << 16
+    parallel_map(lambda start: lit_colours(codes[start:start + chunk], classes.rows, gradients,
+                                           optics.lut, optics.straight, optics.light,
+                                           out[start:start + chunk + 1]),
+                 [(start,) for start in range(0, len(codes), chunk)])
     return out
 
 
-# ---------------------------------------------------------------------------- shading
+def _plan(view, layout, work, clip, owner, offset, ranks):
+    """The :data:`Plan` of the samples ``owner + offset`` (compositing order, front-to-back
+    ``ranks``) that may touch a run of ``work``."""
+    other = np.where(offset > 0, owner + 1, owner - 1)
+    other[(offset == 0) | (other < 0) | (other >= layout.shape[0])] = -1
+    box = work.box
+    has = box[:, 1] > box[:, 0]
+    keep = has[owner] | ((other >= 0) & has[np.maximum(other, 0)])
+    owner, offset, ranks, other = owner[keep], offset[keep], ranks[keep], other[keep]
+    centre = owner + offset
+    alpha, beta_a, beta_b = view.slice_maps(centre)
+    k0, kp, kq = view.depth_coefficients(centre)
+    return Plan(owner.astype(np.int64), other.astype(np.int64),
+                (1.0 - np.abs(offset)).astype(np.float32), np.abs(offset).astype(np.float32),
+                alpha, beta_a, beta_b, k0, kp, kq,
+                ranks.astype(np.int32), clip.cuts(view, k0, kp, kq))
+
+
+def _finish(frame, mode, tf):
+    """X-ray's optical depths or MIP's maxima (channel 0 of the image) as premultiplied RGBA
+    (:func:`.._modes.finish_mode`), in place; pixels whose maximum is not visible lose their
+    depth sample."""
+    acc = frame.image.reshape(-1, 4)
+    vmax = None if mode == "xray" else np.where(acc[:, 0] > _UNSEEN, acc[:, 0], -np.inf)
+    visible = finish_mode(acc, vmax, mode, tf)
+    if visible is not None:
+        frame.rank[~visible.reshape(frame.rank.shape)] = NEVER
+
+
+# ----------------------------------------------------------------------------- shading kernels
 @kernel
 def _headlight(gx, gy, gz, light):
-    """The Blinn–Phong headlight (:mod:`._shading`) for an index-space gradient: the factor on
+    """The Blinn–Phong headlight (:mod:`.._shading`) for an index-space gradient: the factor on
     the straight colour and the highlight added to it, float32 (as ``_shading.blinn_phong``
-    on ``cos = |N·L|`` and the fade ``t`` of :func:`._shading.fade`)."""
+    on ``cos = |N·L|`` and the fade ``t`` of :func:`.._shading.fade`)."""
     m = light.normal
     nx = gx * m[0] + gy * m[3] + gz * m[6]
     ny = gx * m[1] + gy * m[4] + gz * m[7]
@@ -339,7 +382,7 @@ def lit_colours(codes, rows, gradients, lut, straight, light, out):
         out[k + 1, 3] = a
 
 
-# ---------------------------------------------------------------------------- compositing
+# ------------------------------------------------------------------------- compositing kernels
 @kernel
 def tap(point, alpha, beta, nearest):
     """First tap ``i`` and fraction ``f`` (float32) of the sample at absolute intermediate
@@ -652,97 +695,3 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                                 if hit:
                                     ranks[p, x] = rank
                         q = stop
-
-
-# ---------------------------------------------------------------------------- warp
-@kernel
-def ray_points(first_row, stop_row, x, y, terms, gram, eye, c_ref, step, scale, rays, pq, ok):
-    """Perspective: where the ray of each pixel of rows ``first_row .. stop_row - 1`` meets
-    the reference plane
-    ``c = c_ref`` of index space, as intermediate coordinates ``pq[:, pixel]`` (times
-    ``scale``), and whether it does, going the slices' way (``ok``; also only pixels of
-    ``rays``, empty: all). Returns ``(p min, p max, q min, q max)`` over those rays.
-
-    The ray of pixel ``(i, j)`` leaves the ``eye`` (index space) along ``x_j r + y_i u - f``
-    (:meth:`Camera.rays`): index-space component ``k`` (of ``a, b, c``) is ``terms[k, 0] x_j +
-    terms[k, 1] y_i + terms[k, 2]``; ``gram``: the world dot products ``r·r, u·u, f·f, r·u,
-    r·f, u·f``, for the length of the direction (the test is on the unit direction, as the
-    rays have it). Where the ray meets the plane does not depend on that length.
-    """
-    extent = np.array([np.inf, -np.inf, np.inf, -np.inf])
-    width = x.size
-    for i in range(first_row, stop_row):
-        for j in range(width):
-            k = i * width + j
-            xj, yi = x[j], y[i]
-            dc = terms[2, 0] * xj + terms[2, 1] * yi + terms[2, 2]
-            length = math.sqrt(xj * xj * gram[0] + yi * yi * gram[1] + gram[2]
-                               + 2 * xj * yi * gram[3] - 2 * xj * gram[4] - 2 * yi * gram[5])
-            ok[k] = dc / length * step > 1e-12 and (rays.size == 0 or rays[k])
-            if not ok[k]:
-                pq[0, k] = pq[1, k] = 0.0
-                continue
-            t = (c_ref - eye[2]) / dc
-            pq[0, k] = (eye[0] + t * (terms[0, 0] * xj + terms[0, 1] * yi + terms[0, 2])) * scale
-            pq[1, k] = (eye[1] + t * (terms[1, 0] * xj + terms[1, 1] * yi + terms[1, 2])) * scale
-            extent[0] = min(extent[0], pq[0, k])
-            extent[1] = max(extent[1], pq[0, k])
-            extent[2] = min(extent[2], pq[1, k])
-            extent[3] = max(extent[3], pq[1, k])
-    return extent
-
-
-@kernel
-def warp(start, stop, width, rows, cols, reach, pq, rays, frame, k0, kp, kq, rgba, depth):
-    """Final pixels ``start .. stop - 1`` (row by row, ``width`` per row): the bilinear
-    interpolation of the intermediate image at each pixel's ray, and the depth of the nearest
-    intermediate pixel's depth sample (axial depth ``k0 + kp P + kq Q`` of rank ``r``).
-
-    A pixel's intermediate point is ``rows[y] + cols[x]`` (orthographic: an affine map; only
-    the columns ``reach[y, 0] .. reach[y, 1] - 1`` of row ``y`` may reach the intermediate
-    image) or ``pq[:, pixel]`` (perspective), and only pixels of ``rays`` are written (empty:
-    all). Taps outside the intermediate image read zeros; a fraction ``>= 0.5`` rounds up (as
-    the clamp policy's nearest voxel: half to even would depend on the origin's parity).
-    """
-    image, ranks, origin_p, origin_q = frame.image, frame.rank, frame.origin_p, frame.origin_q
-    hi, wi = ranks.shape
-    for y in range(start // width, (stop - 1) // width + 1):
-        x_lo, x_hi = max(start - y * width, 0), min(stop - y * width, width)
-        if not pq.size:  # only the columns that may reach the intermediate image
-            x_lo, x_hi = max(x_lo, reach[y, 0]), min(x_hi, reach[y, 1])
-        for x in range(x_lo, x_hi):
-            k = y * width + x
-            if rays.size and not rays[k]:
-                continue
-            if pq.size:
-                p, q = pq[0, k], pq[1, k]
-            else:
-                p, q = rows[y, 0] + cols[x, 0], rows[y, 1] + cols[x, 1]
-            fp, fq = math.floor(p), math.floor(q)
-            ia, ib = fp - origin_p, fq - origin_q
-            if ia < -1 or ia >= hi or ib < -1 or ib >= wi:
-                continue
-            fa, fb = p - fp, q - fq
-            f, g = np.float32(fa), np.float32(fb)
-            if 0 <= ia < hi - 1 and 0 <= ib < wi - 1:
-                for ch in range(4):
-                    t00, t01 = image[ia, ib, ch], image[ia, ib + 1, ch]
-                    t10, t11 = image[ia + 1, ib, ch], image[ia + 1, ib + 1, ch]
-                    top = t00 + g * (t01 - t00)
-                    bottom = t10 + g * (t11 - t10)
-                    rgba[y, x, ch] = top + (bottom - top) * f
-            else:  # on the border: taps outside the image read zeros
-                for ch in range(4):
-                    t00 = image[ia, ib, ch] if ia >= 0 and ib >= 0 else _ZERO
-                    t01 = image[ia, ib + 1, ch] if ia >= 0 and ib + 1 < wi else _ZERO
-                    t10 = image[ia + 1, ib, ch] if ia + 1 < hi and ib >= 0 else _ZERO
-                    t11 = image[ia + 1, ib + 1, ch] if ia + 1 < hi and ib + 1 < wi else _ZERO
-                    top = t00 + g * (t01 - t00)
-                    bottom = t10 + g * (t11 - t10)
-                    rgba[y, x, ch] = top + (bottom - top) * f
-            near_p = ia + (1 if fa >= 0.5 else 0)
-            near_q = ib + (1 if fb >= 0.5 else 0)
-            if 0 <= near_p < hi and 0 <= near_q < wi:
-                r = ranks[near_p, near_q]
-                if r != NEVER:
-                    depth[y, x] = k0[r] + kp[r] * (near_p + origin_p) + kq[r] * (near_q + origin_q)
