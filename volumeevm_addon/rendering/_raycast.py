@@ -82,8 +82,9 @@ samples are those of the dense table, bit for bit. It, the navigation variant's 
 densities and the space-leaping blocks are built on first use straight from the EVM's boxes
 and the densities table (no grid-sized array), and kept in the VolumeEVM's cache,
 ``vevm.cache``: 4 bytes per voxel of the stored blocks (16 with gradients; they hold 2.4 times
-the region's voxels on the CT head at 1024³) and 4 per block of the grid; :func:`tables_to_build` tells whether a
-render would build them, :func:`table_bytes` what building them costs.
+the region's voxels on the CT head at 1024³) and 4 per block of the grid;
+:func:`tables_to_build` tells whether a render would build them, :func:`table_bytes` what
+building them costs.
 
 References
 ----------
