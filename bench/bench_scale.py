@@ -237,6 +237,7 @@ def main():
     parser.add_argument("--step", help=argparse.SUPPRESS)
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     parser.add_argument("--full", action="store_true", help="add 2048³ (16 GiB of int16)")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--cluster-sizes", type=int, nargs="*", default=[512])
     parser.add_argument("--dir", type=Path, default=None, help="where the stores go")
     parser.add_argument("--keep", action="store_true", help="keep the stores")
@@ -255,7 +256,7 @@ def main():
             print(f"[bench] {n}^3 store: {gib(size)} GiB on disk ({gib(2 * n ** 3)} raw), "
                   f"written in {seconds:.1f} s", flush=True)
             capped = n >= 1024
-            modes = [("threads1", {"threads": 1}), ("threads2", {"threads": 2})]
+            modes = [(f"threads{t}", {"threads": t}) for t in args.threads]
             if n in args.cluster_sizes:
                 modes.append(("cluster", {"threads": 1, "mode": "cluster"}))
             for name, mode in modes:
@@ -263,7 +264,7 @@ def main():
                     spec = {"step": step, "store": str(path), "n": n, "mode_name": name, **mode}
                     if step == "build" and n == sizes[0] and name == "threads2":
                         spec["compare"] = True
-                    if step == "build" and n == sizes[-1] and name == "threads2":
+                    if step == "build" and n == sizes[-1] and name == f"threads{args.threads[-1]}":
                         spec["save"] = str(folder / f"head{n}.vevm")
                     runs.append(spawn(spec, capped))
                     r = runs[-1]
