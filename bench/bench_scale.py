@@ -262,7 +262,8 @@ def main():
             for name, mode in modes:
                 for step in ("read", "build"):
                     spec = {"step": step, "store": str(path), "n": n, "mode_name": name, **mode}
-                    if step == "build" and n == sizes[0] and name == "threads2":
+                    # the field-by-field check needs the grid in memory: small sizes only
+                    if step == "build" and n == sizes[0] <= 512 and name == "threads2":
                         spec["compare"] = True
                     if step == "build" and n == sizes[-1] and name == f"threads{args.threads[-1]}":
                         spec["save"] = str(folder / f"head{n}.vevm")
