@@ -8,7 +8,7 @@ away from the surface of a closed mesh, independent of rays and tie rules.
 import numpy as np
 import pytest
 
-from conftest import DATA
+from reader_files import DATA
 from volumeevm_addon import EVM, VolumeEVMError, grid_to_world, voxelize_mesh
 from volumeevm_addon.model import (
     MeshCheck,
