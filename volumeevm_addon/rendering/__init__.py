@@ -72,9 +72,7 @@ from ._registry import methods
 from ._render import render_options
 
 __all__ = ["BACKGROUND_DEPTH", "GPUFrame", "GPU_UNIFORMS_GLSL", "MAX_SAMPLES", "MemoryModel",
-           "Method", "VISIBLE_ALPHA", "methods",
-           "axial_from_window", "camera_from_viewport", "composite_over", "exr_channels",
-           "gpu_frame", "gpu_gradients", "gpu_occupancy", "gpu_region", "gpu_shader_source",
-           "gpu_transfer_table",
-           "method_options", "openexr_module", "output_depth", "render_options",
-           "window_from_axial"]
+           "Method", "VISIBLE_ALPHA", "axial_from_window", "camera_from_viewport",
+           "composite_over", "exr_channels", "gpu_frame", "gpu_gradients", "gpu_occupancy",
+           "gpu_region", "gpu_shader_source", "gpu_transfer_table", "method_options", "methods",
+           "openexr_module", "output_depth", "render_options", "window_from_axial"]
