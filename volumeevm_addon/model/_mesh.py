@@ -27,11 +27,8 @@ non-manifold (Select > Select All by Trait > Non Manifold). :mod:`._manifold` sp
 
 Memory is checked (:func:`volumeevm_addon.system.check_memory`) after each axis's sweep, whose own
 working set is a few arrays the size of its vertices: the rectangles found so far give the peak
-of making the polygon mesh from them, :data:`_BYTES_PER_RECTANGLE` each. That figure is the
-tracemalloc peak (which sees the kernels' arrays too) measured on real and synthetic regions
-(CT head at two thresholds, an MRI, noise, a ball, a checkerboard: 170 to 210 bytes), rounded
-up. The peak is about 200 bytes per extreme vertex for CT data, but a checkerboard has a few
-hundred vertices and 10⁵ faces: faces, not vertices, are what the mesh costs.
+of making the polygon mesh from them, :data:`_BYTES_PER_RECTANGLE` each (a measured peak,
+docs/measurements.md): faces, not vertices, are what the mesh costs.
 """
 
 from dataclasses import dataclass

@@ -16,9 +16,8 @@ topology; only the positions change:
    outgoing edges, so an edge shared by four faces counts twice), then is clamped to its box.
    A neighbour's weight is the inverse of the edge's exact length: merged faces have edges from
    1 to hundreds of voxels long, and a far corner says little about the surface near a vertex
-   (on the CT head this gives a smoother surface than equal weights, measured with
-   ``bench/bench_smooth.py``'s roughness). Each step reads the positions of the step before
-   only and sums in a fixed order: the result does not depend on the thread count.
+   (smoother than equal weights, docs/measurements.md). Each step reads the positions of the
+   step before only and sums in a fixed order: the result does not depend on the thread count.
 3. **Triangles where needed.** A face whose moved vertices are no longer in one plane (off it
    by more than :data:`PLANAR`) is cut: a quadrangle along its shorter diagonal, a polygon with
    more corners (a rectangle with T-junction vertices in its sides, whose fan from a corner

@@ -33,9 +33,8 @@ with a fixed step, fast:
   the function, bilinear), shaded with the gradient at its middle. A shorter first or last
   segment takes the table's entry for a full step with its opacity corrected for its length
   (exact for the opacity: the optical depth of a ramp is proportional to its length; the colour
-  keeps its ratio to the opacity). Measured on a linear ramp with jitter (every first segment
-  partial): within 2.5e-3 of the reference, the table's resolution (7e-5 with 1024²). Segments
-  the region's surface cuts keep the point-sampled middle with the coverage correction.
+  keeps its ratio to the opacity; its error is the table's resolution, docs/measurements.md).
+  Segments the region's surface cuts keep the point-sampled middle with the coverage correction.
 - **Modes**: ``"over"`` front to back with early ray termination (``termination``),
   ``"under"`` back to front, ``"xray"`` (``T = exp(-Σ μ Δ)``, μ per mm), ``"mip"`` (maximum
   density along the ray over points in region cells, classified without length correction;
@@ -81,8 +80,8 @@ stored, and a block index (int32 over the grid of blocks, -1 for empty) leads to
 samples are those of the dense table, bit for bit. It, the navigation variant's float32
 densities and the space-leaping blocks are built on first use straight from the EVM's boxes
 and the densities table (no grid-sized array), and kept in the VolumeEVM's cache,
-``vevm.cache``: 4 bytes per voxel of the stored blocks (16 with gradients; they hold 2.4 times
-the region's voxels on the CT head at 1024³) and 4 per block of the grid;
+``vevm.cache``: 4 bytes per voxel of the stored blocks (16 with gradients) and 4 per block of
+the grid;
 :func:`tables_to_build` tells whether a render would build them, :func:`table_bytes` what
 building them costs.
 

@@ -53,23 +53,12 @@ axis for the last transfer function (frames of an animation share it). Shading (
 per-voxel gradients (the 3x3x3 Sobel over region voxels of :mod:`._gradients`, from the
 neighbouring sheets) with the densities and lights the sheet's samples like the reference does.
 
-Sub-slabs: with one sample per slab a ray samples each sheet where it crosses the sheet's
-centre plane, at a sub-voxel position (phase) that is the same for every pixel when the pixel
-spacing in the plane is a whole number of voxels (Marschner–Lobb 41³ about x at 48.9° in 96²
-or 48² images: one or two voxels per pixel along y). The normalised footprint sum blurs more
-at some phases than at others and a narrow transfer function turns that into opacity, so the
-mean luminance of the whole image depends on the phase: a bump of 3 % over 1.5° (popping
-index 13 against ray casting's 2.4 in the full S1 sweep). Along the slab the ray drifts by
-``|u_B| / |u_A|`` voxels in the plane, so sub-slabs sample spread phases and classify each.
-With the density constant along ``A`` in the slab, 3 sub-slabs gave popping index 2.2 and half
-the RMSE but tripled the error on a smooth blob (0.0005 → 0.0017); linear along ``A`` they
-reconstruct like the reference: on Marschner–Lobb at 48² near 48.9° popping index 26 → 0.44,
-over the 45° switch 1.37 → 1.05 (ray casting 1.22) with a third of the temporal error, blob
-error 0.0005 → 0.0003, X-ray 5× closer to the reference, a thin plate's integrated alpha
-0.16 → 0.036 off. Not the default: on a one-voxel spherical shell seen face-on, one sample
-per slab overshoots the poles (+0.8 % of integrated alpha) and that hides the footprints'
-deficit at the grazing rim (-1.4 %, either way); linear along ``A`` fixes the poles, and the
-total deviation grows from 0.009 to 0.013.
+Sub-slabs: with one sample per slab a ray samples each sheet at the same sub-voxel position
+(phase) for every pixel when the pixel spacing in the plane is a whole number of voxels, and the
+footprints' blur at that phase shows as a change of mean luminance while the view turns (popping).
+Along the slab the ray drifts by ``|u_B| / |u_A|`` voxels in the plane, so ``substeps`` sub-slabs
+sample spread phases and classify each, linear along ``A`` like the reference. Not the default:
+on a thin shell one sample per slab is closer in total (docs/measurements.md has the figures).
 
 Modes follow the reference: over, under, xray (``exp(-Σ μ·length)``), mip (maximum sheet
 density). Depth out: axial depth where the ray enters the region's cells in the first visible
