@@ -6,6 +6,8 @@
     from bl_ext.user_default.volumeevm.blender import api   # installed extension
     vol = api.import_volume("/data/head.nrrd")
     api.build(vol, threshold=300.0)                 # data units (HU for CT)
+    api.build(vol, 300.0, crop=roi)                 # only a region: an object's bounds, or
+    api.build(vol, 300.0, crop=((0, 64), (0, 64), (10, 40)))  # voxel indices x, y, z
     surface = api.make_mesh(vol)
     labels = api.make_label_meshes(api.import_volume("/data/seg.seg.nrrd"))  # one per label
     big = api.import_volume("/data/cells.ome.zarr")  # OME-Zarr: metadata, coarsest level

@@ -14,7 +14,8 @@ button give the same objects.
   A label map's label table goes on the object (:mod:`.label_table`), its threshold at the
   smallest label so that ``build`` holds every label.
 - ``build`` makes the VolumeEVM of ``threshold <= density (<= upper)`` and keeps it in a sidecar
-  ``.vevm`` file (see :mod:`.sidecar`).
+  ``.vevm`` file (see :mod:`.sidecar`), of the whole grid or of a box of it (``crop``: the
+  bounds of an object, the volume object's ``crop_object`` by default, or voxel indices).
 - ``make_mesh`` makes (or refreshes) the *surface object*: the VolumeEVM's boundary polygons,
   child of the volume object with identity matrices, so moving the box moves the surface.
 
@@ -28,9 +29,11 @@ import math
 import queue
 import threading
 from pathlib import Path
+from typing import NamedTuple
 
 import bpy
 import numpy as np
+from mathutils import Vector
 
 from ..volumeevm_addon import (
     VolumeEVM,
@@ -277,7 +280,7 @@ class _Cancelled(Exception):
     """Raised in a build's progress callback once its steps were closed (Esc)."""
 
 
-def _chunk_steps(vol, threshold, upper, start, end, every_chunk):
+def _chunk_steps(vol, threshold, upper, crop, start, end, every_chunk):
     """Steps of ``VolumeEVM.from_volume`` run in a helper thread: ``(fraction, "building EVM:
     chunk n of N")`` as each chunk ends (an in-memory volume is one chunk), fractions from
     ``start`` to ``end``; returns the VolumeEVM, or raises the build's error.
@@ -297,7 +300,8 @@ def _chunk_steps(vol, threshold, upper, start, end, every_chunk):
 
     def build():
         try:
-            events.put(("done", VolumeEVM.from_volume(vol, threshold, upper, progress=progress)))
+            events.put(("done", VolumeEVM.from_volume(vol, threshold, upper, crop=crop,
+                                                      progress=progress)))
         except BaseException as error:  # noqa: BLE001 - handed to the steps' thread
             events.put(("error", error))
 
@@ -338,19 +342,48 @@ def _preview_steps(name, path, options, coarsest, threshold, upper):
     jobs.show_preview(Preview(name, coarsest, co, polygons.unique_edges()[0]))
 
 
-def _build_steps(uid, path, options, threshold, upper, every_chunk, preview):
+class CropBounds(NamedTuple):
+    """A build's crop given as physical bounds (LPS mm), made voxel indices once the grid
+    is read."""
+
+    lo_mm: np.ndarray
+    hi_mm: np.ndarray
+
+
+def crop_bounds(vol_obj, crop_obj):
+    """The box, in the volume's physical frame (LPS mm), that encloses ``crop_obj``'s bounding
+    box: its 8 corners placed in the world, the volume object's placement undone, Blender units
+    made mm. With the volume object unmoved (its import placement) it is the object's world
+    bounds; the core's ``Volume.index_box`` turns it into voxel indices."""
+    try:
+        to_volume = vol_obj.matrix_world.inverted() @ crop_obj.matrix_world
+    except ValueError as error:  # mathutils: a scale of 0
+        raise VolumeEVMError(f"crop: {vol_obj.name}'s placement cannot be inverted") from error
+    corners = np.array([tuple(to_volume @ Vector(c)) for c in crop_obj.bound_box], np.float64)
+    corners /= BLENDER_UNITS_PER_MM
+    return CropBounds(corners.min(axis=0), corners.max(axis=0))
+
+
+def _build_steps(uid, path, options, threshold, upper, crop, every_chunk, preview):
+    """Read the volume (unless cached) and build it; ``crop`` is None (the whole grid), a box
+    of voxel indices, or :class:`CropBounds` made voxel indices in the grid read."""
     yield from preview
     vol = yield from read_steps(uid, path, options)
+    if isinstance(crop, CropBounds):
+        crop = vol.index_box(crop.lo_mm, crop.hi_mm)
     yield 0.3, "building EVM"
-    vevm = yield from _chunk_steps(vol, threshold, upper, 0.3, 0.9, every_chunk)
+    vevm = yield from _chunk_steps(vol, threshold, upper, crop, 0.3, 0.9, every_chunk)
     yield 0.9, "saving VolumeEVM"
     return vol, vevm
 
 
-def build_job(obj, threshold=None, upper=None):
+def build_job(obj, threshold=None, upper=None, crop=None):
     """The build job (see :func:`build`)."""
     obj = volume_object(obj)
     s = obj.volumeevm
+    crop = s.crop_object if crop is None else crop
+    if isinstance(crop, bpy.types.Object):
+        crop = crop_bounds(obj, crop)
     if threshold is None:
         threshold = s.threshold
         upper = s.upper if s.use_upper else None
@@ -387,11 +420,12 @@ def build_job(obj, threshold=None, upper=None):
     at = f" (level {options['level']})" if "level" in options else ""
     coarsest = len(json.loads(s.zarr_levels)) - 1 if s.zarr_levels else None
     preview = _preview_steps(name, path, options, coarsest, threshold, upper)
-    steps = _build_steps(uid, path, options, threshold, upper, bpy.app.background, preview)
+    steps = _build_steps(uid, path, options, threshold, upper, crop, bpy.app.background,
+                         preview)
     return jobs.Job(f"Build VolumeEVM of {name}{at}", steps, commit)
 
 
-def build(obj, threshold=None, upper=None):
+def build(obj, threshold=None, upper=None, crop=None):
     """Build the VolumeEVM of a volume object at ``threshold <= density (<= upper)``.
 
     Parameters
@@ -401,6 +435,13 @@ def build(obj, threshold=None, upper=None):
     threshold, upper : float, optional
         In the data's own units; default: the object's ``volumeevm.threshold`` (and ``upper``
         when ``use_upper`` is set). Stored on the object.
+    crop : bpy.types.Object or sequence of 3 (int, int) pairs, optional
+        Build only a region of interest: the voxels whose cells meet an object's bounds (its
+        bounding box in the volume's frame, :func:`crop_bounds`), or a box of voxel indices
+        ``((i0, i1), (j0, j1), (k0, k1))`` (half-open, along x, y, z; of the level built for an
+        OME-Zarr store). Default: the object's ``volumeevm.crop_object`` (the build panel's
+        Crop To), else the whole grid. The VolumeEVM's grid is the box, each voxel where it
+        sat (``VolumeEVM.from_volume``'s ``crop``); only the box is read and held.
 
     The build runs chunk by chunk for a lazy volume (an OME-Zarr store's object builds its
     ``volumeevm.level``, never reading the store whole), a progress step after each chunk.
@@ -415,11 +456,12 @@ def build(obj, threshold=None, upper=None):
     Raises
     ------
     VolumeEVMError
-        Not a volume object, an upper bound below the threshold, an empty region, a source
-        file that is gone, a store's chunk that cannot be read (naming store, level and
-        chunk), not enough memory.
+        Not a volume object, an upper bound below the threshold, an empty region, a crop that
+        misses the grid or is not a box of voxel indices (naming ``crop``), a source file that
+        is gone, a store's chunk that cannot be read (naming store, level and chunk), not
+        enough memory.
     """
-    return jobs.run(build_job(obj, threshold, upper))
+    return jobs.run(build_job(obj, threshold, upper, crop))
 
 
 # ---------------------------------------------------------------------------- mesh

@@ -217,6 +217,7 @@ class VOLUMEEVM_PT_build(_VolumeSubpanel, bpy.types.Panel):
         sub = row.row(align=True)
         sub.active = s.use_upper
         sub.prop(s, "upper", text="")
+        layout.prop(s, "crop_object", text="Crop To")
         # The button passes the settings explicitly, so the redo panel can adjust them.
         op = layout.operator("volumeevm.build_vevm", icon="MOD_REMESH")
         op.use_settings = False

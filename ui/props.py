@@ -252,6 +252,11 @@ class VolumeEVMObjectSettings(bpy.types.PropertyGroup):
         default=0.0,
         precision=3,
     )
+    crop_object: PointerProperty(
+        name="Crop To", type=bpy.types.Object, poll=is_mesh_object,
+        description="Build only the voxels within this object's bounds (a region of interest "
+                    "of a large volume: nothing else is read or held); empty: the whole grid",
+    )
     # --- the VolumeEVM built last (its sidecar file and what it holds)
     vevm_path: StringProperty(
         name="Sidecar",

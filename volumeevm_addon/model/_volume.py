@@ -16,7 +16,7 @@ Points go through affine maps with :func:`transform` (scaled sums, not a BLAS pr
 bits on every CPU).
 """
 
-from dataclasses import KW_ONLY, dataclass, field
+from dataclasses import KW_ONLY, dataclass, field, replace
 
 import numpy as np
 
@@ -97,6 +97,106 @@ class Volume:
             :func:`index_to_physical` of this volume's geometry.
         """
         return index_to_physical(self.spacing, self.origin, self.orientation)
+
+    def index_box(self, lo_mm, hi_mm):
+        """The voxel box covering a physical box: what ``crop=`` of
+        :meth:`VolumeEVM.from_volume` takes to build only that region of interest.
+
+        The box ``lo_mm .. hi_mm`` is axis-aligned in the patient frame (LPS mm, as
+        :meth:`index_to_physical` places voxels: a tool's world bounds divided by
+        :data:`BLENDER_UNITS_PER_MM`). Its 8 corners go to index space through the inverse
+        placement; every voxel whose cell overlaps their bounding box there (by more than
+        :data:`INDEX_BOX_TOLERANCE` of a voxel, so a box edge on a cell face takes no
+        neighbour by rounding) is in the result, cut to the grid. With an oblique orientation
+        the result covers the box with the voxels around it.
+
+        Parameters
+        ----------
+        lo_mm, hi_mm : (3,) array_like of float
+            Opposite corners of the box in LPS mm, finite, ``lo_mm <= hi_mm`` per axis.
+
+        Returns
+        -------
+        tuple of 3 (int, int) pairs
+            ``((i0, i1), (j0, j1), (k0, k1))``, half-open, along the array's axes x, y, z.
+
+        Raises
+        ------
+        VolumeEVMError
+            If a corner is not 3 finite numbers, ``hi_mm < lo_mm`` along an axis, or the box
+            misses the grid (naming ``crop``).
+
+        Examples
+        --------
+        >>> vol = Volume(np.zeros((10, 10, 4)), spacing=(2.0, 2.0, 5.0))
+        >>> vol.index_box((3.0, -50.0, 0.0), (7.0, 50.0, 0.0))  # x: the cells 3..5 and 5..7 mm
+        ((2, 4), (0, 10), (0, 1))
+        """
+        lo = _reals(lo_mm, (3,), "lo_mm", "crop: ", "3 finite numbers (mm)")
+        hi = _reals(hi_mm, (3,), "hi_mm", "crop: ", "3 finite numbers (mm)")
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or (hi < lo).any():
+            raise VolumeEVMError(f"crop: the box {lo.tolist()} .. {hi.tolist()} mm must be finite "
+                                 f"with lo_mm <= hi_mm along every axis")
+        corners = np.array([[(lo, hi)[c >> a & 1][a] for a in range(3)] for c in range(8)])
+        matrix = self.index_to_physical()
+        inverse = np.linalg.inv(matrix[:3, :3])
+        index = transform(corners - matrix[:3, 3], inverse.T)
+        low, high = index.min(axis=0), index.max(axis=0)
+        # Voxel i's cell spans i - 0.5 .. i + 0.5 in index space.
+        first = np.floor(low + 0.5 + INDEX_BOX_TOLERANCE).astype(np.int64)
+        last = np.ceil(high + 0.5 - INDEX_BOX_TOLERANCE).astype(np.int64)
+        box = tuple((max(0, int(a)), min(n, int(b)))
+                    for a, b, n in zip(first, last, self.shape))
+        if any(a >= b for a, b in box):
+            raise VolumeEVMError(f"crop: the box {lo.tolist()} .. {hi.tolist()} mm misses the "
+                                 f"volume's grid {tuple(self.shape)}")
+        return box
+
+
+#: Overlap (in voxels) a cell needs with a physical box to be in :meth:`Volume.index_box`.
+INDEX_BOX_TOLERANCE = 1e-6
+
+
+def cropped(volume, crop):
+    """``volume`` cut to the voxel box ``crop`` (see :meth:`VolumeEVM.from_volume`), its
+    origin moved to the box's first voxel so that every kept voxel sits where it sat.
+
+    The array is sliced, not copied: a NumPy view, or a lazy Dask array that reads only the
+    chunks meeting the box. A label map's layers are cut alike.
+    """
+    array = volume.array if is_lazy(volume.array) else np.asanyarray(volume.array)
+    if array.ndim != 3:
+        raise VolumeEVMError(f"{volume.source or 'volume'}: expected a 3-D array indexed "
+                             f"[x, y, z], got shape {array.shape}")
+    box = checked_crop(crop, array.shape)
+    slices = tuple(slice(a, b) for a, b in box)
+    matrix = volume.index_to_physical()
+    first = np.array([a for a, _ in box], np.float64)
+    origin = transform(first, matrix[:3, :3].T, matrix[:3, 3])
+    layers = None if volume.layers is None else tuple(layer[slices] for layer in volume.layers)
+    return replace(volume, array=array[slices], origin=tuple(float(o) for o in origin),
+                   layers=layers)
+
+
+def checked_crop(crop, shape):
+    """``crop`` as 3 ``(start, stop)`` pairs of Python ints with ``0 <= start < stop <= n``
+    for the grid's ``shape``; refuses anything else (floats, bools, other lengths) naming
+    ``crop``."""
+    expected = (f"crop must be 3 (start, stop) pairs of voxel indices along x, y, z, "
+                f"0 <= start < stop <= {tuple(shape)}")
+    try:
+        pairs = [tuple(pair) for pair in crop]
+    except TypeError:
+        raise VolumeEVMError(f"{expected}; got {crop!r}") from None
+    if len(pairs) != 3 or any(len(pair) != 2 for pair in pairs):
+        raise VolumeEVMError(f"{expected}; got {crop!r}")
+    if not all(isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+               for pair in pairs for v in pair):
+        raise VolumeEVMError(f"{expected}; got {crop!r}, not integers")
+    box = tuple((int(a), int(b)) for a, b in pairs)
+    if any(not 0 <= a < b <= n for (a, b), n in zip(box, shape)):
+        raise VolumeEVMError(f"{expected}; got {box}: empty, reversed or outside the grid")
+    return box
 
 
 def is_lazy(array):

@@ -37,6 +37,7 @@ from ._volume import (
     Volume,
     checked_densities,
     checked_geometry,
+    cropped,
     index_to_physical,
     is_lazy,
     transform,
@@ -237,7 +238,7 @@ class VolumeEVM:
                    orientation=orientation, units=units, threshold=threshold, upper=upper)
 
     @classmethod
-    def from_volume(cls, volume, threshold, upper=None, *, progress=None):
+    def from_volume(cls, volume, threshold, upper=None, *, crop=None, progress=None):
         """Build from a :class:`Volume` (a reader's result), keeping its geometry and units.
 
         A lazy volume (its ``array`` a Dask array: an OME-Zarr store, ``read_volume(path,
@@ -252,6 +253,15 @@ class VolumeEVM:
             As :func:`volumeevm_addon.read_volume` returns it.
         threshold, upper : real number
             The density interval that selects the region, as for :meth:`from_array`.
+        crop : sequence of 3 (int, int) pairs, optional
+            Build only the voxels of this box, a region of interest: ``((i0, i1), (j0, j1),
+            (k0, k1))`` in voxel indices along the array's axes x, y, z (``volume.array[i0:i1,
+            j0:j1, k0:k1]``), half-open, ``0 <= start < stop <= shape``; from physical bounds,
+            :meth:`Volume.index_box` gives it. The result's grid is the box (its ``shape`` the
+            box's size, its ``origin`` the centre of voxel ``(i0, j0, k0)``), so each kept voxel
+            sits where it sat: it equals the whole volume's VolumeEVM clipped to the box
+            (:meth:`clip`), moved by ``-(i0, j0, k0)``. Nothing outside the box is read (a lazy
+            volume's chunks that miss it are never computed) and memory is checked for the box.
         progress : callable, optional
             Called as ``progress(done, total)`` after each chunk of a lazy volume (``total``
             chunks in all), on the calling thread (on a ``dask.distributed`` cluster, when
@@ -267,7 +277,9 @@ class VolumeEVM:
         Raises
         ------
         VolumeEVMError
-            If ``volume`` is not a :class:`Volume`; otherwise as :meth:`from_array`, the
+            If ``volume`` is not a :class:`Volume`, or ``crop`` is not a box of voxel indices
+            inside the grid (empty, reversed, outside, not 3 pairs of integers: naming
+            ``crop``); otherwise as :meth:`from_array`, the
             messages naming the volume's source file (for a lazy volume, a chunk with NaN or
             infinite densities names the chunk, and memory is checked before the first chunk
             and after every batch of chunks).
@@ -279,10 +291,15 @@ class VolumeEVM:
         >>> vevm = VolumeEVM.from_volume(vol, 50)
         >>> vevm.voxel_count, len(vevm.evm), vevm.units
         (64, 8, 'a.u.')
+        >>> part = VolumeEVM.from_volume(vol, 50, crop=((0, 4), (0, 8), (3, 8)))
+        >>> part.shape, part.voxel_count, part.origin
+        ((4, 8, 5), 24, (0.0, 0.0, 3.0))
         """
         if not isinstance(volume, Volume):
             raise VolumeEVMError(f"volume must be a Volume (as read_volume returns), got "
                                  f"{type(volume).__name__}")
+        if crop is not None:
+            volume = cropped(volume, crop)
         if is_lazy(volume.array):
             return cls._from_lazy(volume, threshold, upper, progress)
         built = cls.from_array(volume.array, threshold, upper, spacing=volume.spacing,
