@@ -77,7 +77,7 @@ def coarsen(vevm, factor):
     table = vevm.table()
     pieces = []
     padded = shape * f
-    split = (f, shape[1], f, shape[2], f)
+    split = (f, shape[1], f, shape[2], f)  # a slab's blocks: fine x, coarse y, fine y, ...
 
     def coarse_slices():
         """The coarse region slice by slice; each slice's densities go to ``pieces``."""
@@ -90,7 +90,10 @@ def coarsen(vevm, factor):
             block_mask[: len(slab), : fine[1], : fine[2]] = slab
             block_sum[: len(slab), : fine[1], : fine[2]][slab] = table[start:start + count]
             start += count
-            counts = block_mask.reshape(split).sum(axis=(0, 2, 4))
+            # Counts are integers, exact in any order: the f slices added first (contiguous
+            # rows, far faster than one reduction over the three block axes).
+            counts = (block_mask.view(np.uint8).reshape(f, -1).sum(axis=0, dtype=np.int64)
+                      .reshape(shape[1], f, shape[2], f).sum(axis=3).sum(axis=1))
             sums = block_sum.reshape(split).sum(axis=(0, 2, 4))
             del block_mask, block_sum
             inside = counts > 0
@@ -131,8 +134,9 @@ def level_memory(shape, factor, voxel_count, vertex_count, dtype=np.float32):
 
     Counted: two fine mask slabs (``factor`` slices each, a byte a voxel: the one in use and
     the next) and the slice carried between them (:func:`._evm.mask_slabs`); the blocks of one
-    coarse slab (the fine slab padded to whole blocks, a boolean and a float64 each, plus the
-    coarse slice's counts, sums and means: 24 bytes a coarse cell); a slab's fine vertices
+    coarse slab (the fine slab padded to whole blocks, a boolean and a float64 each; the counts
+    of its ``(y, z)`` rows, then of its blocks' rows: 16 bytes a padded row; the coarse slice's
+    counts, sums and means: 24 bytes a coarse cell); a slab's fine vertices
     unpacked (40 bytes each with the temporaries, all ``vertex_count`` of them at worst); the
     coarse vertices' keys (per plane, then joined: 16 bytes each), counted as many as the fine
     vertices: coarse regions had no more in every case measured (0.007 to 0.26 times as many
@@ -145,6 +149,6 @@ def level_memory(shape, factor, voxel_count, vertex_count, dtype=np.float32):
     padded = [n * factor for n in coarse]
     entries = min(int(voxel_count), coarse[0] * coarse[1] * coarse[2])
     slabs = 2 * factor * y * z + 2 * y * z
-    blocks = 9 * factor * padded[1] * padded[2] + 24 * coarse[1] * coarse[2]
+    blocks = (9 * factor + 16) * padded[1] * padded[2] + 24 * coarse[1] * coarse[2]
     return (slabs + blocks + (40 + 16) * int(vertex_count)
             + 2 * np.dtype(dtype).itemsize * entries)
