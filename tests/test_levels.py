@@ -1,14 +1,17 @@
 """Resolution levels: the coarse VolumeEVM (region, densities, geometry), its cache, the auto
 level's rule, and render(level=...) against the full level."""
 
+import tracemalloc
+
 import numpy as np
 import pytest
 
 from render_helpers import camera, const_tf
-from volumeevm_addon import Camera, VolumeEVM, VolumeEVMError, grid_to_world, render
+from volumeevm_addon import EVM, Camera, VolumeEVM, VolumeEVMError, grid_to_world, render
 from volumeevm_addon.metrics import rmse
 from volumeevm_addon.model import BLENDER_UNITS_PER_MM as BU
-from volumeevm_addon.model._levels import coarsen
+from volumeevm_addon.model._evm import mask_slabs
+from volumeevm_addon.model._levels import coarsen, level_memory
 from volumeevm_addon.rendering._levels import auto_factor, level_factor
 
 
@@ -27,6 +30,121 @@ def ragged():
     a = rng.random((13, 10, 7)).astype(np.float32)
     return VolumeEVM.from_array(a, 0.55, spacing=(0.8, 1.1, 1.7), origin=(5.0, -2.0, 3.0),
                                 orientation=np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1.0]]))
+
+
+def grid_sized_coarsen(vevm, f):
+    """The coarsening as it was made before it went slab by slab: the fine mask of the whole
+    grid, then each coarse slab summed the same way (the oracle of the slab-by-slab one)."""
+    fine = np.array(vevm.shape)
+    shape = -(-fine // f)
+    dtype = np.float64 if vevm.table().dtype == np.float64 else np.float32
+    mask = vevm.evm.to_mask(vevm.shape)
+    table = vevm.table()
+    start = 0
+    coarse_mask = np.zeros(shape, bool)
+    coarse_table = []
+    padded = shape * f
+    for i in range(shape[0]):
+        block_mask = np.zeros((f, padded[1], padded[2]), bool)
+        block_sum = np.zeros((f, padded[1], padded[2]), np.float64)
+        x0, x1 = i * f, min((i + 1) * f, fine[0])
+        slab = mask[x0:x1]
+        count = int(np.count_nonzero(slab))
+        block_mask[: x1 - x0, : fine[1], : fine[2]] = slab
+        block_sum[: x1 - x0, : fine[1], : fine[2]][slab] = table[start:start + count]
+        start += count
+        split = (f, shape[1], f, shape[2], f)
+        counts = block_mask.reshape(split).sum(axis=(0, 2, 4))
+        sums = block_sum.reshape(split).sum(axis=(0, 2, 4))
+        inside = counts > 0
+        coarse_mask[i] = inside
+        coarse_table.append(sums[inside] / counts[inside])
+    spacing = np.array(vevm.spacing) * f
+    shift = vevm.orientation @ (np.array(vevm.spacing) * (f - 1) / 2.0)
+    return (EVM.from_mask(coarse_mask), np.concatenate(coarse_table).astype(dtype),
+            tuple(int(n) for n in shape), tuple(spacing), tuple(np.array(vevm.origin) + shift))
+
+
+def assert_same_level(vevm, f):
+    """``vevm.level(f)`` equals the grid-sized coarsening's VolumeEVM in every field, bit for
+    bit (vertices, table values and dtype, shape, spacing, origin and the rest)."""
+    evm, table, shape, spacing, origin = grid_sized_coarsen(vevm, f)
+    got = coarsen(vevm, f)
+    assert got[0] == evm and np.array_equal(got[0].vertices, evm.vertices)
+    assert got[1].dtype == table.dtype and np.array_equal(got[1], table)
+    assert got[2:] == (shape, spacing, origin)
+    want = VolumeEVM(evm, table, shape=shape, spacing=spacing, origin=origin,
+                     orientation=vevm.orientation, units=vevm.units, threshold=vevm.threshold,
+                     upper=vevm.upper)
+    level = vevm.level(f)
+    assert level.evm == want.evm and level.voxel_count == want.voxel_count
+    assert level.table().dtype == want.table().dtype
+    assert np.array_equal(level.table(), want.table())
+    for field in ("shape", "spacing", "origin", "units", "threshold", "upper"):
+        assert getattr(level, field) == getattr(want, field), field
+        assert type(getattr(level, field)) is type(getattr(want, field)), field
+    assert np.array_equal(level.orientation, want.orientation)
+
+
+@pytest.mark.parametrize("name,threshold,upper", [
+    ("ct_head_invesalius", 300, None), ("ct_head_invesalius", -500, 200),
+    ("mr_t1_itk_kmeans", 60, None), ("mr_brainsmall_volpack", 40, None),
+    ("micro_nuclei3d_stardist", 200, None), ("ct_skull_cgal", 2.9, None),
+    ("seg_liver_cgal", 84, 85)])
+def test_slab_by_slab_levels_equal_the_grid_sized_ones_on_real_volumes(data_dir, name,
+                                                                         threshold, upper):
+    vevm = VolumeEVM.from_array(np.load(data_dir / f"{name}.npy"), threshold, upper,
+                                spacing=(0.7, 0.9, 1.3), origin=(4.0, -1.0, 2.5))
+    for f in (2, 3, 4, 5):
+        assert_same_level(vevm, f)
+
+
+def test_slab_by_slab_levels_equal_the_grid_sized_ones_on_random_regions():
+    """Odd shapes (down to one voxel thick), every table type, sparse to full regions."""
+    rng = np.random.default_rng(18)
+    dtypes = (np.float32, np.float64, np.uint16, np.int16, np.uint8)
+    for trial in range(40):
+        shape = tuple(int(n) for n in rng.integers(1, 24, 3))
+        a = (rng.random(shape) * 1000).astype(dtypes[trial % len(dtypes)])
+        if a.max() == a.min():
+            continue
+        threshold = float(np.quantile(a, rng.choice([0.0, 0.5, 0.9, 0.99])))
+        rotation = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]])
+        vevm = VolumeEVM.from_array(a, threshold, spacing=tuple(rng.random(3) + 0.1),
+                                    origin=tuple(rng.random(3) * 10), orientation=rotation)
+        for f in range(2, min(5, max(shape)) + 1):
+            assert_same_level(vevm, f)
+
+
+@pytest.mark.parametrize("thickness", [1, 2, 3, 5, 7, 40])
+def test_mask_slabs_are_the_mask_slab_by_slab(thickness):
+    """Vertices before the grid fold in, those past it drop out, as in to_mask."""
+    rng = np.random.default_rng(thickness)
+    evm = EVM.from_mask(rng.random((19, 11, 9)) < 0.4, offset=(-3, -2, -1))
+    for shape in ((13, 8, 9), (19, 11, 9), (25, 4, 3)):
+        slabs = list(mask_slabs(evm, shape, thickness))
+        assert [len(s) for s in slabs[:-1]] == [thickness] * (len(slabs) - 1)
+        np.testing.assert_array_equal(np.concatenate(slabs), evm.to_mask(shape))
+
+
+def test_level_memory_follows_the_region_and_bounds_the_allocations():
+    """A small region in a 400³ grid: the estimate is a fraction of a mask of the grid (what the
+    coarsening needed before) and at least what tracemalloc measures (NumPy's allocations and
+    the compiled kernels')."""
+    rng = np.random.default_rng(5)
+    box = rng.random((30, 41, 23)) < 0.7
+    evm = EVM.from_mask(box, offset=(100, 200, 300))
+    vevm = VolumeEVM(evm, rng.random(evm.volume()).astype(np.float32), shape=(400, 400, 400))
+    for f in (2, 3):
+        coarsen(vevm, f)  # kernels compiled, keys cached
+        tracemalloc.start()
+        try:
+            coarsen(vevm, f)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        estimate = level_memory(vevm.shape, f, vevm.voxel_count, len(evm))
+        assert peak <= estimate < 400 ** 3 / 5, (f, peak, estimate)
 
 
 @pytest.mark.parametrize("f", [2, 3, 4])

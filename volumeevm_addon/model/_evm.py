@@ -258,6 +258,33 @@ def vertex_keys(slices, shape, offset=(0, 0, 0)):
         previous = current
 
 
+def mask_slabs(evm, shape, thickness):
+    """The voxels of ``evm`` inside a grid of ``shape`` as boolean x-slabs of ``thickness``
+    slices, first to last (the last one thinner when ``thickness`` does not divide the grid):
+    :meth:`EVM.to_mask` one slab at a time, so no grid-sized array is made.
+
+    Slice ``x`` is slice ``x - 1`` XOR the 2-D prefix XOR of the vertices on plane ``x``, so a
+    slab is the prefix XOR of its own planes' vertices, XOR the slice carried from the slab
+    before. A slab's vertices are one stretch of the EVM's sorted keys (found by binary search)
+    and only they are unpacked. Vertices before the grid are folded in with the first slab;
+    those on or past its far end toggle nothing inside and are left out.
+    """
+    nx, ny, nz = (int(s) for s in shape)
+    keys = evm.keys()
+    ends = np.minimum(np.arange(thickness, nx + thickness, thickness, dtype=np.int64), nx)
+    planes = (ends + _sweep.OFFSET) << (2 * _sweep.BITS)  # the first key of each next slab
+    carry = np.zeros((ny, nz), np.uint8)
+    first = 0
+    for x0, last in zip(range(0, nx, thickness), np.searchsorted(keys, planes)):
+        vertices = _sweep.unpack(keys[first:last], 3)
+        vertices[:, 0] -= x0
+        slab = _prefix_xor(vertices, np.array([min(thickness, nx - x0), ny, nz], np.int64))
+        slab ^= carry
+        carry = slab[-1].copy()
+        first = last
+        yield slab.view(bool)
+
+
 def compact_integers(values):
     """``values`` as the smallest signed integer type that holds them (int8 .. int64)."""
     values = np.asarray(values)

@@ -22,9 +22,12 @@ a coarser VolumeEVM instead, built on demand and kept in the VolumeEVM's cache (
   have no density), so a constant region stays exactly constant. Tables are float32 (float64
   when the fine table is).
 
-The coarse region is made from the region's mask one coarse slab (``f`` fine slices) at a time;
-the table lists voxels in C order, so each slab's densities are one contiguous stretch of it and
-no dense copy of the densities is made.
+Memory follows the region and one slab of the grid, never the whole grid: the fine mask is made
+one coarse slab (``f`` fine slices) at a time from the slab's own vertices
+(:func:`._evm.mask_slabs`); the table lists voxels in C order, so each slab's densities are one
+contiguous stretch of it (no dense copy of the densities); and each coarse slice goes straight
+into the coarse region's vertices (:func:`._evm.vertex_keys`) and its means into the coarse
+table. The result is the one the grid-sized way gives, bit for bit.
 """
 
 import numbers
@@ -33,7 +36,7 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
-from ._evm import EVM
+from ._evm import EVM, mask_slabs, vertex_keys
 
 __all__ = ["coarsen", "checked_factor", "level_memory"]
 
@@ -68,35 +71,42 @@ def coarsen(vevm, factor):
     f = checked_factor(factor, vevm.shape)
     fine = np.array(vevm.shape)
     shape = -(-fine // f)
-    check_memory(level_memory(vevm.shape, f, vevm.voxel_count, len(vevm.evm)), f"making level {f}",
-                 source="level factor", advice="use a smaller factor")
     dtype = np.float64 if vevm.table().dtype == np.float64 else np.float32
-    mask = vevm.evm.to_mask(vevm.shape)
+    check_memory(level_memory(vevm.shape, f, vevm.voxel_count, len(vevm.evm), dtype),
+                 f"making level {f}", source="level factor", advice="use a smaller factor")
     table = vevm.table()
-    start = 0
-    coarse_mask = np.zeros(shape, bool)
-    coarse_table = []
+    pieces = []
     padded = shape * f
-    for i in range(shape[0]):
-        # One coarse slab: f fine slices padded to whole blocks, summed block by block.
-        block_mask = np.zeros((f, padded[1], padded[2]), bool)
-        block_sum = np.zeros((f, padded[1], padded[2]), np.float64)
-        x0, x1 = i * f, min((i + 1) * f, fine[0])
-        slab = mask[x0:x1]
-        count = int(np.count_nonzero(slab))
-        block_mask[: x1 - x0, : fine[1], : fine[2]] = slab
-        block_sum[: x1 - x0, : fine[1], : fine[2]][slab] = table[start:start + count]
-        start += count
-        split = (f, shape[1], f, shape[2], f)
-        counts = block_mask.reshape(split).sum(axis=(0, 2, 4))
-        sums = block_sum.reshape(split).sum(axis=(0, 2, 4))
-        inside = counts > 0
-        coarse_mask[i] = inside
-        coarse_table.append(sums[inside] / counts[inside])
+    split = (f, shape[1], f, shape[2], f)  # a slab's blocks: fine x, coarse y, fine y, ...
+
+    def coarse_slices():
+        """The coarse region slice by slice; each slice's densities go to ``pieces``."""
+        start = 0
+        for slab in mask_slabs(vevm.evm, vevm.shape, f):
+            # f fine slices padded to whole blocks, summed block by block.
+            block_mask = np.zeros((f, padded[1], padded[2]), bool)
+            block_sum = np.zeros((f, padded[1], padded[2]), np.float64)
+            count = int(np.count_nonzero(slab))
+            block_mask[: len(slab), : fine[1], : fine[2]] = slab
+            block_sum[: len(slab), : fine[1], : fine[2]][slab] = table[start:start + count]
+            start += count
+            # Counts are integers, exact in any order: the f slices added first (contiguous
+            # rows, far faster than one reduction over the three block axes).
+            counts = (block_mask.view(np.uint8).reshape(f, -1).sum(axis=0, dtype=np.int64)
+                      .reshape(shape[1], f, shape[2], f).sum(axis=3).sum(axis=1))
+            sums = block_sum.reshape(split).sum(axis=(0, 2, 4))
+            del block_mask, block_sum
+            inside = counts > 0
+            pieces.append((sums[inside] / counts[inside]).astype(dtype))
+            yield inside
+
+    keys = np.concatenate(list(vertex_keys(coarse_slices(), shape)))
+    coarse_table = np.concatenate(pieces)
+    pieces.clear()
     spacing = np.array(vevm.spacing) * f
     shift = vevm.orientation @ (np.array(vevm.spacing) * (f - 1) / 2.0)
-    return (EVM.from_mask(coarse_mask), np.concatenate(coarse_table).astype(dtype),
-            tuple(int(n) for n in shape), tuple(spacing), tuple(np.array(vevm.origin) + shift))
+    return (EVM._from_keys(keys), coarse_table, tuple(int(n) for n in shape), tuple(spacing),
+            tuple(np.array(vevm.origin) + shift))
 
 
 def checked_factor(factor, shape):
@@ -118,19 +128,27 @@ def checked_factor(factor, shape):
     return int(factor)
 
 
-def level_memory(shape, factor, voxel_count, vertex_count):
-    """Estimated peak bytes of :func:`coarsen`: the fine mask, one coarse slab's blocks, the table.
+def level_memory(shape, factor, voxel_count, vertex_count, dtype=np.float32):
+    """Estimated peak bytes of :func:`coarsen`, which goes one coarse slab at a time: no term
+    grows with the fine grid beyond one slab of it.
 
-    The region's fine mask (its prefix-XOR grid and the boolean copy: 2 bytes a voxel, and
-    int64 copies of the ``vertex_count`` vertices that place it: 100 bytes each), the
-    blocks of one coarse slab (``factor`` fine slices padded to whole blocks, a boolean and a
-    float64 each, with as much again for the block sums) and the coarse table in float64 while
-    it is gathered (one entry per coarse voxel of the region, at most the fine voxel count or
-    the coarse grid's size; 8 bytes twice).
+    Counted: two fine mask slabs (``factor`` slices each, a byte a voxel: the one in use and
+    the next) and the slice carried between them (:func:`._evm.mask_slabs`); the blocks of one
+    coarse slab (the fine slab padded to whole blocks, a boolean and a float64 each; the counts
+    of its ``(y, z)`` rows, then of its blocks' rows: 16 bytes a padded row; the coarse slice's
+    counts, sums and means: 24 bytes a coarse cell); a slab's fine vertices
+    unpacked (40 bytes each with the temporaries, all ``vertex_count`` of them at worst); the
+    coarse vertices' keys (per plane, then joined: 16 bytes each), counted as many as the fine
+    vertices: coarse regions had no more in every case measured (0.007 to 0.26 times as many
+    on the real volumes of the tests at factors 2 to 5, at most as many on 20,000 small random
+    regions); and the coarse table of ``dtype`` twice (slab by slab, then joined), one entry
+    per coarse voxel of the region: at most the fine voxel count and the coarse grid's size.
     """
     x, y, z = (int(n) for n in shape)
     coarse = [-(-n // factor) for n in (x, y, z)]
     padded = [n * factor for n in coarse]
     entries = min(int(voxel_count), coarse[0] * coarse[1] * coarse[2])
-    return (2 * (x + 1) * (y + 1) * (z + 1) + 100 * int(vertex_count)
-            + 2 * 9 * factor * padded[1] * padded[2] + 16 * entries)
+    slabs = 2 * factor * y * z + 2 * y * z
+    blocks = (9 * factor + 16) * padded[1] * padded[2] + 24 * coarse[1] * coarse[2]
+    return (slabs + blocks + (40 + 16) * int(vertex_count)
+            + 2 * np.dtype(dtype).itemsize * entries)

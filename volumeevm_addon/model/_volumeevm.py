@@ -509,11 +509,12 @@ class VolumeEVM:
         return self.cache.get(("level", factor), lambda: self._coarse(factor))
 
     def _coarse(self, factor):
-        """The VolumeEVM of :func:`._levels.coarsen`'s arrays (not cached)."""
+        """The VolumeEVM of :func:`._levels.coarsen`'s arrays (not cached): right by
+        construction (one mean density per coarse voxel), so its voxels are not counted again."""
         evm, table, shape, spacing, origin = coarsen(self, factor)
-        return VolumeEVM(evm, table, shape=shape, spacing=spacing, origin=origin,
-                         orientation=self.orientation, units=self.units,
-                         threshold=self.threshold, upper=self.upper)
+        geometry = checked_geometry(spacing, origin, self.orientation)
+        return VolumeEVM._checked_parts(evm, table, shape, geometry, self.units, self.threshold,
+                                        self.upper)
 
     def to_dense(self, background=0):
         """The full grid: the region's densities, ``background`` everywhere else.
