@@ -12,12 +12,8 @@ a coarser VolumeEVM instead, built on demand and kept in the VolumeEVM's cache (
 - **Region**: a coarse voxel is in the region when *any* of its block's fine voxels is. Thin
   structures (a one-voxel plate or shell) survive at every level, thickened to one coarse
   voxel; the silhouette grows by less than one coarse voxel, i.e. less than a pixel when the
-  level is chosen by :func:`auto_factor`. The other choice, a majority rule (at least half the
-  block), was measured against it (ray casting, RMSE of the level's image to the full level's):
-  on bulk objects it is a little closer (CT head at level 2: 0.037 against 0.042; Marschner–Lobb
-  81³: 0.048 against 0.052; shear-warp on the CT: 0.039 against 0.034), but it drops thin
-  structures: a one-voxel plate 64³ at level 4 vanishes (RMSE 0.23, nothing drawn) where the
-  any rule draws it thickened (0.11); a shell likewise (0.26 against 0.17).
+  level is chosen by :func:`auto_factor`. A majority rule (at least half the block) is a little
+  closer on bulk objects but drops thin structures (docs/measurements.md).
 - **Densities**: the mean of the region's fine voxels in the block (voxels outside the region
   have no density), so a constant region stays exactly constant. Tables are float32 (float64
   when the fine table is).
