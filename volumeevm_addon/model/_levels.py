@@ -12,8 +12,9 @@ a coarser VolumeEVM instead, built on demand and kept in the VolumeEVM's cache (
 - **Region**: a coarse voxel is in the region when *any* of its block's fine voxels is. Thin
   structures (a one-voxel plate or shell) survive at every level, thickened to one coarse
   voxel; the silhouette grows by less than one coarse voxel, i.e. less than a pixel when the
-  level is chosen by :func:`auto_factor`. A majority rule (at least half the block) is a little
-  closer on bulk objects but drops thin structures (docs/measurements.md).
+  level is chosen by :func:`..rendering._levels.auto_factor`. A majority rule (at least half
+  the block) is a little closer on bulk objects but drops thin structures
+  (docs/measurements.md).
 - **Densities**: the mean of the region's fine voxels in the block (voxels outside the region
   have no density), so a constant region stays exactly constant. Tables are float32 (float64
   when the fine table is).
