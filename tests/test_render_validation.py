@@ -105,8 +105,12 @@ def test_good_options_still_render(scene):
     vevm, cam, tf = scene
     rgba, depth = render(vevm, cam, tf, method="raycast", step_mm=0.5, block=np.int64(4),
                          skip_empty=np.bool_(True), termination=1)
-    assert rgba.shape == (6, 8, 4) and depth.shape == (6, 8)
+    # NumPy scalars and an int where a float is expected give the plain options' image.
+    plain_rgba, plain_depth = render(vevm, cam, tf, method="raycast", step_mm=0.5, block=4,
+                                     skip_empty=True, termination=1.0)
     assert (rgba[..., 3] > 0).any()
+    np.testing.assert_array_equal(rgba, plain_rgba)
+    np.testing.assert_array_equal(depth, plain_depth)
 
 
 def test_huge_image_is_refused_before_allocating(scene, monkeypatch):
