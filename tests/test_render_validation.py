@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from render_helpers import camera, const_tf
+from skips import skip_unless_ci
 from volumeevm_addon import (
     EVM,
     METHODS,
@@ -325,8 +326,9 @@ def test_empty_and_misshapen_images_are_refused(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.skipif(openexr_module() is None, reason="OpenEXR is not installed")
 def test_empty_exr_is_refused(tmp_path):
+    if openexr_module() is None:
+        skip_unless_ci("OpenEXR is not installed")
     with pytest.raises(VolumeEVMError, match=r"^rgba: the image is empty \(shape \(0, 0, 4\)\)"):
         write_exr(tmp_path / "x.exr", np.zeros((0, 0, 4)))
     with pytest.raises(VolumeEVMError, match=r"^rgba: expected \(H, W, 4\)"):
