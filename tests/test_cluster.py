@@ -6,12 +6,12 @@ client sends holds no voxel data)."""
 import pickle
 
 import numpy as np
-import pytest
 
+from skips import required_module
 from volumeevm_addon import VolumeEVM, read_volume
 from zarr_files import pyramid, write_store
 
-distributed = pytest.importorskip("distributed")
+distributed = required_module("distributed")
 
 
 def test_local_cluster_builds_identically(tmp_path, data_dir):

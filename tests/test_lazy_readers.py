@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from reader_files import patch_nifti, write_den, write_nrrd, write_tiff
+from skips import required_module, skip_unless_ci
 from volumeevm_addon import VolumeEVM, VolumeEVMError, read_volume
 from volumeevm_addon.readers import _checks
 
@@ -61,7 +62,7 @@ def assert_same_volume(lazy, eager, threshold):
 @pytest.mark.parametrize("scaled", [False, True])
 @pytest.mark.parametrize("order", ["<", ">"])
 def test_nifti_lazily(tmp_path, head, small_chunks, scaled, order):
-    nib = pytest.importorskip("nibabel")
+    nib = required_module("nibabel")
     image = nib.Nifti1Image(head.astype(f"{order}i2"), np.diag([0.9, 0.8, 1.5, 1.0]))
     path = tmp_path / "head.nii"
     image.to_filename(path)
@@ -73,7 +74,7 @@ def test_nifti_lazily(tmp_path, head, small_chunks, scaled, order):
 
 
 def test_compressed_nifti_refused_lazily(tmp_path, head):
-    nib = pytest.importorskip("nibabel")
+    nib = required_module("nibabel")
     path = tmp_path / "head.nii.gz"
     nib.Nifti1Image(head, np.eye(4)).to_filename(path)
     with pytest.raises(VolumeEVMError, match=r"head\.nii\.gz: lazy=True needs uncompressed"):
@@ -101,7 +102,7 @@ def test_layered_segmentation_refused_lazily(data_dir):
     layered = [p for p in (data_dir / "slicer").glob("*.seg.nrrd")
                if read_volume(p).layers is not None]
     if not layered:
-        pytest.skip("no segmentation in layers among the Slicer samples")
+        skip_unless_ci("no segmentation in layers among the Slicer samples")
     with pytest.raises(VolumeEVMError, match="lazy=True needs raw data in one layer"):
         read_volume(layered[0], lazy=True)
 

@@ -1,5 +1,8 @@
-"""Ray casters (EVM space leaping and the navigation variant): the exactness contract on real
-volumes, closed forms and the reference, modes, depth, shading and degenerate input."""
+"""Ray casters (EVM space leaping and the navigation variant): what is particular to them -
+the navigation variant against the block walk, blocks and leap levels, jitter and
+pre-integration, closed forms, modes, shading, the kernels' rays and degenerate input. What
+every method keeps (EVM = dense, threads, odd sizes, error bounds against the reference) is in
+test_render_contract.py."""
 
 import json
 import tracemalloc
@@ -15,7 +18,6 @@ from volumeevm_addon import (
     VolumeEVM,
     VolumeEVMError,
     grid_to_world,
-    set_kernel_threads,
 )
 from volumeevm_addon.model import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon.phantoms import box_chords_mm
@@ -207,25 +209,6 @@ def test_gaussian_blob_against_reference():
     assert np.abs(rgba - rr).max() < 2e-4  # measured 5.7e-5
 
 
-@pytest.mark.parametrize("which", ["skin", "bone"])
-def test_real_volume_against_reference(ct, which):
-    """CT head, oblique perspective view, default step (half a voxel = 1.9 mm): the error is
-    the step's (measured mean 0.0004 / 0.0003, 99th percentile 0.009 / 0.006, worst 0.05);
-    coverage and the depth of the region's surface are exact."""
-    v, g, tf = skin(ct) if which == "skin" else bone(ct)
-    cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(48, 40))
-    rgba, depth = render_raycast(v, cam, tf, g, termination=1.0)
-    rr, dr = reference(v, cam, tf, g)
-    err = np.abs(rgba - rr).max(axis=-1)
-    assert rr[..., 3].mean() > 0.15
-    assert err.mean() < 0.001
-    assert np.percentile(err, 99) < 0.02
-    assert err.max() < 0.1
-    np.testing.assert_array_equal(depth < 1e9, dr < 1e9)
-    seen = depth < 1e9
-    assert np.percentile(np.abs(depth - dr)[seen], 99) < 1e-6
-
-
 # ---------------------------------------------------------------------------- modes
 def axis_scene():
     """Random densities, an irregular region; an orthographic camera looking down -z whose
@@ -316,13 +299,6 @@ def test_single_voxel_region():
         np.testing.assert_array_equal(depth < 1e9, dr < 1e9)
 
 
-def test_odd_sizes(ct):
-    v, g, tf = skin(ct)
-    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(13, 1))
-    rgba, depth = render_raycast(v, cam, tf, g)
-    assert rgba.shape == (1, 13, 4) and rgba[..., 3].max() > 0.5
-
-
 def test_bad_input(ct):
     v, g, tf = skin(ct)
     cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(6, 4))
@@ -356,24 +332,18 @@ def test_bad_input(ct):
 @pytest.mark.parametrize("mode, opts", [
     ("over", {"jitter": True, "preintegrate": True, "shading": True, "step_mm": 1.5}),
     ("under", {"shading": True}), ("xray", XRAY), ("mip", {})])
-def test_the_image_does_not_depend_on_threads_or_tiles(ct, mode, opts):
-    """Each ray is cast on its own: one thread or two, small tiles or large, the same bits
-    (and the navigation variant, the same image)."""
+def test_the_image_does_not_depend_on_tiles(ct, mode, opts):
+    """Each ray is cast on its own: small tiles or large, the same bits, and the navigation
+    variant the same image (one thread or two: test_render_contract.py)."""
     v, g, tf = bone(ct)
     cam = camera("PERSP", g, v, (0.3, -0.5, 0.2), 0.0, res=(37, 29))
-    previous = set_kernel_threads(1)
-    try:
-        one = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=64, **opts)
-        set_kernel_threads(2)
-        two = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=64, **opts)
-        tiles = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=300, **opts)
-        navigated = render_raycast_navigate(v, cam, tf, g, mode=mode, chunk_rays=100, **opts)
-    finally:
-        set_kernel_threads(previous)
-    assert one[0][..., 3].max() > 0.5
-    for image in (two, tiles, navigated):
-        np.testing.assert_array_equal(image[0], one[0])
-        np.testing.assert_array_equal(image[1], one[1])
+    small = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=64, **opts)
+    tiles = render_raycast(v, cam, tf, g, mode=mode, chunk_rays=300, **opts)
+    navigated = render_raycast_navigate(v, cam, tf, g, mode=mode, chunk_rays=100, **opts)
+    assert small[0][..., 3].max() > 0.5
+    for image in (tiles, navigated):
+        np.testing.assert_array_equal(image[0], small[0])
+        np.testing.assert_array_equal(image[1], small[1])
 
 
 @pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])

@@ -1,8 +1,12 @@
 """The contracts every renderer keeps, stated once over methods x modes x camera kinds: an empty
 region or a camera that sees nothing gives a transparent image and background depth, over equals
 under and early termination stays within ``1 - termination``, ``depth_in`` stops rays, a camera
-inside the volume works, and the VolumeEVM renders exactly like the dense grid with everything
-outside the region transparent. A bound that belongs to one method stays in a dict keyed by method.
+inside the volume works, the VolumeEVM renders exactly like the dense grid with everything
+outside the region transparent, the image does not depend on the thread count, an odd-sized
+image is the matching window of a larger one, and the error against the dense reference stays
+within the method's bounds. The methods are the registry's (``rendering.methods()``, the
+reference itself aside); a bound that belongs to one method stays in a dict keyed by method,
+so a new method fails here until its bounds are stated.
 
 What only one method does (sheets, blocks, the shear and the warp) stays in its own file.
 """
@@ -12,17 +16,24 @@ import json
 import numpy as np
 import pytest
 
-from render_helpers import MODES, XRAY, camera, centre, const_tf, reference
-from volumeevm_addon import EVM, Camera, TransferFunction, VolumeEVM, grid_to_world
+from render_helpers import MODES, XRAY, camera, centre, const_tf, orbit_camera, reference
+from volumeevm_addon import (
+    EVM,
+    Camera,
+    TransferFunction,
+    VolumeEVM,
+    grid_to_world,
+    set_kernel_threads,
+)
+from volumeevm_addon.model import BLENDER_UNITS_PER_MM as BU
 from volumeevm_addon.phantoms import box_chords_mm
-from volumeevm_addon.rendering import BACKGROUND_DEPTH
-from volumeevm_addon.rendering._raycast import render_raycast, render_raycast_navigate
-from volumeevm_addon.rendering._shear_warp import render_shear_warp
-from volumeevm_addon.rendering._splat import render_splat
+from volumeevm_addon.rendering import BACKGROUND_DEPTH, methods
 
-RENDER = {"raycast": render_raycast, "raycast_navigate": render_raycast_navigate,
-          "splat": render_splat, "shear_warp": render_shear_warp}
+# Every registered method the core draws, but the reference the others are measured against.
+RENDER = {name: record.render for name, record in methods().items()
+          if record.render is not None and name != "reference"}
 KINDS = ("ORTHO", "PERSP")
+MRI = TransferFunction.preset("mri", data_range=(0, 202))
 
 
 @pytest.fixture(scope="module")
@@ -51,6 +62,23 @@ def bone(ct):
     return region(ct, 150, "ct_bone")
 
 
+@pytest.fixture(scope="module")
+def brain(data_dir):
+    """brainsmall (VolPack's MR example) cropped to 48x40x32, region above 40."""
+    meta = json.loads((data_dir / "mr_brainsmall_volpack.json").read_text())
+    a = np.load(data_dir / "mr_brainsmall_volpack.npy")[40:88, 44:84, 26:58]
+    v = VolumeEVM.from_array(a, 40, spacing=tuple(meta["spacing_mm"]))
+    return v, grid_to_world(v.spacing, v.origin), MRI
+
+
+@pytest.fixture(scope="module")
+def brain_half(data_dir):
+    """brainsmall at half resolution (64 x 64 x 42, 2 mm voxels), region above 20."""
+    a = np.load(data_dir / "mr_brainsmall_volpack.npy")[::2, ::2, ::2]
+    v = VolumeEVM.from_array(a, 20, spacing=(2.0, 2.0, 2.0))
+    return v, grid_to_world(v.spacing, (0.0, 0.0, 0.0)), MRI
+
+
 def mode_options(mode):
     return XRAY if mode == "xray" else {}
 
@@ -62,22 +90,172 @@ VARIANTS = {"raycast": ("raycast", {}), "raycast_navigate": ("raycast_navigate",
             "shear_warp": ("shear_warp", {})}
 
 
+# How far the depth may move between the two: shear-warp composites the same slices in the same
+# order, bit for bit; the others within float32 rounding.
+DENSE_DEPTH_RTOL = {"raycast": 1e-6, "raycast_navigate": 1e-6, "splat": 1e-6, "shear_warp": 0.0}
+# The CT bone seen from the front, and the MR brain (a lens shift, early termination) in
+# perspective from below.
+DENSE_SCENES = {"bone": ((0.3, -0.5, 0.2), 0.3, {}, {}),
+                "brain": ((-0.1, -0.12, 0.08), 0.1, {"shift_x": 0.05}, {"termination": 0.95})}
+
+
+def test_every_method_is_tested_here():
+    assert set(RENDER) == set(DENSE_DEPTH_RTOL) == {m for m, _ in VARIANTS.values()}
+    assert set(RENDER) == set(THREAD_CASES) == set(REFERENCE_BOUNDS) == set(UNDER_DEPTH_RTOL)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("variant", VARIANTS)
-def test_evm_equals_dense(bone, variant, mode, kind):
+@pytest.mark.parametrize("scene", DENSE_SCENES)
+def test_evm_equals_dense(request, scene, variant, mode, kind):
     """Skipping empty space over the region gives the render of every voxel of the grid with
     the region as a mask."""
-    v, g, tf = bone
-    method, options = VARIANTS[variant]
-    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3)
-    kw = dict(mode_options(mode), mode=mode, **options)
+    v, g, tf = request.getfixturevalue(scene)
+    offset, scale, lens, options = DENSE_SCENES[scene]
+    method, variant_options = VARIANTS[variant]
+    cam = camera(kind, g, v, offset, scale, **lens)
+    kw = dict(mode_options(mode), mode=mode, **options, **variant_options)
     r1, d1 = RENDER[method](v, cam, tf, g, **kw)
     r0, d0 = RENDER[method](v, cam, tf, g, skip_empty=False, **kw)
-    assert r1[..., 3].max() > 0.5 and (r1[..., 3] == 0).sum() > 50
+    assert r1[..., 3].max() > 0.25 and (r1[..., 3] == 0).sum() > 50
     np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
     np.testing.assert_array_equal(d1 == BACKGROUND_DEPTH, d0 == BACKGROUND_DEPTH)
-    np.testing.assert_allclose(d1, d0, rtol=1e-6)
+    np.testing.assert_allclose(d1, d0, rtol=DENSE_DEPTH_RTOL[method], atol=0)
+
+
+# ---------------------------------------------------------------------------- threads
+# Per method, the options that reach the most of its kernels in each mode (shading, jitter,
+# pre-integration, sub-slabs, post-classification, early termination).
+THREAD_CASES = {
+    "raycast": [("over", {"jitter": True, "preintegrate": True, "shading": True,
+                          "step_mm": 1.5}), ("under", {"shading": True}), ("xray", {}),
+                ("mip", {})],
+    "raycast_navigate": [("over", {"shading": True}), ("under", {}), ("xray", {}),
+                         ("mip", {})],
+    "splat": [("over", {"shading": True, "substeps": 2}), ("over", {"shading": True}),
+              ("under", {"substeps": 3}), ("xray", {}), ("mip", {})],
+    "shear_warp": [("over", {}), ("under", {"classification": "post", "shading": True}),
+                   ("over", {"slices_per_voxel": 2, "shading": True}),
+                   ("over", {"intermediate_scale": 1.5, "termination": 0.9}), ("xray", {}),
+                   ("mip", {})],
+}
+THREADS = [(method, mode, options) for method, cases in THREAD_CASES.items()
+           for mode, options in cases]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("method, mode, options", THREADS,
+                         ids=["-".join([m, mode, *o]) for m, mode, o in THREADS])
+def test_the_image_does_not_depend_on_the_thread_count(ct, method, mode, options, kind):
+    """One kernel thread or two: the same image and depth, bit for bit (the soft tissue in the
+    region is transparent for ct_bone: culled voxels too)."""
+    v, g, tf = region(ct, -300, "ct_bone")
+    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3, res=(37, 29))
+    kw = dict(mode_options(mode), mode=mode, **options)
+    previous = set_kernel_threads(1)
+    try:
+        one = RENDER[method](v, cam, tf, g, **kw)
+        set_kernel_threads(2)
+        two = RENDER[method](v, cam, tf, g, **kw)
+    finally:
+        set_kernel_threads(previous)
+    assert one[0][..., 3].max() > 0.3 and (one[1] < BACKGROUND_DEPTH).sum() > 200
+    np.testing.assert_array_equal(two[0], one[0])
+    np.testing.assert_array_equal(two[1], one[1])
+
+
+# ---------------------------------------------------------------------------- odd sizes
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("method", RENDER)
+def test_odd_sizes_are_windows_of_the_square_image(skin, method, mode, kind):
+    """A w x h image (1 x 1, one row, one column, odd sizes) is the middle window of the n x n
+    image, n = max(w, h): the fitted side spans the same field, so its pixels are the same
+    rays, bit for bit."""
+    v, g, tf = skin
+    for w, h in ((1, 1), (13, 1), (1, 13), (7, 3), (3, 11)):
+        n = max(w, h)
+        square = RENDER[method](v, camera(kind, g, v, (0.3, -0.5, 0.2), 0.3, res=(n, n)), tf, g,
+                                mode=mode, **mode_options(mode))
+        rgba, depth = RENDER[method](v, camera(kind, g, v, (0.3, -0.5, 0.2), 0.3, res=(w, h)),
+                                     tf, g, mode=mode, **mode_options(mode))
+        window = np.s_[(n - h) // 2:(n + h) // 2, (n - w) // 2:(n + w) // 2]
+        assert rgba.shape == (h, w, 4) and depth.shape == (h, w)
+        assert square[0][..., 3].max() > 0.5
+        np.testing.assert_array_equal(rgba, square[0][window])
+        np.testing.assert_array_equal(depth, square[1][window])
+
+
+# ---------------------------------------------------------------------------- reference
+# Per method, per scene group and mode: the error against the dense reference, per pixel the
+# largest over RGBA, as (mean, 99th percentile, maximum, pixels whose coverage differs); None:
+# not bounded. About twice what was measured (ORTHO and PERSP, skin and bone, both brain
+# views), and never looser than the bounds the methods' own files used to keep.
+REFERENCE_BOUNDS = {
+    "raycast": {
+        # The step's error (measured mean 0.0006, 99th percentile 0.01, worst 0.066); MIP: a ray
+        # that grazes a cell the samples miss is the rare large error.
+        ("ct", "over"): (0.001, 0.02, 0.1, 0), ("ct", "xray"): (0.0002, 0.004, 0.01, 0),
+        ("ct", "mip"): (0.02, 0.6, None, 40),
+        ("brain", "over"): (0.0004, 0.006, 0.03, 2), ("brain", "xray"): (0.0001, 0.003, 0.015, 0),
+        ("brain", "mip"): (0.0011, 0.02, 0.2, 6)},
+    "splat": {
+        # The in-sheet Gaussian reconstruction against trilinear: small on average, larger on
+        # thin structures (measured mean 0.0030, 99th percentile 0.052).
+        ("ct", "over"): (0.005, 0.08, 0.3, 0), ("ct", "xray"): (0.0005, 0.012, 0.07, 0),
+        ("ct", "mip"): (0.008, 0.14, 0.7, 0),
+        ("brain", "over"): (0.0045, 0.055, 0.14, 2), ("brain", "xray"): (0.0005, 0.015, 0.1, 0),
+        ("brain", "mip"): (0.0025, 0.05, 0.2, 2)},
+    "shear_warp": {
+        # One resampling per slice and one warp: at about 6 mm per pixel on the CT's 3.7 mm
+        # voxels thin skin blurs (measured mean 0.039); brainsmall's per-mode bounds are those a
+        # wrong slice order, shear sign or opacity correction exceeds.
+        ("ct", "over"): (0.08, None, None, 160), ("ct", "xray"): (0.05, None, None, 160),
+        ("ct", "mip"): (0.065, None, None, 160),
+        ("brain", "over"): (0.012, 0.25, None, 32), ("brain", "xray"): (0.008, 0.25, None, 28),
+        ("brain", "mip"): (0.005, 0.1, None, 24)},
+}
+REFERENCE_BOUNDS["raycast_navigate"] = REFERENCE_BOUNDS["raycast"]
+# Where coverage is exact, so is the depth of the region's surface (float32 rounding).
+EXACT_DEPTH = {"raycast", "raycast_navigate", "splat"}
+# The CT head from the front (default reference step), brainsmall from the front and from
+# behind (steps of a quarter voxel: shear-warp's bounds need the finer reference).
+REFERENCE_SCENES = {"skin": ("ct", (0.3, -0.5, 0.2)), "bone": ("ct", (0.3, -0.5, 0.2)),
+                    "brain_half": ("brain", (0.5, -1.0, 0.35)),
+                    "brain_half_behind": ("brain", (-1.0, 0.3, -0.45))}
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("scene", REFERENCE_SCENES)
+@pytest.mark.parametrize("method", RENDER)
+def test_error_against_the_reference(request, method, scene, mode, kind):
+    group, direction = REFERENCE_SCENES[scene]
+    v, g, tf = request.getfixturevalue(scene.removesuffix("_behind"))
+    if group == "ct":
+        cam, kw, ref_kw = camera(kind, g, v, direction, 0.3, res=(48, 40)), XRAY, {}
+    else:
+        cam = orbit_camera(g, v.shape, v.spacing, direction, kind, res=(52, 44))
+        kw, ref_kw = {"xray_scale": 0.002}, {"step_mm": min(v.spacing) / 4}
+    kw = dict(kw if mode == "xray" else {}, mode=mode)
+    rgba, depth = RENDER[method](v, cam, tf, g, termination=1.0, **kw)
+    rr, dr = reference(v, cam, tf, g, **kw, **ref_kw)
+    mean, p99, worst, cover = REFERENCE_BOUNDS[method][group, "over" if mode == "under" else mode]
+    err = np.abs(rgba - rr).max(axis=-1)
+    assert rr[..., 3].mean() > (0.1 if group == "ct" else 0.01)
+    assert err.mean() < mean
+    assert p99 is None or np.percentile(err, 99) < p99
+    assert worst is None or err.max() < worst
+    assert ((depth < 1e9) != (dr < 1e9)).sum() <= cover
+    if mode == "mip":
+        return  # the depth of the maximum, not of a surface
+    both = (rr[..., 3] > 0.5) & (rgba[..., 3] > 0.5)
+    assert both.sum() > 100
+    assert np.median(np.abs(depth - dr)[both]) / BU < 0.5 * min(v.spacing)
+    if method in EXACT_DEPTH and group == "ct":
+        seen = (depth < 1e9) & (dr < 1e9)
+        assert np.percentile(np.abs(depth - dr)[seen], 99) < 1e-6
 
 
 # ---------------------------------------------------------------------------- nothing to see
@@ -110,6 +288,10 @@ def test_camera_that_sees_nothing(skin, method, mode, kind, where):
 
 
 # ---------------------------------------------------------------------------- compositing
+# How far the depth may move from over to under: shear-warp composites the same samples.
+UNDER_DEPTH_RTOL = {"raycast": 1e-6, "raycast_navigate": 1e-6, "splat": 1e-6, "shear_warp": 0.0}
+
+
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("method", RENDER)
 def test_over_equals_under_and_early_termination_bound(skin, method, kind):
@@ -119,7 +301,7 @@ def test_over_equals_under_and_early_termination_bound(skin, method, kind):
     full, dfull = render(v, cam, tf, g, termination=1.0)
     under, dunder = render(v, cam, tf, g, mode="under")
     np.testing.assert_allclose(under, full, atol=2e-5)
-    np.testing.assert_allclose(dunder, dfull, rtol=1e-6)
+    np.testing.assert_allclose(dunder, dfull, rtol=UNDER_DEPTH_RTOL[method], atol=0)
     for thr in (0.95, 0.9, 0.8, 0.5):
         ert, dert = render(v, cam, tf, g, termination=thr)
         diff = np.abs(ert - full)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from render_helpers import camera, const_tf
+from skips import skip_unless_ci
 from volumeevm_addon import (
     EVM,
     METHODS,
@@ -105,8 +106,12 @@ def test_good_options_still_render(scene):
     vevm, cam, tf = scene
     rgba, depth = render(vevm, cam, tf, method="raycast", step_mm=0.5, block=np.int64(4),
                          skip_empty=np.bool_(True), termination=1)
-    assert rgba.shape == (6, 8, 4) and depth.shape == (6, 8)
+    # NumPy scalars and an int where a float is expected give the plain options' image.
+    plain_rgba, plain_depth = render(vevm, cam, tf, method="raycast", step_mm=0.5, block=4,
+                                     skip_empty=True, termination=1.0)
     assert (rgba[..., 3] > 0).any()
+    np.testing.assert_array_equal(rgba, plain_rgba)
+    np.testing.assert_array_equal(depth, plain_depth)
 
 
 def test_huge_image_is_refused_before_allocating(scene, monkeypatch):
@@ -321,8 +326,9 @@ def test_empty_and_misshapen_images_are_refused(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.skipif(openexr_module() is None, reason="OpenEXR is not installed")
 def test_empty_exr_is_refused(tmp_path):
+    if openexr_module() is None:
+        skip_unless_ci("OpenEXR is not installed")
     with pytest.raises(VolumeEVMError, match=r"^rgba: the image is empty \(shape \(0, 0, 4\)\)"):
         write_exr(tmp_path / "x.exr", np.zeros((0, 0, 4)))
     with pytest.raises(VolumeEVMError, match=r"^rgba: expected \(H, W, 4\)"):

@@ -1,5 +1,7 @@
-"""Splatting: sheets from the VolumeEVM, the exactness contract on real volumes, closed forms
-and the reference, modes, depth and degenerate input."""
+"""Splatting: what is particular to it - sheets from the VolumeEVM, culling, closed forms, the
+blob against the reference, modes, sub-slabs, the family blend, bands and bad input. What every
+method keeps (EVM = dense, threads, odd sizes, error bounds against the reference) is in
+test_render_contract.py."""
 
 import json
 
@@ -15,7 +17,6 @@ from volumeevm_addon import (
     VolumeEVMError,
     grid_to_world,
     phantoms,
-    set_kernel_threads,
 )
 from volumeevm_addon.metrics import popping_index, rmse, temporal_errors
 from volumeevm_addon.model import BLENDER_UNITS_PER_MM as BU
@@ -35,14 +36,6 @@ def ct(data_dir):
     meta = json.loads((data_dir / "ct_head_invesalius.json").read_text())
     a = np.load(data_dir / "ct_head_invesalius.npy")[::4, ::4, ::3]
     return a, tuple(np.array(meta["spacing_mm"]) * (4, 4, 3))
-
-
-@pytest.fixture(scope="module")
-def brain(data_dir):
-    """brainsmall (VolPack's MR example) cropped to 48x40x32, with its JSON spacing."""
-    meta = json.loads((data_dir / "mr_brainsmall_volpack.json").read_text())
-    a = np.load(data_dir / "mr_brainsmall_volpack.npy")[40:88, 44:84, 26:58]
-    return a, tuple(meta["spacing_mm"])
 
 
 def region(ct, threshold, preset):
@@ -75,19 +68,6 @@ def test_sheets_come_from_sections_and_tables(ct):
 
 
 # ---------------------------------------------------------------------------- exactness
-def test_skip_empty_equals_dense_brain(brain):
-    a, sp = brain
-    v = VolumeEVM.from_array(a, 40, spacing=sp)
-    g = grid_to_world(v.spacing, v.origin)
-    tf = TransferFunction.preset("mri", data_range=(0, 202))
-    cam = camera("PERSP", g, v, (-0.1, -0.12, 0.08), 0.0, shift_x=0.05)
-    r1, d1 = render_splat(v, cam, tf, g, termination=0.95)
-    r0, d0 = render_splat(v, cam, tf, g, termination=0.95, skip_empty=False)
-    assert r1[..., 3].max() > 0.5
-    np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(d1, d0, rtol=1e-6)
-
-
 @pytest.mark.parametrize("substeps", [1, 3])
 @pytest.mark.parametrize("mode", ["over", "xray"])
 def test_culling_invisible_voxels_changes_nothing(ct, mode, substeps, monkeypatch):
@@ -205,24 +185,6 @@ def test_gaussian_blob_against_reference():
     rr, _ = reference(v, cam, None, g, mode="xray", xray_scale=3e-4)
     assert rr[..., 3].max() > 0.5
     assert np.abs(rgba - rr).max() < 0.006
-
-
-@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
-def test_real_volume_against_reference(ct, kind):
-    """CT head (skin), oblique view: the in-sheet Gaussian reconstruction differs from the
-    reference's trilinear one; the error is small on average, larger on thin structures."""
-    v, g, tf = region(ct, -300, "ct_skin")
-    cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3, res=(48, 40))
-    rgba, depth = render_splat(v, cam, tf, g, termination=1.0)
-    rr, dr = reference(v, cam, tf, g)
-    err = np.abs(rgba - rr).max(axis=-1)
-    assert rr[..., 3].mean() > 0.2
-    assert err.mean() < 0.005  # measured 0.0030 (ortho), 0.0023 (perspective)
-    assert np.percentile(err, 99) < 0.08  # measured 0.050, 0.052
-    # Coverage and depth are exact: the first sheet counts from the region's surface.
-    np.testing.assert_array_equal(depth < 1e9, dr < 1e9)
-    seen = depth < 1e9
-    assert np.percentile(np.abs(depth - dr)[seen], 90) < 1e-6
 
 
 # ---------------------------------------------------------------------------- modes
@@ -372,34 +334,21 @@ def test_blend_keeps_the_closed_form_and_exactness(ct):
     ("ORTHO", "over", {"shading": True, "substeps": 2}), ("PERSP", "over", {"shading": True}),
     ("PERSP", "under", {"substeps": 3}), ("ORTHO", "xray", {"xray_scale": 2e-4}),
     ("PERSP", "mip", {})])
-def test_the_image_does_not_depend_on_threads_or_bands(ct, kind, mode, opts, monkeypatch):
+def test_the_image_does_not_depend_on_bands(ct, kind, mode, opts, monkeypatch):
     """Each band of a sheet's window rows is splatted on its own and adds a pixel's
-    contributions in voxel order: one thread or two, bands of 3 rows or 64, the same bits."""
+    contributions in voxel order: bands of 3 rows or 64, the same bits (one thread or two:
+    test_render_contract.py)."""
     v, g, tf = region(ct, -300, "ct_bone")
     cam = camera(kind, g, v, (0.3, -0.5, 0.2), 0.3 if kind == "ORTHO" else 0.0, res=(37, 29))
-    previous = set_kernel_threads(1)
-    try:
-        one = render_splat(v, cam, tf, g, mode=mode, **opts)
-        set_kernel_threads(2)
-        two = render_splat(v, cam, tf, g, mode=mode, **opts)
-        monkeypatch.setattr(_splat, "_BAND_ROWS", 3)
-        bands = render_splat(v, cam, tf, g, mode=mode, **opts)
-    finally:
-        set_kernel_threads(previous)
-    assert one[0][..., 3].max() > 0.3
-    for image in (two, bands):
-        np.testing.assert_array_equal(image[0], one[0])
-        np.testing.assert_array_equal(image[1], one[1])
+    wide = render_splat(v, cam, tf, g, mode=mode, **opts)
+    monkeypatch.setattr(_splat, "_BAND_ROWS", 3)
+    bands = render_splat(v, cam, tf, g, mode=mode, **opts)
+    assert wide[0][..., 3].max() > 0.3
+    np.testing.assert_array_equal(bands[0], wide[0])
+    np.testing.assert_array_equal(bands[1], wide[1])
 
 
 # ---------------------------------------------------------------------------- degenerate
-def test_odd_sizes(ct):
-    v, g, tf = region(ct, -300, "ct_skin")
-    cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(13, 1))
-    rgba, depth = render_splat(v, cam, tf, g)
-    assert rgba.shape == (1, 13, 4) and rgba[..., 3].max() > 0.5
-
-
 def test_bad_input(ct):
     v, g, tf = region(ct, -300, "ct_skin")
     cam = camera("ORTHO", g, v, (0.3, -0.5, 0.2), 0.3, res=(6, 4))
