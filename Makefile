@@ -8,7 +8,7 @@ PY313 ?= $(shell PYENV_VERSION=3.13.0 pyenv which python3.13 2>/dev/null || comm
 VENVS := .venv/py311 .venv/py313
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-data test lint test-py311 test-py313 bench bench-setup gl-debs test-debs bench-debs extension clean
+.PHONY: demo demo-data test lint test-py311 test-py313 bench bench-setup debs extension clean
 
 .venv/py311/.stamp: requirements/py311.txt
 	rm -rf .venv/py311
@@ -28,10 +28,10 @@ test: lint test-py311 test-py313
 lint: .venv/py313/.stamp
 	.venv/py313/bin/ruff check .
 
-test-py311: .venv/py311/.stamp | test-debs
+test-py311: .venv/py311/.stamp | debs
 	.venv/py311/bin/python -m pytest tests $(PYTEST_ARGS)
 
-test-py313: .venv/py313/.stamp | test-debs
+test-py313: .venv/py313/.stamp | debs
 	.venv/py313/bin/python -m pytest tests $(PYTEST_ARGS)
 
 # The demo's CT head: fetched from the Debian archive (pinned package and SHA-256 digests) and
@@ -64,11 +64,9 @@ extension: .venv/py313/.stamp
 # Debian packages, installed (apt-get, as root or with sudo) only when missing: the Mesa
 # EGL/OpenGL libraries that offscreen GPU drawing needs (the GPU tests, VTK in the benchmarks),
 # and VolPack (the benchmarks' peer; the tests read the original brainsmall.den of its examples).
-GL_DEBS := libegl1 libegl-mesa0 libgl1-mesa-dri
-gl-debs: DEBS := $(GL_DEBS)
-test-debs bench-debs: DEBS := libvolpack1-dev $(GL_DEBS)
+DEBS := libegl1 libegl-mesa0 libgl1-mesa-dri libvolpack1-dev
 
-gl-debs test-debs bench-debs:
+debs:
 	@missing=""; for p in $(DEBS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q 'ok installed' || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
@@ -77,7 +75,7 @@ gl-debs test-debs bench-debs:
 	fi
 
 # Bench peers: VTK and matplotlib from requirements/bench.txt into .venv/py313; VolPack and the
-# Mesa libraries VTK renders offscreen with from Debian (bench-debs); the VolPack driver
+# Mesa libraries VTK renders offscreen with from Debian (debs); the VolPack driver
 # (bench/peers/volpack_driver.c) compiled against Debian's libvolpack.a.
 VOLPACK_DRIVER := bench/peers/build/volpack_driver
 
@@ -85,11 +83,11 @@ VOLPACK_DRIVER := bench/peers/build/volpack_driver
 	.venv/py313/bin/pip install --quiet --disable-pip-version-check -r requirements/bench.txt
 	touch $@
 
-$(VOLPACK_DRIVER): bench/peers/volpack_driver.c | bench-debs
+$(VOLPACK_DRIVER): bench/peers/volpack_driver.c | debs
 	mkdir -p $(@D)
 	gcc -O2 -Wall -o $@ $< -l:libvolpack.a -lm
 
-bench-setup: bench-debs .venv/py313/.bench-stamp $(VOLPACK_DRIVER)
+bench-setup: debs .venv/py313/.bench-stamp $(VOLPACK_DRIVER)
 
 bench: bench-setup
 	.venv/py313/bin/python bench/bench_evm.py --out bench/results
