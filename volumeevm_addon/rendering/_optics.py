@@ -27,7 +27,7 @@ from . import _depth
 from ._checks import categorical
 from ._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH
 from ._modes import MODE_CODES
-from ._shading import fade_magnitudes
+from ._shading import fade_magnitudes, headlight_weights
 
 __all__ = ["Optics", "optics", "table_cell", "classify", "classify_preintegrated", "corrected",
            "visible", "visible_threshold", "attenuation_threshold"]
@@ -47,7 +47,7 @@ Optics.__doc__ = """How samples become colour, for every CPU renderer (:func:`op
 opacity (inf: never); ``nearest``: a sample takes its nearest voxel's density (categorical
 transfer functions: label numbers are never interpolated); ``shaded``: gradient shading with
 ``phong`` (6 floats, zeros unshaded), the Blinn–Phong weights and the fade
-(:meth:`._shading.Lighting.weights`); ``lut`` (N, 4) float32 over ``lut_lo + i / lut_scale``
+(:func:`._shading.headlight_weights`); ``lut`` (N, 4) float32 over ``lut_lo + i / lut_scale``
 (floats): straight colour and the opacity over ``step_mm`` (empty for X-ray; the read is
 :func:`classify`); ``pre`` (n·n, 4) float32 with ``pre_lo``, ``pre_scale``, ``pre_n``: the
 pre-integrated table for segments of ``step_mm`` (empty: off); ``step_mm`` (float): the step the
@@ -90,8 +90,7 @@ def optics(tf, compositing, shading, *, step_mm=None, lut=True, pre_range=None):
         pre, pre_scale = np.ascontiguousarray(pre), (pre_n - 1) / (hi - pre_lo)
     phong = (0.0,) * 6
     if shading is not None:
-        phong = (float(shading.ambient), float(shading.diffuse), float(shading.specular),
-                 float(shading.shininess), *fade_magnitudes(shading, tf))
+        phong = headlight_weights(shading, fade_magnitudes(shading, tf))
     termination = compositing.termination
     return Optics(MODE_CODES[mode], np.float32(termination if termination < 1 else np.inf),
                   categorical(tf, mode), shading is not None, phong, table, float(lut_lo),
