@@ -159,7 +159,7 @@ def test_visibility_rule_is_depths(dtype):
 def test_attenuation_rule_is_depths():
     rng = np.random.default_rng(13)
     for mm in np.concatenate([rng.uniform(0.01, 5, 20), [1.0]]):
-        t = attenuation_threshold(mm)
+        t = np.float32(attenuation_threshold(mm))  # (Numba returns float32 as a Python float)
         assert t == _depth.attenuation_threshold(mm, np.float32)
         taus = np.array([0, t, np.nextafter(t, np.float32(0)), 3 * t, t / 3], np.float32)
         got = np.array([visible(tau, t) for tau in taus])
