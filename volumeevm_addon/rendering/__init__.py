@@ -22,6 +22,8 @@ the inputs and dispatches to them through their records:
 - ``_camera.py``: a plain camera record that reproduces Blender's projection exactly.
 - ``_transfer.py``: transfer functions, piecewise-linear colour and opacity in the data's units.
 - ``_depth.py``: what "visible" means for the output depth, one threshold for every method.
+- ``_optics.py``: the optical model the CPU methods share: one ``Optics`` record per render and
+  the compiled helpers of classification, opacity correction and visibility their kernels use.
 - The pieces every method shares, each written once: ``_checks.py`` (input checks),
   ``_rays.py`` (the camera's pixel rays in index space, clipped to the volume's box, the clip
   range and ``depth_in``), ``_gradients.py`` (per-voxel gradients over the region's voxels),

@@ -13,10 +13,11 @@ Without a threshold, depth would come from numerical dust: a bilinear tap weight
 rounding of a slice's shift) on an opaque voxel gives a sample of opacity 1e-16 beside
 transparent ones, which would count as a hit a whole slice in front of what is seen, or where
 nothing is seen, and which side of the dust a pixel falls on changes with one ulp of the camera
-matrix (with the CPU's BLAS kernel). :func:`visible` and :func:`attenuates` (and their
-thresholds, :func:`visible_threshold` and :func:`attenuation_threshold`, for compiled kernels
-that test one sample at a time) are the only places the renderers decide a hit for the depth;
-the colour and opacity they composite are not thresholded.
+matrix (with the CPU's BLAS kernel). :func:`visible` and :func:`attenuates` (with their
+thresholds, :func:`visible_threshold` and :func:`attenuation_threshold`), and their compiled
+twins in :mod:`._optics` for kernels that test one sample at a time, are the only places the
+renderers decide a hit for the depth; the colour and opacity they composite are not
+thresholded.
 """
 
 import math
@@ -76,8 +77,8 @@ def visible(alpha, units):
 
 def visible_threshold(units, dtype):
     """The opacity from which samples over ``units`` unit lengths are visible (:func:`visible`:
-    ``alpha > 0`` and ``alpha >= threshold``), rounded to ``dtype``: for compiled kernels,
-    which compare one sample at a time."""
+    ``alpha > 0`` and ``alpha >= threshold``), rounded to ``dtype`` (the record of
+    :func:`._optics.optics` holds it for a whole step)."""
     return np.asarray(opacity_correction(VISIBLE_ALPHA, units)).astype(dtype)[()]
 
 

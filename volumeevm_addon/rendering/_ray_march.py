@@ -27,7 +27,8 @@ The kernels take their inputs as four records (named tuples) of arrays and numbe
 types so that one compiled kernel serves every render (a feature a render does not use gets an
 empty array): :data:`View` (camera and grid), :data:`Lattice` (steps and space leaping),
 :data:`Volume` (where densities are read: the block-sparse sampling tables, or the EVM's boxes
-for the navigation variant) and :data:`Optics` (mode, classification, shading). Small vectors and
+for the navigation variant) and :data:`._optics.Optics` (mode, classification, shading; the
+helpers of :mod:`._optics` read it, as every renderer's kernels do). Small vectors and
 matrices are tuples, and the helpers of the per-sample loop take tuples and numbers (and the
 arrays they read): a call passing many arrays costs more than its work.
 """
@@ -39,11 +40,18 @@ import numpy as np
 
 from .._jit import kernel
 from ..model import _sweep
-from ._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH
 from ._modes import MODE_CODES, MODES
+from ._optics import (
+    attenuation_threshold,
+    classify,
+    classify_preintegrated,
+    corrected,
+    visible,
+    visible_threshold,
+)
 from ._shading import headlight
 
-__all__ = ["View", "Lattice", "Volume", "Optics", "RELATION_FIELDS", "TABLE_BLOCK", "BLOCK_VOXELS",
+__all__ = ["View", "Lattice", "Volume", "RELATION_FIELDS", "TABLE_BLOCK", "BLOCK_VOXELS",
            "march_rays"]
 
 _OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
@@ -96,22 +104,6 @@ at 300 HU resampled to 1024³: 8 stores 1.7 times the region's voxels, 16 twice 
 _EDGE = TABLE_BLOCK + 1
 BLOCK_VOXELS = _EDGE ** 3
 """Voxels stored per block of the sampling tables: the block and its apron."""
-
-Optics = namedtuple("Optics", "mode termination xray_scale xray_offset lut lut_lo lut_scale pre "
-                              "pre_lo pre_scale pre_n units visible nearest shaded normal phong")
-Optics.__doc__ = """How samples become colour.
-
-``mode``: :data:`._modes.MODE_CODES`; ``termination`` (float32): ``"over"`` stops a ray at this
-opacity (inf: never); ``xray_scale``, ``xray_offset`` (float32); ``lut`` (N, 4) float32 over
-``lut_lo`` + i / ``lut_scale``: straight colour and step-corrected opacity; ``pre`` (n·n, 4)
-float32 with ``pre_lo``, ``pre_scale``, ``pre_n``: the pre-integrated table (empty: off);
-``units`` (float32): the step in unit lengths of the transfer function, ``visible``: the
-opacity from which a whole step is visible (:func:`._depth.visible_threshold`); ``nearest``:
-a sample takes its nearest voxel's density, transparent when that voxel is outside the region
-(categorical transfer functions: label numbers are never interpolated); ``shaded``:
-gradient shading, ``normal`` (9,): the matrix taking an index-space gradient to a world normal,
-row by row, and ``phong`` (6,): the Blinn–Phong weights and the fade
-(:meth:`._shading.Lighting.weights`)."""
 
 RELATION_FIELDS = ("slab_lo", "slab_hi", "slab_base", "slab_area", "sub_keys", "sub_slab",
                    "sub_lo", "sub_hi", "sub_base", "line_length", "run_keys", "run_sub",
@@ -620,79 +612,15 @@ def _crossing(pf, pb):
     return min(max((max(cf, cb) - half - pf) / (pb - pf), np.float32(0)), np.float32(1))
 
 
-# ---------------------------------------------------------------------------- classification
+# ---------------------------------------------------------------------------- visibility
 @kernel
-def _short(alpha, ratio):
-    """Opacity ``alpha`` of a full step for a segment of ``ratio`` steps (float64)."""
-    if ratio != 1:
-        return 1.0 - (1.0 - alpha) ** np.float64(ratio)
-    return alpha
-
-
-@kernel
-def _classify(lut, lo, scale, value, ratio):
-    """Straight RGB and opacity (float64) of density ``value`` for a segment of ``ratio``
-    steps: linear in the lookup table."""
-    n = lut.shape[0]
-    x = min(max((value - np.float32(lo)) * np.float32(scale), np.float32(0)), np.float32(n - 1))
-    i = min(np.int64(x), n - 2)
-    f = np.float64(x) - i
-    return (lut[i, 0] + f * (lut[i + 1, 0] - lut[i, 0]),
-            lut[i, 1] + f * (lut[i + 1, 1] - lut[i, 1]),
-            lut[i, 2] + f * (lut[i + 1, 2] - lut[i, 2]),
-            _short(lut[i, 3] + f * (lut[i + 1, 3] - lut[i, 3]), ratio))
-
-
-@kernel
-def _pre_cell(value, lo, scale, n):
-    """Row (or column) of the pre-integrated table for a segment end's density ``value``, and
-    the fraction towards the next (float64)."""
-    x = min(max((value - np.float32(lo)) * np.float32(scale), np.float32(0)), np.float32(n - 1))
-    i = min(np.int64(x), n - 2)
-    return i, np.float64(x) - i
-
-
-@kernel
-def _bilinear(tab, flat, n, fi, fj, ch):
-    """Channel ``ch`` of the (n·n, 4) table ``tab`` from rows ``flat``, ``flat + 1``,
-    ``flat + n``, ``flat + n + 1`` (fractions ``fi`` across, ``fj`` along), float64."""
-    top = tab[flat, ch] + fj * (tab[flat + 1, ch] - tab[flat, ch])
-    bottom = tab[flat + n, ch] + fj * (tab[flat + n + 1, ch] - tab[flat + n, ch])
-    return top + fi * (bottom - top)
-
-
-@kernel
-def _classify_preintegrated(pre, lo, scale, n, front, back, ratio):
-    """Straight RGB and opacity (float64) of a segment whose density runs linearly from
-    ``front`` to ``back``, of ``ratio`` steps: bilinear in the pre-integrated table, the
-    opacity corrected for a segment shorter than a step as if its density were constant (its
-    colour keeps its ratio to the opacity)."""
-    i, fi = _pre_cell(front, lo, scale, n)
-    j, fj = _pre_cell(back, lo, scale, n)
-    flat = i * n + j
-    alpha = _bilinear(pre, flat, n, fi, fj, 3)
-    scale = alpha if alpha > 0 else 1.0
-    return (_bilinear(pre, flat, n, fi, fj, 0) / scale, _bilinear(pre, flat, n, fi, fj, 1) / scale,
-            _bilinear(pre, flat, n, fi, fj, 2) / scale, _short(alpha, ratio))
-
-
-@kernel
-def _visible(alpha, length, units, full):
-    """:func:`._depth.visible` for one sample's opacity over ``length`` steps of ``units``
-    unit lengths (``full``: the threshold of a whole step, the common case; a shorter step's
-    is :func:`._depth.visible_threshold`'s formula)."""
-    if not alpha > 0:
-        return False
+def _threshold(length, units, full):
+    """The visibility threshold of a sample over ``length`` steps of ``units`` unit lengths:
+    ``full``, the threshold of a whole step (the common case), or
+    :func:`._optics.visible_threshold`."""
     if length == 1:
-        return alpha >= full
-    return alpha >= 1.0 - (1.0 - VISIBLE_ALPHA) ** np.float64(length * units)
-
-
-@kernel
-def _attenuates(tau, mm):
-    """:func:`._depth.attenuates` for one sample's optical depth over ``mm`` (float32; the
-    threshold is :func:`._depth.attenuation_threshold`'s formula)."""
-    return tau > 0 and tau >= np.float32(np.float64(mm) * VISIBLE_OPTICAL_DEPTH)
+        return full
+    return visible_threshold(length * units)
 
 
 # ---------------------------------------------------------------------------- marching
@@ -710,7 +638,9 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                                           lattice.block)
     lut, pre = optics.lut, optics.pre
     mode, shaded, preintegrated = optics.mode, optics.shaded, len(optics.pre) > 0
-    phong = optics.phong
+    phong, units, full = optics.phong, optics.units, optics.visible
+    m = view.to_index  # its 3x3 part transposed takes index-space gradients to world normals
+    normal = (m[0][0], m[1][0], m[2][0], m[0][1], m[1][1], m[2][1], m[0][2], m[1][2], m[2][2])
     backward = mode == _UNDER
     step32 = np.float32(lattice.step_mm)
     hood = np.zeros(64, np.float32)  # navigation with shading: the 4x4x4 voxels around a cell
@@ -798,11 +728,11 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                 tau = optics.xray_scale * max(value - optics.xray_offset, np.float32(0)) \
                     * length * step32
                 red += tau
-                if math.isnan(event) and _attenuates(tau, length * step32):
+                if math.isnan(event) and visible(tau, attenuation_threshold(length * step32)):
                     event = front
                 k += 1
                 continue
-            r, g, b, alpha = _classify(lut, optics.lut_lo, optics.lut_scale, value, length)
+            r, g, b, alpha = classify(lut, optics.lut_lo, optics.lut_scale, value)
             if preintegrated and frac == 1:
                 # Segments wholly in the region are pre-integrated from their ends' densities
                 # (the boundary shared with the segment before is not sampled again); those
@@ -819,8 +749,12 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                 samples += 1
                 edge_b, edge_v = far, v_far
                 v_front, v_back = (v_far, v_near) if backward else (v_near, v_far)
-                r, g, b, alpha = _classify_preintegrated(pre, optics.pre_lo, optics.pre_scale,
-                                                         optics.pre_n, v_front, v_back, length)
+                r, g, b, alpha = classify_preintegrated(pre, optics.pre_lo, optics.pre_scale,
+                                                        optics.pre_n, v_front, v_back)
+            # A segment shorter than a step: its opacity corrected for its length (a
+            # pre-integrated one's as if its density were constant; its colour keeps its ratio
+            # to the opacity).
+            alpha = corrected(alpha, length)
             if not alpha > 0:  # transparent: it adds exactly 0 (and is not visible)
                 k += -1 if backward else 1
                 continue
@@ -828,7 +762,7 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                 if not navigate:
                     gradients = (_table_gradients(grad, row, 0), _table_gradients(grad, row, 1),
                                  _table_gradients(grad, row, 2))
-                r, g, b = headlight((r, g, b), _gradient(gradients, f, weight), optics.normal,
+                r, g, b = headlight((r, g, b), _gradient(gradients, f, weight), normal,
                                     view_dir, phong)
             if backward:
                 keep = 1.0 - alpha
@@ -836,7 +770,7 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                 green = np.float32(np.float32(green * keep) + g * alpha)
                 blue = np.float32(np.float32(blue * keep) + b * alpha)
                 opacity = np.float32(np.float32(opacity * keep) + alpha)
-                if _visible(alpha, length, optics.units, optics.visible):
+                if visible(alpha, _threshold(length, units, full)):
                     event = front  # the last met is the frontmost
                 k -= 1
             else:
@@ -845,7 +779,7 @@ def march_rays(rows, columns, view, lattice, volume, optics, rgba, depth, vmax):
                 green = np.float32(green + trans * (g * alpha))
                 blue = np.float32(blue + trans * (b * alpha))
                 opacity = np.float32(opacity + trans * alpha)
-                if math.isnan(event) and _visible(alpha, length, optics.units, optics.visible):
+                if math.isnan(event) and visible(alpha, _threshold(length, units, full)):
                     event = front
                 k += 1
                 if opacity >= optics.termination:

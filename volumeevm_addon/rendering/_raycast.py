@@ -103,27 +103,25 @@ from ..model._densities import TABLE_ORDERS, TableIndex
 from ._camera import BACKGROUND_DEPTH
 from ._checks import (
     RAY_STEPS_PER_VOXEL,
-    categorical,
     checked_step_mm,
     checked_view,
     flag,
     positive_integer,
 )
-from ._depth import visible_threshold
 from ._gradients import region_gradients
 from ._method import MemoryModel, Method, keyword_options, step_quality, step_samples
-from ._modes import MODE_CODES, finish_mode
+from ._modes import finish_mode
+from ._optics import optics
 from ._ray_march import (
     BLOCK_VOXELS,
     RELATION_FIELDS,
     TABLE_BLOCK,
     Lattice,
-    Optics,
     View,
     Volume,
     march_rays,
 )
-from ._shading import Lighting, checked_shading
+from ._shading import checked_shading
 
 __all__ = ["render_raycast", "render_raycast_navigate", "RAYCAST_METHOD", "NAVIGATE_METHOD"]
 
@@ -131,9 +129,6 @@ BLOCK = 4
 """The default edge (voxels) of the space-leaping blocks. Measured on the CT head and
 brainsmall (512² and 256², both cameras, steps of 2, 1 and 1/2 voxel): 4 is as fast as 8 or up
 to 17 % faster (fewer samples in transparent space beside what is seen)."""
-_LUT_SIZE = 4096
-_PREINT_SIZE = 256
-"""Rows and columns of the pre-integrated table (over the data's and the function's range)."""
 
 
 # ---------------------------------------------------------------------------- tables
@@ -521,33 +516,13 @@ def _cache_keys(spacing, navigate, shaded, skip_empty, block, step_mm, preintegr
 
 
 # ---------------------------------------------------------------------------- casting
-def _lut(tf, step_mm):
-    """Straight colour and step-corrected opacity at ``_LUT_SIZE`` values (a categorical
-    function: at its integers) over the transfer function's control range; returns
-    ``(table (n, 4) float32, lo, scale, step)``."""
-    lo, hi = tf.value_range
-    if hi <= lo:
-        hi = lo + 1.0
-    size = tf.lut_size(_LUT_SIZE)
-    tab = np.array(tf.straight_table(lo=lo, hi=hi, n=size), dtype=np.float64)
-    tab[:, 3] = 1.0 - np.power(1.0 - tab[:, 3], step_mm / tf.unit_length_mm)
-    step = (hi - lo) / (size - 1)
-    return tab.astype(np.float32), lo, 1.0 / step, step
-
-
-def _preintegration(vevm, tf, step_mm):
-    """The pre-integrated table for segments of ``step_mm`` over the range of the data and the
-    transfer function (a segment's ends must not be clamped); returns ``(table (n·n, 4)
-    float32, lo, scale, step, n)``."""
+def _preintegration_range(vevm, tf):
+    """The densities the pre-integrated table covers, ``(lo, hi)``: the range of the data and
+    of the transfer function (a segment's ends must not be clamped)."""
     data_lo, data_hi = vevm.cache.get(("raycast", "range"), lambda: _data_range(vevm))
     lo = min(data_lo, tf.value_range[0])
     hi = max(data_hi, tf.value_range[1])
-    if hi <= lo:
-        hi = lo + 1.0
-    n = _PREINT_SIZE
-    tab = tf.preintegrated_table(lo=lo, hi=hi, n=n, step_mm=step_mm)
-    step = (hi - lo) / (n - 1)
-    return tab.reshape(-1, 4), lo, 1.0 / step, step, n
+    return lo, hi if hi > lo else lo + 1.0
 
 
 def _data_range(vevm):
@@ -580,19 +555,19 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
     if vevm.evm.is_empty():
         return rgba.reshape(h, w, 4), depth.reshape(h, w), 0
 
-    lut = None if mode == "xray" else _lut(tf, step_mm)
-    pre = _preintegration(vevm, tf, step_mm) if preintegrate else None
+    optical = optics(tf, compositing, shading, step_mm=step_mm,
+                     pre_range=_preintegration_range(vevm, tf) if preintegrate else None)
     tables_keys, blocks_key = _cache_keys(spacing, navigate, shading is not None, skip_empty,
-                                          block, step_mm, pre is not None)
+                                          block, step_mm, preintegrate)
     lattice = Lattice(step_mm, jitter, False, np.zeros(0, np.int8), (0, 0, 0), block,
                       (0.0,) * 3, (0.0,) * 3)
     if skip_empty:
         blocks = vevm.cache.get(blocks_key, lambda: _Blocks(vevm, block, blocks_key[3]))
-        margin = 0.0 if lut is None else lut[3] if pre is None else max(lut[3], pre[3])
+        margin = 0.0 if mode == "xray" else max(1.0 / scale for scale in (
+            optical.lut_scale, optical.pre_scale) if scale > 0)  # a table step
         lattice = blocks.leaping(lattice, mode, tf, margin, compositing)
     records = (_view(camera, g, vevm.shape, spacing, depth_in), lattice,
-               _volume(vevm, tables_keys),
-               _optics(compositing, tf, step_mm, lut, pre, Lighting.of_view(shading, g, tf)))
+               _volume(vevm, tables_keys), optical)
     vmax = np.full(h * w if mode == "mip" else 0, -np.inf, np.float32)
     side = max(1, math.isqrt(chunk_rays))  # square tiles of at most chunk_rays pixels
     samples = sum(parallel_map(march_rays, [
@@ -629,24 +604,6 @@ def _volume(vevm, keys):
     grad = vevm.cache.get(keys[1], table.gradients) if len(keys) > 1 else nothing
     return Volume(n, table.strides, table.index, table.table, grad, False, nothing,
                   np.zeros(0, np.int64), (0,) * (len(RELATION_FIELDS) + 1))
-
-
-def _optics(compositing, tf, step_mm, lut, pre, lighting):
-    """The :data:`._ray_march.Optics` record of a render: ``lut`` (:func:`_lut`, None for
-    X-ray), ``pre`` (:func:`_preintegration` or None), ``lighting`` (or None)."""
-    termination = compositing.termination
-    units = np.float32(step_mm / (1.0 if tf is None else tf.unit_length_mm))
-    return Optics(
-        MODE_CODES[compositing.mode], np.float32(termination if termination < 1 else np.inf),
-        np.float32(compositing.xray_scale), np.float32(compositing.xray_offset),
-        np.zeros((2, 4), np.float32) if lut is None else lut[0],
-        0.0 if lut is None else float(lut[1]), 0.0 if lut is None else float(lut[2]),
-        np.zeros((0, 4), np.float32) if pre is None else np.ascontiguousarray(pre[0]),
-        0.0 if pre is None else float(pre[1]), 0.0 if pre is None else float(pre[2]),
-        0 if pre is None else int(pre[4]), units, float(visible_threshold(units, np.float64)),
-        categorical(tf, compositing.mode), lighting is not None,
-        _floats((np.zeros((3, 3)) if lighting is None else lighting.inv_t).ravel()),
-        (0.0,) * 6 if lighting is None else lighting.weights())
 
 
 def _floats(values):

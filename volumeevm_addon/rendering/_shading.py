@@ -23,7 +23,7 @@ from .._jit import kernel
 from ..model._volume import transform
 
 __all__ = ["Shading", "Lighting", "checked_shading", "blinn_phong", "fade", "fade_magnitudes",
-           "headlight"]
+           "headlight", "headlight_weights"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -162,9 +162,7 @@ class Lighting:
     def weights(self):
         """The numbers :func:`headlight` takes as ``weights`` (floats): ambient, diffuse,
         specular, shininess and the fade's two magnitudes."""
-        s = self.shading
-        return (float(s.ambient), float(s.diffuse), float(s.specular), float(s.shininess),
-                *self.fade)
+        return headlight_weights(self.shading, self.fade)
 
     def shade(self, rgb, grad, view_dirs):
         """Straight colours ``rgb`` (m, 3) lit: gradients ``grad`` (m, 3, index space), unit
@@ -181,6 +179,14 @@ class Lighting:
         lit, glint = blinn_phong(cos, t, self.shading)
         out = rgb * lit[:, None] + glint[:, None]
         return np.minimum(out, 1.0)
+
+
+def headlight_weights(shading, fade):
+    """The numbers :func:`headlight` takes as ``weights`` (floats): ``shading``'s ambient,
+    diffuse, specular and shininess, and the fade's two magnitudes ``fade``
+    (:func:`fade_magnitudes`)."""
+    return (float(shading.ambient), float(shading.diffuse), float(shading.specular),
+            float(shading.shininess), *fade)
 
 
 def fade_magnitudes(shading, tf):

@@ -102,10 +102,11 @@ from ._camera import BACKGROUND_DEPTH
 from ._checks import checked_view, positive_integer
 from ._gradients import region_gradients
 from ._method import MAX_SAMPLES, MemoryModel, Method, keyword_options
-from ._modes import MODE_CODES, finish_mode
+from ._modes import finish_mode
+from ._optics import Optics, optics
 from ._rays import Rays, camera_rays
 from ._shading import Lighting, checked_shading
-from ._splat_kernels import Crossings, Footprint, Image, Optics, Slab, Voxels, splat_rows
+from ._splat_kernels import Crossings, Footprint, Image, Slab, Voxels, splat_rows
 
 __all__ = ["render_splat", "SPLAT_METHOD"]
 
@@ -372,7 +373,8 @@ def render_splat(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
     inv = np.linalg.inv(g)
     view, cam_i = _view(vevm, camera, inv)
     splat_view = _SplatView(camera, g, inv, camera_rays(camera, g, vevm.shape, depth_in), view,
-                            cam_i, Lighting.of_view(shading, g, tf))
+                            cam_i, Lighting.of_view(shading, g, tf),
+                            optics(tf, compositing, shading))
     kernel = _Kernel(sigma, radius, max_px, 1 if mode == "mip" else substeps)
     weights = _family_weights(view * np.asarray(vevm.spacing, dtype=np.float64), blend)
     out = None
@@ -452,7 +454,8 @@ class _SplatView:
     """What the sheet families of a view share: the ``camera``, ``g`` (grid to world) and its
     inverse ``inv``, the pixel ``rays`` (:func:`._rays.camera_rays`), the index-space
     ``view`` direction and camera position ``cam_i`` (None when orthographic, :func:`_view`),
-    and the ``lighting`` (None: unshaded)."""
+    the ``lighting`` (None: unshaded) and the ``optics`` (opacity per unit length: each sample
+    is corrected for its own path)."""
 
     camera: object
     g: np.ndarray
@@ -461,6 +464,7 @@ class _SplatView:
     view: np.ndarray
     cam_i: np.ndarray
     lighting: Lighting
+    optics: Optics
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -583,7 +587,10 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
 
     ftab, fscale = _footprint_table(kernel.sigma, kernel.radius)
     fscale = np.float32(fscale)
-    optics, lut_scale = _optics(compositing, tf, view.lighting, (axis, b_ax, c_ax))
+    normal = np.zeros(0)  # the sheets' (A, B, C) gradient to a world normal, row by row
+    if view.lighting is not None:
+        normal = np.ascontiguousarray(view.lighting.inv_t[:, [axis, b_ax, c_ax]],
+                                      dtype=np.float64).ravel()
     acc = np.zeros((h, w, 4), np.float32)
     depth = np.full((h, w), BACKGROUND_DEPTH, np.float32)
     done = ~entered.reshape(h, w)  # pixels that take no more contributions
@@ -592,7 +599,7 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
                 np.full(h * w if mode == "mip" else 0, -np.inf, np.float32))
     cull = None
     if _CULL_INVISIBLE and mode != "mip":
-        rule, visible = _cull_rule(kernel, compositing, tf, lut_scale)
+        rule, visible = _cull_rule(kernel, compositing, tf, view.optics.lut_scale)
         cull = _culler(get, _kept_voxels(vevm, axis, rule) if skip_empty else {}, visible,
                        substeps)
     projection = _Projection.of_view(view, (axis, b_ax, c_ax))
@@ -689,8 +696,8 @@ def _render_axis(vevm, axis, view, kernel, compositing, tf, skip_empty):
                             ub, uc, centre)
             slab = Slab(float(a), float(bounds[k]), float(bounds[k + 1]), np.float32(at), r0, c0,
                         live)
-            parallel_map(splat_rows, [(top, bottom, voxels, footprint, slab, crossings, optics,
-                                       out) for top, bottom in bands])
+            parallel_map(splat_rows, [(top, bottom, voxels, footprint, slab, crossings,
+                                       view.optics, normal, out) for top, bottom in bands])
     visible = finish_mode(out.acc, out.vmax, mode, tf)
     if visible is not None:
         out.depth[~visible] = BACKGROUND_DEPTH
@@ -739,28 +746,6 @@ def _sheet_order(n_a, axis, view, mode):
         is_ahead = (ahead - view.cam_i[axis]) * np.sign(view.view[axis]) >= 0
         order = np.concatenate([ahead[is_ahead], ahead[~is_ahead][::-1]])
     return order[::-1] if mode == "under" else order
-
-
-def _optics(compositing, tf, lighting, axes):
-    """The kernel's :data:`._splat_kernels.Optics` for the sheets along ``axes[0]`` (``axes``:
-    A, B, C as grid axes), and the classification table's rows per data unit (None for X-ray)."""
-    mode = compositing.mode
-    termination = np.float32(compositing.termination if compositing.termination < 1 else np.inf)
-    lut, lo, scale, unit_length = np.zeros((0, 4), np.float32), 0.0, None, 1.0
-    if mode != "xray":
-        lo, hi = tf.value_range
-        hi = hi if hi > lo else lo + 1.0
-        lut = np.asarray(tf.straight_table(lo=lo, hi=hi, n=4096), dtype=np.float32)
-        scale, unit_length = 4095.0 / (hi - lo), tf.unit_length_mm
-    normal, weights = np.zeros(0), (0.0,) * 6
-    if lighting is not None:
-        normal = np.ascontiguousarray(lighting.inv_t[:, list(axes)], dtype=np.float64).ravel()
-        weights = lighting.weights()
-    optics = Optics(MODE_CODES[mode], termination, lut, np.float32(lo),
-                    np.float32(0.0 if scale is None else scale), np.float32(unit_length),
-                    np.float32(compositing.xray_scale), np.float32(compositing.xray_offset),
-                    normal, weights)
-    return optics, scale
 
 
 def _cull_rule(kernel, compositing, tf, lut_scale):

@@ -12,9 +12,9 @@ the plane), added to ``Σ w``, ``Σ w·density`` (and ``Σ w·gradient``), and t
 ray's path in the voxel's cell, added to the pixel's path length (the earliest A-offset where
 it enters one kept where the depth is still wanted). Last, per pixel of the band whose ray
 runs through the sheet's cells and meets a footprint: the sample (density ``Σ w·d / Σ w`` over
-that length) classified, shaded (:func:`._shading.headlight`) and composited into the image; the
-helper takes numbers, not arrays: a compiled call passing arrays costs their reference
-counting, more than the work of a pixel.
+that length) classified (:mod:`._optics`), shaded (:func:`._shading.headlight`) and composited
+into the image; the helpers take numbers, not arrays: a compiled call passing arrays costs their
+reference counting, more than the work of a pixel.
 
 The arithmetic is that of the vectorized NumPy splatting it replaced, in the same precision
 (float32 footprint and path arithmetic, float64 sums, classification and shading as NumPy's
@@ -27,8 +27,8 @@ nor on the number of threads.
 
 The kernel takes its inputs as records of arrays and numbers with fixed types, so that one
 compiled kernel serves every render (what a render does not use is an empty array):
-:data:`Crossings`, :data:`Voxels`, :data:`Footprint`, :data:`Slab`, :data:`Optics` and
-:data:`Image`.
+:data:`Crossings`, :data:`Voxels`, :data:`Footprint`, :data:`Slab`, :data:`._optics.Optics`
+(opacity per unit length), the sheets' normal matrix and :data:`Image`.
 """
 
 from collections import namedtuple
@@ -37,12 +37,17 @@ import numpy as np
 
 from .._jit import kernel
 from ._camera import BACKGROUND_DEPTH
-from ._depth import VISIBLE_ALPHA, VISIBLE_OPTICAL_DEPTH
 from ._modes import MODE_CODES, MODES
+from ._optics import (
+    attenuation_threshold,
+    classify,
+    corrected,
+    visible,
+    visible_threshold,
+)
 from ._shading import headlight
 
-__all__ = ["Crossings", "Voxels", "Footprint", "Slab", "Optics", "Image",
-           "splat_rows"]
+__all__ = ["Crossings", "Voxels", "Footprint", "Slab", "Image", "splat_rows"]
 
 _OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
 
@@ -81,16 +86,6 @@ its plane and ``at`` (float32) the offset of its centre plane, where footprints 
 the window's top left image pixel ``(r0, c0)`` and its pixels that take contributions, ``live``
 ((rows, cols) bool)."""
 
-Optics = namedtuple("Optics", "mode termination lut lut_lo lut_scale unit_length xray_scale "
-                              "xray_offset normal phong")
-Optics.__doc__ = """How samples become colour: ``mode`` (:data:`._modes.MODE_CODES`);
-``termination`` (float32): "over" finishes a pixel at this opacity; post-classification through
-``lut`` ((n, 4) float32 straight RGBA, interpolated at ``(d - lut_lo)·lut_scale``; empty for
-X-ray), opacity per ``unit_length`` mm (float32); X-ray's ``μ = xray_scale·max(d - xray_offset,
-0)`` (float32); shading (``normal`` (9,) float64, empty unshaded: the matrix taking the sheet's
-(A, B, C) gradient to a world normal, row by row) with ``phong``, the Blinn–Phong weights and
-the fade (6 floats, :meth:`._shading.Lighting.weights`)."""
-
 Image = namedtuple("Image", "acc depth done vmax")
 Image.__doc__ = """What a sheet family composites into, flat per pixel: premultiplied RGBA
 ``acc`` ((H·W, 4) float32; X-ray: optical depth in channel 0), the axial ``depth`` (float32),
@@ -99,9 +94,10 @@ empty for the other modes)."""
 
 
 @kernel
-def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
+def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, normal, image):
     """Splat the voxels into the window rows ``top .. bottom - 1`` and composite them into
-    ``image`` (module docstring)."""
+    ``image`` (module docstring); ``normal`` ((9,) float64, empty unshaded): the matrix taking
+    the sheets' (A, B, C) gradient to a world normal, row by row."""
     rows, cols = slab.live.shape
     width = crossings.ta.shape[1]
     ortho = footprint.per_offset.shape[0] > 0
@@ -209,11 +205,10 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
     # Composite the band's samples (the NumPy compositing's arithmetic, types and all).
     mode = optics.mode
     lut = optics.lut
-    rows_lut = lut.shape[0]
-    normal = (0.0,) * 9
-    if optics.normal.shape[0] > 0:
-        m = optics.normal
-        normal = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
+    matrix = (0.0,) * 9
+    if normal.shape[0] > 0:
+        m = normal
+        matrix = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
     weights = optics.phong
     for r in range(top, bottom):
         y = slab.r0 + r
@@ -231,7 +226,7 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
             if mode == _XRAY:
                 tau = optics.xray_scale * max(value - optics.xray_offset, _ZERO) * length
                 image.acc[p, 0] += tau
-                if (tau > 0 and tau >= np.float32(np.float64(length) * VISIBLE_OPTICAL_DEPTH)
+                if (visible(tau, attenuation_threshold(length))
                         and image.depth[p] == _BACKGROUND):
                     image.depth[p] = first_depth
                 continue
@@ -240,23 +235,16 @@ def splat_rows(top, bottom, voxels, footprint, slab, crossings, optics, image):
                     image.vmax[p] = value
                     image.depth[p] = first_depth
                 continue
-            z = min(max((value - optics.lut_lo) * optics.lut_scale, _ZERO),
-                    np.float32(rows_lut - 1))
-            j = min(np.int64(z), rows_lut - 2)
-            f = np.float64(z) - np.float64(j)
-            red = lut[j, 0] + f * (lut[j + 1, 0] - lut[j, 0])
-            green = lut[j, 1] + f * (lut[j + 1, 1] - lut[j, 1])
-            blue = lut[j, 2] + f * (lut[j + 1, 2] - lut[j, 2])
-            opacity = lut[j, 3] + f * (lut[j + 1, 3] - lut[j, 3])
+            red, green, blue, opacity = classify(lut, optics.lut_lo, optics.lut_scale, value)
             units = np.float64(length / optics.unit_length)
-            alpha = 1.0 - (1.0 - opacity) ** units
+            alpha = corrected(opacity, units)
             if shaded:
                 red, green, blue = headlight(
                     (red, green, blue), (grad[i, 0] / w_sum[i], grad[i, 1] / w_sum[i],
-                                         grad[i, 2] / w_sum[i]), normal,
+                                         grad[i, 2] / w_sum[i]), matrix,
                     (crossings.dirs[y, x, 0], crossings.dirs[y, x, 1], crossings.dirs[y, x, 2]),
                     weights)
-            hit = alpha > 0 and alpha >= 1.0 - (1.0 - VISIBLE_ALPHA) ** units
+            hit = visible(alpha, visible_threshold(units))
             if mode == _OVER:
                 trans = np.float32(1.0) - image.acc[p, 3]
                 image.acc[p, 0] = np.float32(image.acc[p, 0] + trans * (red * alpha))

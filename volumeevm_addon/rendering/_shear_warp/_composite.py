@@ -75,8 +75,9 @@ call, more than the work of a pixel; the helpers take numbers.)
 
 The kernels take their inputs as records of arrays and numbers with fixed types, so that one
 compiled kernel serves every render (what a render does not use is an empty array):
-:data:`._layouts.Runs`, :data:`Plan`, :data:`Voxels`, :data:`Light`, :data:`Optics` and
-:data:`Frame`.
+:data:`._layouts.Runs`, :data:`Plan`, :data:`Voxels`, :data:`.._optics.Optics` (what every
+renderer shares: mode, termination, visibility; its helpers decide visibility) with
+:data:`Tables` (shear-warp's own classification tables and :data:`Light`) and :data:`Frame`.
 """
 
 import math
@@ -86,13 +87,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..._jit import kernel, parallel_map
-from .. import _depth
-from .._checks import categorical
 from .._modes import MODE_CODES, MODES, finish_mode
-from .._shading import Shading, fade, fade_magnitudes
+from .._optics import attenuation_threshold, optics, visible
+from .._shading import Shading, fade
 from ._layouts import mixed_runs, post_table, voxel_classes, voxel_gradients
 
-__all__ = ["Plan", "Voxels", "Light", "Optics", "Frame", "NEVER", "Sampling", "Clip",
+__all__ = ["Plan", "Voxels", "Light", "Tables", "Frame", "NEVER", "Sampling", "Clip",
            "intermediate_image", "lit_colours", "tap", "span", "composite"]
 
 _OVER, _UNDER, _XRAY, _MIP = (MODE_CODES[mode] for mode in MODES)
@@ -141,19 +141,14 @@ an index-space gradient to a world normal, row by row (``n = g @ normal``); ``to
 the unit world direction of the light; the Blinn–Phong weights (:class:`.._shading.Shading`);
 the fade's gradient magnitudes (float64, :attr:`.._shading.Lighting.fade`)."""
 
-Optics = namedtuple("Optics", "mode post nearest shaded termination visible lut straight lut_lo "
-                              "lut_scale lut_rows light xray_offset xray_factor xray_visible")
-Optics.__doc__ = """How samples become colour.
+Tables = namedtuple("Tables", "post lut straight lut_lo lut_scale lut_rows light xray_factor")
+Tables.__doc__ = """Shear-warp's classification (its :data:`.._optics.Optics` holds the rest).
 
-``mode``: :data:`.._modes.MODE_CODES`; ``post``: classify interpolated densities through ``lut``
-((rows + 1, 4) float32, premultiplied for the view's step, row 0 transparent), the row
-``clip(rint((d - lut_lo)·lut_scale), 0, lut_rows - 1) + 1``; ``shaded`` (post): light each
-sample with ``light`` (:data:`Light`) on the straight colours ``straight`` (rows + 1, 3);
-``termination`` (float32): "over" stops a pixel at this opacity (1: never); ``visible``
-(float32): the opacity from which a sample is visible (:mod:`.._depth`); ``xray_offset``,
-``xray_factor`` (float32): X-ray's ``μ·Δ = max(d - offset, 0)·factor`` and ``xray_visible``
-its visibility threshold; ``nearest``: samples take the nearest voxel of the slice (all the
-bilinear weight on it: categorical transfer functions, one sample per slice)."""
+``post``: classify interpolated densities through ``lut`` ((rows + 1, 4) float32,
+premultiplied for the view's step, row 0 transparent), the row ``clip(rint((d -
+lut_lo)·lut_scale), 0, lut_rows - 1) + 1`` (:meth:`TransferFunction.quantize`); shaded (post):
+light each sample with ``light`` (:data:`Light`) on the straight colours ``straight``
+(rows + 1, 3); ``xray_factor`` (float32): X-ray's ``μ·Δ = max(d - xray_offset, 0)·factor``."""
 
 Frame = namedtuple("Frame", "origin_p origin_q ratio near far limit image rank next")
 Frame.__doc__ = """The intermediate image a view composites into.
@@ -178,8 +173,8 @@ def intermediate_image(vevm, view, layout, tf, compositing, sampling, clip):
     ranks = np.arange(len(owner))
     if mode == "under":
         owner, offset, ranks = owner[::-1], offset[::-1], ranks[::-1]
-    work, voxels, optics = _optics(vevm, view, layout, tf, compositing, sampling,
-                                   view.delta / per_voxel)
+    work, voxels, optical, tables = _classification(vevm, view, layout, tf, compositing,
+                                                    sampling, view.delta / per_voxel)
     plan = _plan(view, layout, work, clip, owner, offset, ranks)
     hi, wi = view.size
     image = np.zeros((hi, wi, 4), np.float32)
@@ -196,7 +191,7 @@ def intermediate_image(vevm, view, layout, tf, compositing, sampling, clip):
                   np.full((hi, wi), NEVER, np.int32), following)
     tasks = min(_TASKS, -(-hi // _BAND))
     parallel_map(lambda first: composite(first, tasks, _BAND, plan, layout.runs, work, voxels,
-                                         optics, frame),
+                                         optical, tables, frame),
                  [(first,) for first in range(tasks)])
     if mode in ("xray", "mip"):
         _finish(frame, mode, tf)
@@ -255,13 +250,13 @@ class Clip:
         return (low < self.near) | (high >= self.far_min)
 
 
-def _optics(vevm, view, layout, tf, compositing, sampling, delta):
+def _classification(vevm, view, layout, tf, compositing, sampling, delta):
     """What the samples of a view read and how they become colour: the runs worth compositing
-    (:data:`._layouts.Runs`), the voxels' channels (:data:`Voxels`) and the :data:`Optics`, for
-    samples ``delta`` mm apart."""
+    (:data:`._layouts.Runs`), the voxels' channels (:data:`Voxels`), the
+    :data:`.._optics.Optics` and the :data:`Tables`, for samples ``delta`` mm apart."""
     mode, shading, lut_size = compositing.mode, sampling.shading, sampling.lut_size
     post = mode in ("xray", "mip") or sampling.classification == "post"
-    units = None if tf is None else delta / tf.unit_length_mm  # in the function's unit lengths
+    optical = optics(tf, compositing, shading, step_mm=delta, lut=False)
     lut = np.zeros((lut_size + 1, 4), np.float32)
     straight = np.zeros((lut_size + 1, 3), np.float32)
     lut_lo = lut_scale = 0.0
@@ -270,38 +265,31 @@ def _optics(vevm, view, layout, tf, compositing, sampling, delta):
         straight[1:] = tf.straight_table(n=lut_size)[:, :3]
         lo, hi, _ = tf._range(None, None, lut_size)  # the rows of quantize
         lut_lo, lut_scale = lo, (lut_size - 1) / (hi - lo)
-    optics = Optics(MODE_CODES[mode], post, categorical(tf, mode), shading is not None,
-                    np.float32(compositing.termination),
-                    _depth.visible_threshold(1.0 if units is None else units, np.float32),
-                    lut, straight, lut_lo, lut_scale, float(lut_size), _light(view, shading, tf),
-                    np.float32(compositing.xray_offset),
-                    np.float32(compositing.xray_scale * delta),
-                    _depth.attenuation_threshold(delta, np.float32))
+    tables = Tables(post, lut, straight, lut_lo, lut_scale, float(lut_size),
+                    _light(view, optical), np.float32(compositing.xray_scale * delta))
     if post:
         table = post_table(layout, vevm, shading is not None)
         work = layout.runs if mode in ("xray", "mip") else mixed_runs(vevm, layout, tf, lut_size)
-        return work, Voxels(np.zeros(0, np.int32), table, table.shape[1]), optics
+        return work, Voxels(np.zeros(0, np.int32), table, table.shape[1]), optical, tables
     classes = voxel_classes(vevm, layout, tf, lut_size)
     if shading is None:
-        return classes.work, Voxels(classes.rows, lut, 4), optics
-    lit = _lit_voxels(classes, voxel_gradients(layout, vevm), optics)
-    return classes.work, Voxels(classes.index, lit, 4), optics
+        return classes.work, Voxels(classes.rows, lut, 4), optical, tables
+    lit = _lit_voxels(classes, voxel_gradients(layout, vevm), tables)
+    return classes.work, Voxels(classes.index, lit, 4), optical, tables
 
 
-def _light(view, shading, tf):
-    """The view's headlight with the transfer function ``tf`` as the kernels take it
-    (:data:`Light`; zeros without shading)."""
-    if shading is None:
+def _light(view, optical):
+    """The view's headlight with the weights of ``optical`` (:data:`.._optics.Optics`) as the
+    kernels take it (:data:`Light`; zeros without shading)."""
+    if not optical.shaded:
         return Light((np.float32(0.0),) * 9, (np.float32(0.0),) * 3, *(np.float32(0.0),) * 4,
                      0.0, 0.0)
     return Light(tuple(view.inv[:3, :3].astype(np.float32).ravel()),
                  tuple(view.light.astype(np.float32)),
-                 *(np.float32(w) for w in (shading.ambient, shading.diffuse, shading.specular,
-                                           shading.shininess)),
-                 *fade_magnitudes(shading, tf))
+                 *(np.float32(w) for w in optical.phong[:4]), *optical.phong[4:])
 
 
-def _lit_voxels(classes, gradients, optics):
+def _lit_voxels(classes, gradients, tables):
     """Shaded pre-classification: the lit colours of the visible voxels, ``(1 + visible, 4)``
     (row 0 transparent, then by :attr:`._layouts.Classes.index`), in parallel over chunks of
     them (:func:`lit_colours`)."""
@@ -309,7 +297,7 @@ def _lit_voxels(classes, gradients, optics):
     out = np.zeros((len(codes) + 1, 4), np.float32)
     chunk = 1 << 16
     parallel_map(lambda start: lit_colours(codes[start:start + chunk], classes.rows, gradients,
-                                           optics.lut, optics.straight, optics.light,
+                                           tables.lut, tables.straight, tables.light,
                                            out[start:start + chunk + 1]),
                  [(start,) for start in range(0, len(codes), chunk)])
     return out
@@ -437,9 +425,10 @@ def _step_factor(a, ratio):
 
 
 @kernel
-def composite(first, step, band, plan, region, work, voxels, optics, frame):
+def composite(first, step, band, plan, region, work, voxels, optics, tables, frame):
     """Composite the samples of ``plan`` into the intermediate scanlines of bands ``first``,
-    ``first + step``, ... (``band`` scanlines each) of ``frame``.
+    ``first + step``, ... (``band`` scanlines each) of ``frame``, classified by ``optics``
+    (:data:`.._optics.Optics`) and ``tables`` (:data:`Tables`).
 
     Per band, per sample, per scanline: the runs of ``work`` on the voxel scanlines the
     scanline's taps read give the pixels to sample (merged in column order, as spans); less
@@ -456,8 +445,12 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
     work_starts, work_lo, work_hi, work_box = work.starts, work.lo, work.hi, work.box
     index, values, channels = voxels.index, voxels.values, voxels.channels
     direct = index.size == 0
-    lut, straight, light = optics.lut, optics.straight, optics.light
-    mode, post, snap = optics.mode, optics.post, optics.nearest
+    lut, straight, light = tables.lut, tables.straight, tables.light
+    mode, post, snap = optics.mode, tables.post, optics.nearest
+    # The visibility thresholds in the samples' float32 (of a whole sample: the threshold of a
+    # perspective ray's step is compared before the correction to it).
+    threshold = np.float32(optics.visible)
+    xray_threshold = attenuation_threshold(optics.step_mm)
     skip = mode == _OVER and optics.termination < 1.0
     slices, others, keeps, blends = plan.slice, plan.other, plan.keep, plan.blend
     alphas, betas_a, betas_b = plan.alpha, plan.beta_a, plan.beta_b
@@ -640,11 +633,10 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                             factor = _ONE / max(samples[u8 + 4], _TINY)
                             if mode == _XRAY:
                                 tau = max(samples[u8] * factor - optics.xray_offset, _ZERO) * \
-                                    optics.xray_factor
+                                    tables.xray_factor
                                 # (The ray's own step is ratio times the table's: so are μΔ
                                 # and the threshold.)
-                                if tau > 0 and tau >= optics.xray_visible and \
-                                        ranks[p, x] == NEVER:
+                                if visible(tau, xray_threshold) and ranks[p, x] == NEVER:
                                     ranks[p, x] = rank
                                 if ratio.size:
                                     tau *= ratio[p, x]
@@ -660,8 +652,8 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                                     ranks[p, x] = rank
                                 continue
                             if post:  # classify (and light) the interpolated density
-                                row = _table_row(samples[u8] * factor, optics.lut_lo,
-                                                 optics.lut_scale, optics.lut_rows)
+                                row = _table_row(samples[u8] * factor, tables.lut_lo,
+                                                 tables.lut_scale, tables.lut_rows)
                                 for ch in range(4):
                                     c[ch] = lut[row, ch]
                                 if optics.shaded:
@@ -675,7 +667,7 @@ def composite(first, step, band, plan, region, work, voxels, optics, frame):
                                     c[ch] = samples[u8 + ch] * factor
                             # Before the correction to each ray's step: the threshold scales
                             # with the step too.
-                            hit = c[3] > 0 and c[3] >= optics.visible
+                            hit = visible(c[3], threshold)
                             if ratio.size:
                                 correction = _step_factor(c[3], ratio[p, x])
                                 for ch in range(4):
