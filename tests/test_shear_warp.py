@@ -21,7 +21,8 @@ from volumeevm_addon import (
 )
 from volumeevm_addon.model import BLENDER_UNITS_PER_MM
 from volumeevm_addon.rendering import BACKGROUND_DEPTH
-from volumeevm_addon.rendering._modes import MODE_CODES
+from volumeevm_addon.rendering._modes import Compositing
+from volumeevm_addon.rendering._optics import optics
 from volumeevm_addon.rendering._shear_warp import _composite, _layouts, _warp, render_shear_warp
 from volumeevm_addon.rendering._shear_warp._layouts import region_layout
 from volumeevm_addon.rendering._shear_warp._view import View
@@ -388,17 +389,16 @@ def composited_slice(rows, lut, f, g):
                            np.zeros(1, np.float32), np.ones(1), np.array([beta_a]),
                            np.array([beta_b]), np.zeros(1), np.zeros(1), np.zeros(1),
                            np.zeros(1, np.int32), np.zeros(1, bool))
-    optics = _composite.Optics(MODE_CODES["over"], False, False, False, np.float32(1.0),
-                               np.float32(1.0), lut[:4].T.copy(), np.zeros((65, 3), np.float32),
-                               0.0, 0.0, 64.0, _composite._light(None, None, None),
-                               np.float32(0.0), np.float32(0.0), np.float32(0.0))
+    optical = optics(None, Compositing("over"), None, lut=False)
+    tables = _composite.Tables(False, lut[:4].T.copy(), np.zeros((65, 3), np.float32), 0.0, 0.0,
+                               64.0, _composite._light(None, optical), np.float32(0.0))
     size = (n + 4, m + 4)
     frame = _composite.Frame(origin[0], origin[1], np.zeros((0, 0), np.float32),
                              np.float32(-np.inf), np.float32(np.inf),
                              np.zeros((0, 0), np.float32), np.zeros(size + (4,), np.float32),
                              np.full(size, _composite.NEVER, np.int32),
                              np.zeros((0, 0), np.int32))
-    _composite.composite(0, 1, size[0], plan, runs, runs, voxels, optics, frame)
+    _composite.composite(0, 1, size[0], plan, runs, runs, voxels, optical, tables, frame)
     return frame.image, origin, (beta_a, beta_b)
 
 
