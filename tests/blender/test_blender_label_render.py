@@ -216,10 +216,10 @@ def test_viewport_draws_the_label_colours_within_the_gpu_bounds(ext, api, core, 
     import gpu
     from mathutils import Matrix
 
-    gpu_dvr, viewport = ext.blender.gpu_dvr, ext.blender.gpu_viewport
+    gpu_context, viewport = ext.blender.gpu_context, ext.blender.gpu_viewport
     try:
-        gpu_dvr.ensure_context()
-    except gpu_dvr.GPUUnavailable as error:
+        gpu_context.ensure_context()
+    except gpu_context.GPUUnavailable as error:
         pytest.skip(str(error))
     vol = api.import_volume(segmentation)
     vevm = framed(api, vol, (48, 40))

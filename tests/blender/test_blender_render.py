@@ -539,10 +539,10 @@ def test_the_method_enum_is_the_registry(ext):
     assert [i.identifier for i in items][:6] == ["raycast", "shear_warp", "splat",
                                                  "raycast_navigate", "reference", "gpu"]
     assert [i.value for i in items] == list(range(len(records)))
-    gpu_dvr = ext.blender.gpu_dvr
-    signature = inspect.signature(gpu_dvr.render_gpu).parameters.values()
+    gpu_draw = ext.blender.gpu_draw
+    signature = inspect.signature(gpu_draw.render_gpu).parameters.values()
     assert {p.name: p.default for p in signature if p.kind == p.KEYWORD_ONLY and p.name not in
-            ("mode", "depth_in", "matrix_world", "level")} == dict(records[gpu_dvr.METHOD].options)
+            ("mode", "depth_in", "matrix_world", "level")} == dict(records[gpu_draw.METHOD].options)
 
 
 def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):
