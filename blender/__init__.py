@@ -29,5 +29,5 @@ imports the core, never the reverse. One module per concept:
 - ``jobs.py``: long work as steps and an all-or-nothing commit; the operators' job mix-in.
 - ``kernels.py``: the core's compiled kernels in Blender (cache folder, threads, first use).
 - ``runtime.py``: runtime caches (dense volumes, loaded VolumeEVMs, tool stack states).
-- ``handlers.py``: installing and removing the add-on's app handlers.
+- ``handlers.py``: adding and removing the add-on's app handlers and viewport draw handlers.
 """

@@ -53,6 +53,7 @@ from ..volumeevm_addon import VolumeEVMError
 from ..volumeevm_addon.rendering import axial_from_window, camera_from_viewport
 from . import display_lut, gpu_draw, gpu_textures, runtime
 from .dvr import settings_options
+from .handlers import ViewportDraw
 from .objects import get_vevm, volume_object
 from .transfer import volume_transfer_function
 
@@ -65,7 +66,6 @@ MOVING_STEP = 2.0
 #: Seconds a view must rest before it is drawn at full quality again.
 REST_SECONDS = 0.25
 
-_handle = None
 _problems = {}  # volume object name -> the last draw's problem
 _levels = {}  # volume object name -> the resolution level's factor it was last drawn at
 
@@ -215,6 +215,9 @@ def _draw():
                   (region.width, region.height), view.window_matrix, view.view_matrix)
 
 
+_drawing = ViewportDraw(_draw)
+
+
 def draw_view(scene, volumes, key, size, projection, view_matrix):
     """Draw ``volumes`` (volume objects) over the bound framebuffer of one view when the Render
     settings of ``scene`` ask for it; coarser while the view ``key`` moves (:class:`ViewMotion`,
@@ -310,16 +313,11 @@ HANDLERS = (("load_pre", on_load_pre),)
 
 def register():
     """Add the draw handler to every 3D viewport."""
-    global _handle
-    if _handle is None:
-        _handle = bpy.types.SpaceView3D.draw_handler_add(_draw, (), "WINDOW", "POST_VIEW")
+    _drawing.add()
 
 
 def unregister():
     """Remove the draw handler and free the GPU textures and shaders."""
-    global _handle
-    if _handle is not None:
-        bpy.types.SpaceView3D.draw_handler_remove(_handle, "WINDOW")
-        _handle = None
+    _drawing.remove()
     gpu_draw.free()
     _forget()

@@ -369,7 +369,7 @@ def main(out, data_dir):
         ext.register()
         from volumeevm.blender import gpu_viewport
 
-        handlers = {"registered": gpu_viewport._handle is not None}
+        handlers = {"registered": gpu_viewport._drawing.handle is not None}
         try:
             meta["scene_notes"] = scene_renders(ext, arrays, out)
             handlers["textures kept"] = len(gpu_textures._volumes) > 0
@@ -383,7 +383,7 @@ def main(out, data_dir):
             meta["errors"]["display"] = traceback.format_exc()
         finally:
             ext.unregister()
-        handlers["removed"] = (gpu_viewport._handle is None and gpu_draw._shader is None
+        handlers["removed"] = (gpu_viewport._drawing.handle is None and gpu_draw._shader is None
                               and len(gpu_textures._tables) == 0)
         meta["viewport_handlers"] = handlers
     np.savez(out, meta=np.array(json.dumps(meta)), **arrays)
