@@ -13,7 +13,8 @@ import json
 import bpy
 import numpy as np
 import pytest
-from test_blender_render import cycles, f12_exr, image_rgba
+
+from blender_helpers import cycles, f12_exr, image_rgba
 
 #: (mean, 99th percentile, worst) of the largest channel error of the ray caster's DVR to the
 #: reference on the Slicer segmentation (the core's liver bounds, test_categorical_render);
