@@ -37,15 +37,15 @@ def frame_times(vevm, cam, tf, size, repeat):
     """Seconds per frame at rest and moving (each a list of ``repeat``), and the level each
     drew."""
     import gpu
-    from volumeevm.blender import gpu_dvr, gpu_viewport
+    from volumeevm.blender import gpu_draw, gpu_textures, gpu_viewport
 
     w, h = size
     cam = dataclasses.replace(cam, resolution_x=w, resolution_y=h, resolution_percentage=100)
     projection, view = cam.matrix_projection(), np.linalg.inv(cam.matrix_world)
-    options = method_options(gpu_dvr.METHOD, 1.0, tuple(vevm.spacing), termination=0.99,
+    options = method_options(gpu_draw.METHOD, 1.0, tuple(vevm.spacing), termination=0.99,
                              level="auto")
     offscreen = gpu.types.GPUOffScreen(w, h)
-    pixel = gpu_dvr.float_buffer(np.zeros(4, np.float32))
+    pixel = gpu_textures.float_buffer(np.zeros(4, np.float32))
     times, levels = {}, {}
     try:
         with offscreen.bind():
@@ -79,9 +79,9 @@ def main():
     from sample_blends.make_demo import load_extension
 
     load_extension()
-    from volumeevm.blender import gpu_dvr
+    from volumeevm.blender import gpu_context
 
-    gpu_dvr.ensure_context()
+    gpu_context.ensure_context()
     vevm, cam, tf = scene("ct_head", "persp")
     renderer = gpu.platform.renderer_get()
     rows = []

@@ -11,9 +11,11 @@ imports the core, never the reverse. One module per concept:
 - ``meshes.py``: meshes in and out of Blender in bulk (surface polygons, tool triangles).
 - ``tool_stack.py``: the CAD tool stack runtime (entries, evaluation, live refresh handlers).
 - ``dvr.py``: the DVR render job and its script calls (scene pass, volume render, composite).
-- ``gpu_dvr.py``: the GPU method through Blender's ``gpu`` module (textures, shader, the one draw
-  routine, the offscreen render); ``gpu_viewport.py``: the selected volumes' DVR in the 3D
-  viewport (its draw handler).
+- The GPU method through Blender's ``gpu`` module: ``gpu_context.py`` (whether this Blender can
+  draw here: the GPU context, headless too), ``gpu_textures.py`` (the core's GPU inputs as
+  textures, kept while used), ``gpu_draw.py`` (the shaders from the core's ``.glsl`` files, the
+  one draw routine, the offscreen render read back); ``gpu_viewport.py``: the selected volumes'
+  DVR in the 3D viewport (its draw handler).
 - ``scene.py``: the scene pass (colour and depth read back through a temporary EXR).
 - ``camera.py``: the core's camera record from a Blender camera.
 - ``framing.py``: a camera that frames a volume; the objects that enclose (hide) it.
@@ -27,5 +29,5 @@ imports the core, never the reverse. One module per concept:
 - ``jobs.py``: long work as steps and an all-or-nothing commit; the operators' job mix-in.
 - ``kernels.py``: the core's compiled kernels in Blender (cache folder, threads, first use).
 - ``runtime.py``: runtime caches (dense volumes, loaded VolumeEVMs, tool stack states).
-- ``handlers.py``: installing and removing the add-on's app handlers.
+- ``handlers.py``: adding and removing the add-on's app handlers and viewport draw handlers.
 """

@@ -12,7 +12,7 @@ script function :func:`render_dvr` run the same job):
    stop at the scene's geometry. The VolumeEVM is the tool stack's result when the volume has
    tools. The Render setting Resolution (``level`` of the core's ``method_options``, Auto by
    default) renders a volume much finer than the image's pixels from a coarser level of it.
-   The method ``"gpu"`` (:mod:`.gpu_dvr`, the same outputs) draws on the main thread right
+   The method ``"gpu"`` (:mod:`.gpu_draw`, the same outputs) draws on the main thread right
    after the scene pass; where no GPU context can be made the CPU ray caster renders instead,
    with the same options, and the result's ``note`` says so.
 4. **Composite**: the core's ``composite_over`` (``out = dvr + (1 - dvr.a) · scene``) and
@@ -42,7 +42,7 @@ import numpy as np
 from ..volumeevm_addon import TransferFunction, VolumeEVMError, render
 from ..volumeevm_addon.rendering import composite_over, method_options, methods, output_depth
 from ..volumeevm_addon.system import atomic_target
-from . import exr, gpu_dvr, images, jobs
+from . import exr, gpu_context, gpu_draw, images, jobs
 from .camera import camera_from_blender
 from .objects import get_vevm, own_surface, render_volume, volume_object
 from .scene import SceneRender, render_layer, render_scene
@@ -54,7 +54,7 @@ DEFAULT_IMAGE = "VolumeEVM Render"
 #: Custom property of the DVR image: the view it was rendered for (see :func:`view_signature`).
 VIEW_KEY = "volumeevm_view"
 #: The methods of Render VolumeEVM: the core's records (``volumeevm_addon.rendering.methods()``),
-#: the CPU's and the GPU's (drawn by :mod:`.gpu_dvr`).
+#: the CPU's and the GPU's (drawn by :mod:`.gpu_draw`).
 METHODS = tuple(methods())
 
 
@@ -170,12 +170,12 @@ def render_dvr_job(scene, volume_obj, tf, *, method="raycast", mode="over", opti
     record = methods()[method]
     if record.gpu:  # drawn here: GPU work belongs to the main thread
         try:
-            *drawn, level = gpu_dvr.render_gpu(vevm, camera, tf, mode=mode,
-                                               depth_in=scene_pass.depth,
-                                               matrix_world=matrix_world, **options)
+            *drawn, level = gpu_draw.render_gpu(vevm, camera, tf, mode=mode,
+                                                depth_in=scene_pass.depth,
+                                                matrix_world=matrix_world, **options)
             if level > 1:  # say which level the GPU drew
-                note = f"rendered from {gpu_dvr.level_text(level)}"
-        except gpu_dvr.GPUUnavailable as error:
+                note = f"rendered from {gpu_draw.level_text(level)}"
+        except gpu_context.GPUUnavailable as error:
             method = record.fallback
             note = (f"{error}: rendered with {methods()[method].label.lower()} on the CPU "
                     f"instead")
@@ -268,7 +268,7 @@ def render_dvr(volume_obj, tf=None, *, scene=None, method="raycast", mode="over"
         Default: the context's scene.
     method, mode : str
         As for the core's ``render`` (``"raycast"`` and ``"over"`` by default), or the method
-        ``"gpu"`` (:func:`.gpu_dvr.render_gpu`; the CPU ray caster where no GPU context can
+        ``"gpu"`` (:func:`.gpu_draw.render_gpu`; the CPU ray caster where no GPU context can
         be made, said in the result's ``note``).
     options : dict, optional
         Method options (the core's ``method_options`` and ``render_options``, the GPU's too);

@@ -5,7 +5,7 @@ viewport draws each selected volume (the tool stack's live result when it has to
 scene (``POST_VIEW``), with the Render settings' transfer function (a label map: its label
 colours, :func:`.transfer.volume_transfer_function`), mode, quality, resolution
 level and early termination, through the GPU method's one draw routine
-(:func:`.gpu_dvr.draw`):
+(:func:`.gpu_draw.draw`):
 
 - the viewport's projection and view matrices become the core's :class:`Camera`
   (``camera_from_viewport``), so the viewport samples as F12's render does;
@@ -51,8 +51,9 @@ from bpy.app.handlers import persistent
 
 from ..volumeevm_addon import VolumeEVMError
 from ..volumeevm_addon.rendering import axial_from_window, camera_from_viewport
-from . import display_lut, gpu_dvr, runtime
+from . import display_lut, gpu_draw, gpu_textures, runtime
 from .dvr import settings_options
+from .handlers import ViewportDraw
 from .objects import get_vevm, volume_object
 from .transfer import volume_transfer_function
 
@@ -65,7 +66,6 @@ MOVING_STEP = 2.0
 #: Seconds a view must rest before it is drawn at full quality again.
 REST_SECONDS = 0.25
 
-_handle = None
 _problems = {}  # volume object name -> the last draw's problem
 _levels = {}  # volume object name -> the resolution level's factor it was last drawn at
 
@@ -113,7 +113,7 @@ def draw_options(options, moving):
 
 def block_starts(size, n):
     """The first of the ``size`` pixels along an axis that show each of ``n`` coarse pixels
-    when the stretch shader (:func:`.gpu_dvr.draw_stretched`) draws them: pixel ``x`` shows
+    when the stretch shader (:func:`.gpu_draw.draw_stretched`) draws them: pixel ``x`` shows
     coarse pixel ``floor((x + 1/2) n / size)``, so coarse pixel ``i`` starts at
     ``ceil(i size / n - 1/2)`` (integer arithmetic)."""
     i = np.arange(n, dtype=np.int64)
@@ -157,12 +157,12 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
     ------
     VolumeEVMError
         For bad settings, or a volume larger than the GPU's textures at every level (a level
-        that fits is drawn otherwise, :func:`.gpu_dvr.fitted_frame`).
+        that fits is drawn otherwise, :func:`.gpu_textures.fitted_frame`).
     """
     width, height = size
     window = np.empty(width * height, np.float32)
     gpu.state.active_framebuffer_get().read_depth(0, 0, width, height,
-                                                  data=gpu_dvr.float_buffer(window))
+                                                  data=gpu_textures.float_buffer(window))
     window = window.reshape(height, width)
     coarse = (-(-width // pixel), -(-height // pixel))
     if pixel > 1:  # the nearest depth of each block of the pixels the stretch shows it on
@@ -171,15 +171,15 @@ def draw_volume(vevm, tf, projection, view_matrix, size, *, matrix_world=None, m
     camera = camera_from_viewport(np.asarray(projection, np.float64),
                                   np.asarray(view_matrix, np.float64), *coarse)
     depth_in = np.flipud(axial_from_window(window, camera))
-    frame = gpu_dvr.fitted_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
-                                 matrix_world=matrix_world, display=display is not None,
-                                 **options)
+    frame = gpu_textures.fitted_frame(vevm, camera, tf, mode=mode, depth_in=depth_in,
+                                      matrix_world=matrix_world, display=display is not None,
+                                      **options)
     if not frame.vevm.evm.is_empty():
         xray = (options.get("xray_scale", 1.0), options.get("xray_offset", 0.0))
         if pixel > 1:
-            gpu_dvr.draw_stretched(frame, tf, coarse, xray=xray, display=display)
+            gpu_draw.draw_stretched(frame, tf, coarse, xray=xray, display=display)
         else:
-            gpu_dvr.draw(frame, tf, xray=xray, blend="ALPHA_PREMULT", display=display)
+            gpu_draw.draw(frame, tf, xray=xray, blend="ALPHA_PREMULT", display=display)
     return frame.level
 
 
@@ -215,6 +215,9 @@ def _draw():
                   (region.width, region.height), view.window_matrix, view.view_matrix)
 
 
+_drawing = ViewportDraw(_draw)
+
+
 def draw_view(scene, volumes, key, size, projection, view_matrix):
     """Draw ``volumes`` (volume objects) over the bound framebuffer of one view when the Render
     settings of ``scene`` ask for it; coarser while the view ``key`` moves (:class:`ViewMotion`,
@@ -240,7 +243,7 @@ def draw_view(scene, volumes, key, size, projection, view_matrix):
         _redraw_after(wait)
     for vol, vevm, tf in shown:
         try:
-            options = draw_options(settings_options(settings, vol, gpu_dvr.METHOD), moving)
+            options = draw_options(settings_options(settings, vol, gpu_draw.METHOD), moving)
             _levels[vol.name] = draw_volume(vevm, tf, projection, view_matrix, size,
                                             matrix_world=vol.matrix_world, mode=settings.mode,
                                             display=display, **options)
@@ -274,7 +277,7 @@ def colour_problem(scene):
 def shown_level(vol_obj):
     """Which coarser resolution level the viewport last showed ``vol_obj`` at (e.g. "Showing
     level 2 (2× coarser voxels)"), or "" for the full level."""
-    text = gpu_dvr.level_text(_levels.get(vol_obj.name, 1))
+    text = gpu_draw.level_text(_levels.get(vol_obj.name, 1))
     return f"Showing {text}" if text else ""
 
 
@@ -289,7 +292,7 @@ def redraw(settings=None, context=None):
 @persistent
 def on_load_pre(*_args):
     """Free the GPU textures of the volumes of the file being closed."""
-    gpu_dvr.free()
+    gpu_draw.free()
     _forget()
 
 
@@ -310,16 +313,11 @@ HANDLERS = (("load_pre", on_load_pre),)
 
 def register():
     """Add the draw handler to every 3D viewport."""
-    global _handle
-    if _handle is None:
-        _handle = bpy.types.SpaceView3D.draw_handler_add(_draw, (), "WINDOW", "POST_VIEW")
+    _drawing.add()
 
 
 def unregister():
-    """Remove the draw handler and free the GPU textures and shader."""
-    global _handle
-    if _handle is not None:
-        bpy.types.SpaceView3D.draw_handler_remove(_handle, "WINDOW")
-        _handle = None
-    gpu_dvr.free()
+    """Remove the draw handler and free the GPU textures and shaders."""
+    _drawing.remove()
+    gpu_draw.free()
     _forget()

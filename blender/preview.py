@@ -15,11 +15,11 @@ import numpy as np
 from gpu_extras.batch import batch_for_shader
 
 from . import jobs
+from .handlers import ViewportDraw
 
 #: The preview lines' colour (RGBA, linear).
 COLOR = (1.0, 0.55, 0.1, 1.0)
 
-_handle = None
 _batch = []  # [(preview, batch)] of the preview drawn last
 
 
@@ -73,14 +73,15 @@ def draw():
         gpu.state.depth_test_set("NONE")
 
 
+_drawing = ViewportDraw(draw)
+
+
 def register():
-    global _handle
-    _handle = bpy.types.SpaceView3D.draw_handler_add(draw, (), "WINDOW", "POST_VIEW")
+    """Add the preview's draw handler to every 3D viewport."""
+    _drawing.add()
 
 
 def unregister():
-    global _handle
-    if _handle is not None:
-        bpy.types.SpaceView3D.draw_handler_remove(_handle, "WINDOW")
-        _handle = None
+    """Remove the draw handler and drop the preview's batch."""
+    _drawing.remove()
     _batch.clear()

@@ -1,4 +1,5 @@
-"""Helpers for the Blender tests: load the extension from the source tree, reset Blender.
+"""Helpers for the Blender tests: load the extension from the source tree, reset Blender, compare
+meshes, and set up renders (camera, Cycles, Render settings, F12 to EXR, Image pixels).
 
 The repository root is the extension package; tests import it under the name ``volumeevm``
 (installed, Blender names it ``bl_ext.<repo>.volumeevm``; the code uses relative imports only),
@@ -13,6 +14,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 CT_CROP = (slice(64, 192), slice(48, 176), slice(30, 80))  # 128 x 128 x 50 voxels of the CT head
 CT_BONE_HU = 300.0
+SKULL_CENTRE = (0.124, 0.124, 0.115)  # middle of the sample skull's grid (Blender units)
 
 
 def addon():
@@ -68,3 +70,76 @@ def write_ct_crop(path, data_dir):
     side["shape"] = list(array.shape)
     Path(path).with_suffix(".json").write_text(json.dumps(side))
     return array
+
+
+def add_camera(scene, location, *, ortho=False, shift=(0.0, 0.0), target=SKULL_CENTRE):
+    """A camera at ``location`` looking at ``target`` (Blender units), the scene's camera:
+    perspective (50 mm lens) or orthographic (scale 0.36), with a lens ``shift``."""
+    import bpy
+    from mathutils import Vector
+
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam)
+    cam.location = location
+    cam.rotation_euler = (Vector(target) - Vector(location)).to_track_quat("-Z", "Y").to_euler()
+    cam.data.shift_x, cam.data.shift_y = shift
+    cam.data.clip_start, cam.data.clip_end = 0.01, 10.0
+    if ortho:
+        cam.data.type = "ORTHO"
+        cam.data.ortho_scale = 0.36
+    else:
+        cam.data.lens = 50.0
+    scene.camera = cam
+    return cam
+
+
+def cycles(scene, size, percentage=100, *, samples=1):
+    """Cycles CPU, ``samples`` per pixel at the pixel centre (filter width 0.01), linear view."""
+    r = scene.render
+    r.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.cycles.filter_width = 0.01
+    r.resolution_x, r.resolution_y = size
+    r.resolution_percentage = percentage
+    r.film_transparent = True
+    scene.view_settings.view_transform = "Standard"
+    r.dither_intensity = 0.0
+
+
+def settings_for(scene, vol, tmp_path, **extra):
+    """The Render settings of ``scene`` for the sample skull ``vol``: ray casting, the CT bone
+    preset stretched onto the skull's densities, then ``extra`` (setting names and values)."""
+    s = scene.volumeevm_render
+    s.volume = vol
+    s.method = "raycast"
+    s.preset_stretch = True  # the CT preset stretched onto the skull's 0 .. 5.4 (not HU)
+    s.preset = "ct_bone"
+    for key, value in extra.items():
+        setattr(s, key, value)
+    return s
+
+
+def f12_exr(scene, path):
+    """F12 to a float EXR at ``path``: its RGBA (H, W, 4), row 0 at the top."""
+    import bpy
+    import OpenEXR
+
+    settings = scene.render.image_settings
+    settings.file_format = "OPEN_EXR"
+    settings.color_depth = "32"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = {k.split(".")[-1]: v.pixels for p in f.parts for k, v in p.channels.items()}
+    return np.stack([ch[c] for c in "RGBA"], -1)
+
+
+def image_rgba(name):
+    """An Image datablock's pixels (H, W, 4), row 0 at the top."""
+    import bpy
+
+    image = bpy.data.images[name]
+    w, h = image.size
+    return np.flipud(np.array(image.pixels[:], np.float32).reshape(h, w, 4))

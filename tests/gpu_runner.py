@@ -4,7 +4,7 @@ Run by ``test_gpu_render.py`` with the interpreter of the bpy line under test::
 
     python tests/gpu_runner.py OUT.npz DATA_DIR
 
-It makes a GPU context (:func:`blender.gpu_dvr.ensure_context`), renders every case of
+It makes a GPU context (:func:`blender.gpu_context.ensure_context`), renders every case of
 :data:`gpu_cases.CASES` with the GPU method and saves ``<case>_rgba`` and ``<case>_depth``, plus
 ``meta`` (JSON): whether a context was made (and why not), the GPU, each case's error and time,
 and whether drawing put the GPU state back; the CT head drawn as a viewport draws it at rest
@@ -39,14 +39,14 @@ def state():
     return gpu.state.blend_get(), gpu.state.depth_test_get(), gpu.state.depth_mask_get()
 
 
-def state_restored(gpu_dvr, data_dir):
+def state_restored(gpu_draw, data_dir):
     """Draw with a state unlike the draw's own set; is it the same afterwards?"""
     vevm, cam, tf, options = gpu_cases.case("irregular_over_ortho", data_dir)
     gpu.state.blend_set("ADDITIVE")
     gpu.state.depth_test_set("LESS_EQUAL")
     gpu.state.depth_mask_set(True)
     before = state()
-    gpu_dvr.render_gpu(vevm, cam, tf, **options)
+    gpu_draw.render_gpu(vevm, cam, tf, **options)
     after = state()
     gpu.state.blend_set("NONE")
     gpu.state.depth_test_set("NONE")
@@ -54,7 +54,7 @@ def state_restored(gpu_dvr, data_dir):
     return before == after and before[0] == "ADDITIVE"
 
 
-def moving(gpu_dvr, arrays, data_dir):
+def moving(gpu_draw, arrays, data_dir):
     """The CT head drawn by the viewport's drawing (``gpu_viewport.draw_volume``, over an empty
     offscreen) with its options at rest and while the view moves (``draw_options``), and
     rendered at level 2: saves ``resting_rgba`` and ``moving_rgba``; returns both options
@@ -81,7 +81,7 @@ def moving(gpu_dvr, arrays, data_dir):
                 arrays[f"{name}_rgba"] = np.flipud(rgba)
     finally:
         offscreen.free()
-    *_, coarse = gpu_dvr.render_gpu(vevm, cam, tf, **resting, level=2)
+    *_, coarse = gpu_draw.render_gpu(vevm, cam, tf, **resting, level=2)
     return {"resting": resting, "moving": fast, "levels": [*levels, coarse]}
 
 
@@ -91,7 +91,7 @@ def scene_renders(ext, arrays, out):
     (the fallback): saves ``scene_<what>_<name>`` arrays, returns the fallback's note."""
     import math
 
-    from volumeevm.blender import api, dvr, gpu_dvr
+    from volumeevm.blender import api, dvr, gpu_context
     from volumeevm.volumeevm_addon import TransferFunction
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -119,16 +119,16 @@ def scene_renders(ext, arrays, out):
     options = {"step_mm": 0.25, "termination": 1.0, "level": "full"}
     results = {"gpu": dvr.render_dvr(vol, tf, method="gpu", options=options),
                "raycast": dvr.render_dvr(vol, tf, method="raycast", options=options)}
-    ensure = gpu_dvr.ensure_context
+    ensure = gpu_context.ensure_context
 
     def unavailable():
-        raise gpu_dvr.GPUUnavailable("no GPU context (simulated)")
+        raise gpu_context.GPUUnavailable("no GPU context (simulated)")
 
-    gpu_dvr.ensure_context = unavailable
+    gpu_context.ensure_context = unavailable
     try:
         results["fallback"] = dvr.render_dvr(vol, tf, method="gpu", options=options)
     finally:
-        gpu_dvr.ensure_context = ensure
+        gpu_context.ensure_context = ensure
     results["level"] = dvr.render_dvr(vol, tf, method="gpu", options={**options, "level": 2})
     for name, result in results.items():
         for what in ("rgba", "depth", "dvr_rgba", "dvr_depth"):
@@ -332,14 +332,14 @@ def display_colours(arrays, meta, data_dir):
 
 def main(out, data_dir):
     ext = load_extension()
-    from volumeevm.blender import gpu_dvr
+    from volumeevm.blender import gpu_context, gpu_draw, gpu_textures
 
     meta = {"context": True, "reason": "", "bpy": bpy.app.version_string, "errors": {},
             "times": {}}
     arrays = {}
     try:
-        gpu_dvr.ensure_context()
-    except gpu_dvr.GPUUnavailable as error:
+        gpu_context.ensure_context()
+    except gpu_context.GPUUnavailable as error:
         meta.update(context=False, reason=str(error))
     if meta["context"]:
         meta["gpu"] = f"{gpu.platform.renderer_get()} ({gpu.platform.backend_type_get()})"
@@ -347,21 +347,21 @@ def main(out, data_dir):
             try:
                 vevm, cam, tf, options = gpu_cases.case(name, data_dir)
                 start = time.perf_counter()
-                rgba, depth, _ = gpu_dvr.render_gpu(vevm, cam, tf, **options)
+                rgba, depth, _ = gpu_draw.render_gpu(vevm, cam, tf, **options)
                 meta["times"][name] = time.perf_counter() - start
                 arrays[f"{name}_rgba"], arrays[f"{name}_depth"] = rgba, depth
             except Exception:  # noqa: BLE001 (reported to the test of this case)
                 meta["errors"][name] = traceback.format_exc()
-        meta["moving"] = moving(gpu_dvr, arrays, data_dir)
-        meta["state_restored"] = state_restored(gpu_dvr, data_dir)
+        meta["moving"] = moving(gpu_draw, arrays, data_dir)
+        meta["state_restored"] = state_restored(gpu_draw, data_dir)
         try:  # larger than llvmpipe's 3D textures (2048)
-            gpu_dvr._texture_3d(np.zeros((1, 1, 16385, 2), np.float32), "RG32F")
+            gpu_textures.texture_3d(np.zeros((1, 1, 16385, 2), np.float32), "RG32F")
             meta["too_large"] = ""
-        except gpu_dvr.VolumeEVMError as error:
+        except gpu_textures.VolumeEVMError as error:
             meta["too_large"] = str(error)
         try:
             vevm, cam, tf, options = gpu_cases.long_box()
-            arrays["long_box_rgba"], _, meta["long_box_level"] = gpu_dvr.render_gpu(
+            arrays["long_box_rgba"], _, meta["long_box_level"] = gpu_draw.render_gpu(
                 vevm, cam, tf, **options)
         except Exception:  # noqa: BLE001 (reported to its test)
             meta["errors"]["long_box"] = traceback.format_exc()
@@ -369,12 +369,12 @@ def main(out, data_dir):
         ext.register()
         from volumeevm.blender import gpu_viewport
 
-        handlers = {"registered": gpu_viewport._handle is not None}
+        handlers = {"registered": gpu_viewport._drawing.handle is not None}
         try:
             meta["scene_notes"] = scene_renders(ext, arrays, out)
-            handlers["textures kept"] = len(gpu_dvr._volumes) > 0
+            handlers["textures kept"] = len(gpu_textures._volumes) > 0
             bpy.ops.wm.read_factory_settings(use_empty=True)  # a file load
-            handlers["freed on load"] = len(gpu_dvr._volumes) == 0
+            handlers["freed on load"] = len(gpu_textures._volumes) == 0
         except Exception:  # noqa: BLE001 (reported to the tests of the render job)
             meta["errors"]["scene"] = traceback.format_exc()
         try:
@@ -383,7 +383,8 @@ def main(out, data_dir):
             meta["errors"]["display"] = traceback.format_exc()
         finally:
             ext.unregister()
-        handlers["removed"] = gpu_viewport._handle is None and gpu_dvr._shader is None
+        handlers["removed"] = (gpu_viewport._drawing.handle is None and gpu_draw._shader is None
+                              and len(gpu_textures._tables) == 0)
         meta["viewport_handlers"] = handlers
     np.savez(out, meta=np.array(json.dumps(meta)), **arrays)
 

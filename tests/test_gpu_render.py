@@ -1,4 +1,4 @@
-"""The GPU method (``blender/gpu_dvr.py``) against the NumPy reference, never golden images:
+"""The GPU method (``blender/gpu_draw.py``) against the NumPy reference, never golden images:
 the box chord law and Gaussian blobs in closed form, the CT head within the CPU ray caster's
 bounds at the same step, skipping on and off identical, the early-termination bound,
 ``depth_in``, the region's boundary policy in every mode, and the GPU state put back.
@@ -458,7 +458,7 @@ def test_moving_options_and_level_texts():
     assert module.draw_options(options, True) == {**options, "step_mm": 0.4 * module.MOVING_STEP,
                                                   "pixel": module.MOVING_PIXEL}
     assert module.MOVING_STEP > 1.0 and module.MOVING_PIXEL > 1
-    level_text = module.gpu_dvr.level_text
+    level_text = module.gpu_draw.level_text
     assert level_text(1) == "" and level_text(2) == "level 2 (2\u00d7 coarser voxels)"
 
 

@@ -1,4 +1,4 @@
-"""Our GPU method (``blender/gpu_dvr.py``, Blender's ``gpu`` module) in the DVR benchmark.
+"""Our GPU method (``blender/gpu_draw.py``, Blender's ``gpu`` module) in the DVR benchmark.
 
 It is ours, not a peer, but it runs like the peers: in a process of its own, here a Python with
 the ``bpy`` module, which makes a GPU context in background mode (on this machine Mesa llvmpipe,
@@ -57,17 +57,17 @@ def _main(job, out):
     from sample_blends.make_demo import load_extension
 
     load_extension()
-    from volumeevm.blender import gpu_dvr
+    from volumeevm.blender import gpu_context, gpu_draw
 
-    gpu_dvr.ensure_context()
+    gpu_context.ensure_context()
     vevm, cam, tf = scene(job["dataset"], job["view"])
     arrays, times = {}, []
     for i, options in enumerate(job["settings"]):
-        gpu_dvr.render_gpu(vevm, cam, tf, **options)  # warm-up: textures and shader made
+        gpu_draw.render_gpu(vevm, cam, tf, **options)  # warm-up: textures and shader made
         frames = []
         for _ in range(job["frames"]):
             t0 = time.perf_counter()
-            rgba, _, _ = gpu_dvr.render_gpu(vevm, cam, tf, **options)
+            rgba, _, _ = gpu_draw.render_gpu(vevm, cam, tf, **options)
             frames.append(time.perf_counter() - t0)
         arrays[f"rgba_{i}"] = rgba
         times.append(frames)

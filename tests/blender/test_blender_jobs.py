@@ -21,11 +21,10 @@ import re
 import bpy
 import numpy as np
 import pytest
-from test_blender_render import add_camera, cycles, settings_for
 from test_blender_tools import box_object
 from test_blender_ui import _Context, _driver, _ticks
 
-from blender_helpers import addon, mesh_arrays
+from blender_helpers import add_camera, addon, cycles, mesh_arrays, settings_for
 
 SKULL = "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9

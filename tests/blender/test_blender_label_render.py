@@ -13,7 +13,8 @@ import json
 import bpy
 import numpy as np
 import pytest
-from test_blender_render import cycles, f12_exr, image_rgba
+
+from blender_helpers import cycles, f12_exr, image_rgba
 
 #: (mean, 99th percentile, worst) of the largest channel error of the ray caster's DVR to the
 #: reference on the Slicer segmentation (the core's liver bounds, test_categorical_render);
@@ -216,10 +217,10 @@ def test_viewport_draws_the_label_colours_within_the_gpu_bounds(ext, api, core, 
     import gpu
     from mathutils import Matrix
 
-    gpu_dvr, viewport = ext.blender.gpu_dvr, ext.blender.gpu_viewport
+    gpu_context, viewport = ext.blender.gpu_context, ext.blender.gpu_viewport
     try:
-        gpu_dvr.ensure_context()
-    except gpu_dvr.GPUUnavailable as error:
+        gpu_context.ensure_context()
+    except gpu_context.GPUUnavailable as error:
         pytest.skip(str(error))
     vol = api.import_volume(segmentation)
     vevm = framed(api, vol, (48, 40))

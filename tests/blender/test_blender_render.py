@@ -14,11 +14,10 @@ import OpenEXR
 import pytest
 from mathutils import Vector
 
-from blender_helpers import REPO
+from blender_helpers import REPO, add_camera, cycles, f12_exr, image_rgba, settings_for
 
 SKULL = REPO / "sample_blends" / "data" / "ct_skull_cgal.npy"
 SKULL_THRESHOLD = 2.9
-CENTRE = Vector((0.124, 0.124, 0.115))  # middle of the skull's grid (Blender units)
 
 
 @pytest.fixture
@@ -47,37 +46,6 @@ def bone_tf():
 
     return TransferFunction([(2.0, 0.9, 0.8, 0.7, 0.0), (3.0, 0.95, 0.85, 0.7, 0.15),
                              (5.5, 1.0, 1.0, 1.0, 0.6)])
-
-
-def add_camera(scene, location, *, ortho=False, shift=(0.0, 0.0), target=CENTRE):
-    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    scene.collection.objects.link(cam)
-    cam.location = location
-    cam.rotation_euler = (target - Vector(location)).to_track_quat("-Z", "Y").to_euler()
-    cam.data.shift_x, cam.data.shift_y = shift
-    cam.data.clip_start, cam.data.clip_end = 0.01, 10.0
-    if ortho:
-        cam.data.type = "ORTHO"
-        cam.data.ortho_scale = 0.36
-    else:
-        cam.data.lens = 50.0
-    scene.camera = cam
-    return cam
-
-
-def cycles(scene, size, percentage=100, *, samples=1):
-    """Cycles CPU, ``samples`` per pixel at the pixel centre (filter width 0.01), linear view."""
-    r = scene.render
-    r.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = samples
-    scene.cycles.use_denoising = False
-    scene.cycles.filter_width = 0.01
-    r.resolution_x, r.resolution_y = size
-    r.resolution_percentage = percentage
-    r.film_transparent = True
-    scene.view_settings.view_transform = "Standard"
-    r.dither_intensity = 0.0
 
 
 def plane(scene, location, size, colour, *, rotation=(0.0, 0.0, 0.0)):
@@ -203,17 +171,6 @@ def test_volume_in_front_veils_a_plane_behind_it(ext, dvr, skull):
 
 
 # ---------------------------------------------------------------------------- operator
-def settings_for(scene, vol, tmp_path, **extra):
-    s = scene.volumeevm_render
-    s.volume = vol
-    s.method = "raycast"
-    s.preset_stretch = True  # the CT preset stretched onto the skull's 0 .. 5.4 (not HU)
-    s.preset = "ct_bone"
-    for key, value in extra.items():
-        setattr(s, key, value)
-    return s
-
-
 def test_operator_end_to_end(ext, dvr, skull, tmp_path):
     scene = bpy.context.scene
     add_camera(scene, (-0.3, -0.5, 0.3), ortho=False, shift=(0.05, 0.0))
@@ -371,25 +328,6 @@ def test_compositor_setup_and_f12_include_the_dvr(ext, dvr, skull, tmp_path):
     np.testing.assert_allclose(got, np.clip(srgb, 0, 1), atol=2.5 / 255)
 
 
-def f12_exr(scene, path):
-    """F12 to a float EXR at ``path``: its RGBA (H, W, 4), row 0 at the top."""
-    settings = scene.render.image_settings
-    settings.file_format = "OPEN_EXR"
-    settings.color_depth = "32"
-    scene.render.filepath = str(path)
-    bpy.ops.render.render(write_still=True)
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        ch = {k.split(".")[-1]: v.pixels for p in f.parts for k, v in p.channels.items()}
-    return np.stack([ch[c] for c in "RGBA"], -1)
-
-
-def image_rgba(name):
-    """An Image datablock's pixels (H, W, 4), row 0 at the top."""
-    image = bpy.data.images[name]
-    w, h = image.size
-    return np.flipud(np.array(image.pixels[:], np.float32).reshape(h, w, 4))
-
-
 def test_f12_leaves_a_stale_dvr_out_and_says_so(ext, dvr, skull, tmp_path, capfd):
     compositor = ext.blender.compositor
     scene = bpy.context.scene
@@ -539,10 +477,10 @@ def test_the_method_enum_is_the_registry(ext):
     assert [i.identifier for i in items][:6] == ["raycast", "shear_warp", "splat",
                                                  "raycast_navigate", "reference", "gpu"]
     assert [i.value for i in items] == list(range(len(records)))
-    gpu_dvr = ext.blender.gpu_dvr
-    signature = inspect.signature(gpu_dvr.render_gpu).parameters.values()
+    gpu_draw = ext.blender.gpu_draw
+    signature = inspect.signature(gpu_draw.render_gpu).parameters.values()
     assert {p.name: p.default for p in signature if p.kind == p.KEYWORD_ONLY and p.name not in
-            ("mode", "depth_in", "matrix_world", "level")} == dict(records[gpu_dvr.METHOD].options)
+            ("mode", "depth_in", "matrix_world", "level")} == dict(records[gpu_draw.METHOD].options)
 
 
 def test_every_method_and_mode_through_the_operator(ext, dvr, skull, tmp_path):

@@ -308,8 +308,8 @@ from blender_helpers import addon
 import importlib
 ext = addon()
 try:
-    ext.blender.gpu_dvr.ensure_context()
-except ext.blender.gpu_dvr.GPUUnavailable as error:
+    ext.blender.gpu_context.ensure_context()
+except ext.blender.gpu_context.GPUUnavailable as error:
     print("no GPU context:", error)
     sys.exit(0)
 api = importlib.import_module(ext.__name__ + ".blender.api")
