@@ -35,7 +35,7 @@ the inputs and dispatches to them through their records:
 - ``_levels.py``: which resolution level a view needs (``LEVELS``, the auto rule); the levels
   themselves are the model's.
 - ``_gpu_inputs.py``: the NumPy half of the GPU method (which draws on the Blender side,
-  ``blender/gpu_dvr.py``): checks, pixel rays, depth conversions, textures, uniforms; its
+  ``blender/gpu_draw.py``): checks, pixel rays, depth conversions, textures, uniforms; its
   shaders are GLSL files in ``shaders/`` (text the Blender side compiles).
 
 To add a method: write a module of its own here with its renderer, with the signature every

@@ -1,8 +1,8 @@
 """What the GPU ray marcher needs, computed with NumPy: the view, the volume, the transfer
 function and the uniforms.
 
-The GPU method (``blender/gpu_dvr.py``, through Blender's ``gpu`` module) marches every pixel's
-ray in a fragment shader. Everything that can be decided without a GPU is decided here, in
+The GPU method (``blender/gpu_draw.py`` and ``gpu_textures.py``, through Blender's ``gpu``
+module) marches every pixel's ray in a fragment shader. Everything that can be decided without a GPU is decided here, in
 float64 and rounded to float32 once, so that it is tested without a GPU and the Blender side
 only uploads arrays and draws:
 
@@ -750,7 +750,7 @@ GPU_METHOD = Method(
     name="gpu", label="GPU",
     description="Ray casting on the graphics card through Blender's gpu module (the CPU ray "
                 "caster where no GPU context can be made)",
-    render=None,  # drawn on the Blender side (blender/gpu_dvr.py) from gpu_frame's arrays
+    render=None,  # drawn on the Blender side (blender/gpu_draw.py) from gpu_frame's arrays
     options=keyword_options(gpu_frame, besides=("matrix_world", "level", "display")),
     memory=None,  # each array is checked as it is made (gpu_region, gpu_gradients)
     tables_to_build=one_set, check_samples=step_samples(RAY_STEPS_PER_VOXEL),

@@ -3,7 +3,7 @@
    with the same optical model, opacity correction and visibility rule as the CPU renderers
    (volumeevm_addon/rendering/), leaping over empty blocks. struct VolumeParams and the mode
    and depth constants come from GPU_UNIFORMS_GLSL (_gpu_inputs.py); DISPLAY_SHAPER is filled
-   in by blender/gpu_dvr.py (the display table's shaper exponent). */
+   in by blender/gpu_draw.py (the display table's shaper exponent). */
 
 /* The line p = o + t d against the box [lo, hi]: narrows [t0, t1], false when it misses. */
 bool clip_box(vec3 o, vec3 d, vec3 lo, vec3 hi, inout float t0, inout float t1)
