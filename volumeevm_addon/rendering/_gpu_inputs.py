@@ -2,9 +2,9 @@
 function and the uniforms.
 
 The GPU method (``blender/gpu_draw.py`` and ``gpu_textures.py``, through Blender's ``gpu``
-module) marches every pixel's ray in a fragment shader. Everything that can be decided without a GPU is decided here, in
-float64 and rounded to float32 once, so that it is tested without a GPU and the Blender side
-only uploads arrays and draws:
+module) marches every pixel's ray in a fragment shader. Everything that can be decided without
+a GPU is decided here, in float64 and rounded to float32 once, so that it is tested without a
+GPU and the Blender side only uploads arrays and draws:
 
 - **View.** Two matrices take a pixel's normalised device coordinates (NDC, OpenGL's: ``x, y``
   in ``[-1, 1]`` across the image) to its ray in the volume's index space (voxel centres at
