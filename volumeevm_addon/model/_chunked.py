@@ -73,10 +73,10 @@ def chunk_region(block, offset, threshold, upper, source):
     VolumeEVMError
         If the chunk holds NaN or infinite densities, naming ``source`` and the chunk.
     """
+    given = block
     block, flipped = _native(block)
     if block.dtype.kind == "f" and not np.isfinite(block).all():
-        first = np.argwhere(~np.isfinite(block))[0]
-        bad = tuple(int(i) + o for i, o in zip(first[::-1] if flipped else first, offset))
+        bad = tuple(int(i) + o for i, o in zip(np.argwhere(~np.isfinite(given))[0], offset))
         raise VolumeEVMError(f"{source}: densities are NaN or infinite in the chunk at voxel "
                              f"{tuple(offset)} (first at voxel {bad}); densities must be finite")
     selected = block >= threshold
@@ -371,13 +371,22 @@ def _slab_table(slab, grid, dtype):
             _, values, counts, _, _ = slab[j * nz + k]
             if not len(values):
                 continue
-            counts = counts.ravel()
-            local = np.zeros(len(counts), np.int64)
-            np.cumsum(counts[:-1], out=local[1:])
-            shift = starts[:, y0:y0 + height, k].ravel() - local
-            table[np.repeat(shift, counts) + np.arange(len(values))] = values
+            _place_rows(values, counts, starts[:, y0:y0 + height, k], table)
         y0 += height
     return table
+
+
+@kernel
+def _place_rows(values, rows, starts, table):
+    """Copy a chunk's densities, ``rows[x, y]`` of them for each row in turn, to
+    ``table[starts[x, y]:]``."""
+    n = 0
+    for x in range(rows.shape[0]):
+        for y in range(rows.shape[1]):
+            start = starts[x, y]
+            for i in range(rows[x, y]):
+                table[start + i] = values[n + i]
+            n += rows[x, y]
 
 
 def _concatenated(tables, dtype):
