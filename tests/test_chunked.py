@@ -102,6 +102,20 @@ def test_thread_count_does_not_change_the_result(data_dir):
     assert_identical(results[0], VolumeEVM.from_array(array, 80))
 
 
+def test_chunks_stored_z_fastest_give_the_same_result(data_dir):
+    """Chunks whose x varies fastest in memory (as an OME-Zarr store's, transposed) are swept
+    in that order: same result, and a NaN is named by the first voxel in (x, y, z) order."""
+    array = np.load(data_dir / "mr_t1_itk_kmeans.npy")
+    built = VolumeEVM.from_volume(lazy(np.asfortranarray(array), (32, 40, 16)), 80)
+    assert_identical(built, VolumeEVM.from_array(array, 80))
+    nan = np.asfortranarray(np.zeros((10, 10, 10), np.float32))
+    nan[7, 3, 2] = nan[8, 1, 0] = np.nan
+    with pytest.raises(VolumeEVMError, match=r"^f\.npy: densities are NaN or infinite in the "
+                                             r"chunk at voxel \(5, 0, 0\) \(first at voxel "
+                                             r"\(7, 3, 2\)\)"):
+        VolumeEVM.from_volume(lazy(nan, 5, source="f.npy"), 0.5)
+
+
 def test_bad_lazy_input_refused():
     array = np.zeros((10, 10, 10), np.float32)
     array[7, 3, 2] = np.nan

@@ -30,6 +30,7 @@ import sys
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import kernel
 from .._memory import check_memory
 from . import _sweep
 from ._evm import _block_keys
@@ -72,17 +73,73 @@ def chunk_region(block, offset, threshold, upper, source):
     VolumeEVMError
         If the chunk holds NaN or infinite densities, naming ``source`` and the chunk.
     """
-    block = np.ascontiguousarray(block)
+    given = block
+    block, flipped = _native(block)
     if block.dtype.kind == "f" and not np.isfinite(block).all():
-        bad = tuple(int(i) + o for i, o in zip(np.argwhere(~np.isfinite(block))[0], offset))
+        bad = tuple(int(i) + o for i, o in zip(np.argwhere(~np.isfinite(given))[0], offset))
         raise VolumeEVMError(f"{source}: densities are NaN or infinite in the chunk at voxel "
                              f"{tuple(offset)} (first at voxel {bad}); densities must be finite")
     selected = block >= threshold
     if upper is not None:
         selected &= block <= upper
     ox, oy, oz = (int(o) + _sweep.OFFSET for o in offset)
-    keys = _block_keys(selected.view(np.uint8), 0, block.shape[0] + 1, ox, oy, oz)
-    return keys, block[selected], np.count_nonzero(selected, axis=2), block.min(), block.max()
+    mask = selected.view(np.uint8)
+    if not flipped:
+        keys = _block_keys(mask, 0, block.shape[0] + 1, ox, oy, oz)
+    else:  # the vertices of the (z, y, x) mask, their coordinates swapped back
+        keys = _block_keys(mask, 0, block.shape[0] + 1, oz, oy, ox)
+        bits = 2 * _sweep.BITS
+        keys = np.sort(((keys & _sweep.MASK) << bits) | (keys & (_sweep.MASK << _sweep.BITS))
+                       | (keys >> bits))
+    nx, ny = (block.shape[2], block.shape[1]) if flipped else block.shape[:2]
+    rows = np.zeros((nx, ny), np.int64)
+    values = np.empty(np.count_nonzero(mask), block.dtype)
+    _values_xyz(block, mask, flipped, rows, values)
+    return keys, values, rows, block.min(), block.max()
+
+
+def _native(block):
+    """The chunk as a C-contiguous array in the axis order nearest its memory order: ``(x, y,
+    z)``, or ``(z, y, x)`` (``flipped``) when x varies fastest, as in a transposed view of an
+    OME-Zarr store's ``(z, y, x)`` chunks, which would otherwise be copied axis by axis."""
+    flipped = abs(block.strides[0]) < abs(block.strides[2])
+    return np.ascontiguousarray(block.T if flipped else block), flipped
+
+
+@kernel
+def _values_xyz(block, mask, flipped, rows, values):
+    """The selected densities of a :func:`_native` chunk in ``(x, y, z)`` C order into
+    ``values``, and into ``rows[x, y]`` how many each row holds, in two passes over the chunk
+    in its memory order: the counts, then each density put at its row's next place."""
+    na, nb, nc = block.shape
+    if flipped:  # rows[x, y] sums the mask along a: added plane by plane
+        across = np.zeros((nb, nc), np.int64)
+        for a in range(na):
+            for b in range(nb):
+                for c in range(nc):
+                    across[b, c] += mask[a, b, c]
+        rows[:, :] = across.T
+    else:
+        for a in range(na):
+            for b in range(nb):
+                count = 0
+                for c in range(nc):
+                    count += mask[a, b, c]
+                rows[a, b] = count
+    nx, ny = rows.shape
+    place = np.empty(nx * ny, np.int64)
+    total = 0
+    for x in range(nx):
+        for y in range(ny):
+            place[x * ny + y] = total
+            total += rows[x, y]
+    for a in range(na):
+        for b in range(nb):
+            for c in range(nc):
+                if mask[a, b, c]:
+                    row = c * ny + b if flipped else a * ny + b
+                    values[place[row]] = block[a, b, c]
+                    place[row] += 1
 
 
 def chunked_build_memory(chunks, dtype, voxel_count, *, workers=None):
@@ -314,13 +371,22 @@ def _slab_table(slab, grid, dtype):
             _, values, counts, _, _ = slab[j * nz + k]
             if not len(values):
                 continue
-            counts = counts.ravel()
-            local = np.zeros(len(counts), np.int64)
-            np.cumsum(counts[:-1], out=local[1:])
-            shift = starts[:, y0:y0 + height, k].ravel() - local
-            table[np.repeat(shift, counts) + np.arange(len(values))] = values
+            _place_rows(values, counts, starts[:, y0:y0 + height, k], table)
         y0 += height
     return table
+
+
+@kernel
+def _place_rows(values, rows, starts, table):
+    """Copy a chunk's densities, ``rows[x, y]`` of them for each row in turn, to
+    ``table[starts[x, y]:]``."""
+    n = 0
+    for x in range(rows.shape[0]):
+        for y in range(rows.shape[1]):
+            start = starts[x, y]
+            for i in range(rows[x, y]):
+                table[start + i] = values[n + i]
+            n += rows[x, y]
 
 
 def _concatenated(tables, dtype):
