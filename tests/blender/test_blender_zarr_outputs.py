@@ -134,3 +134,41 @@ def test_render_of_a_store_equals_the_same_volume_from_npy(api, store, data_dir,
     assert results[0].visible
     np.testing.assert_array_equal(results[0].dvr_rgba, results[1].dvr_rgba)
     assert np.count_nonzero(results[0].dvr_rgba[..., 3]) > 100
+
+
+def test_label_store_measurements_equal_those_in_memory(api, core, liver):
+    path, _ = liver
+    rows = api.measure_labels(api.import_volume(path, labels=True))
+    regions = core.VolumeEVM.from_labels(_dense(core, path, labels=True))
+    assert [label for label, _, _ in rows] == list(regions)
+    for label, _, row in rows:
+        assert row == regions[label].measure()
+
+
+def test_the_buttons_and_f12_on_a_store(ext, api, store, tmp_path):
+    """Make Volume Object and Render VolumeEVM from their operators, then F12 with the DVR
+    composited over the scene: the EXR holds the composite the operator made."""
+    from test_blender_render import cycles, f12_exr, image_rgba
+
+    obj = api.import_volume(store)
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.volumeevm.build_vevm(use_settings=False, threshold=CT_BONE_HU) == {"FINISHED"}
+    assert bpy.ops.volumeevm.make_volume_object() == {"FINISHED"}
+    native = obj.volumeevm.native
+    assert native.volumeevm.role == "NATIVE" and native.data.grids.load()
+    assert [g.name for g in native.data.grids] == [ext.blender.native_volume.GRID_NAME]
+    native.hide_render = True  # F12 shows the DVR over the scene, not Cycles' own volume
+    scene = bpy.context.scene
+    add_camera(scene, (0.3, -0.3, 0.2), ortho=True, target=_centre(obj))
+    cycles(scene, (48, 40), samples=1)
+    scene.render.film_transparent = False
+    scene.render.compositor_device = "CPU"
+    settings = scene.volumeevm_render
+    settings.volume, settings.method = obj, "raycast"
+    api.load_preset(settings, "ct_bone", obj)
+    assert bpy.ops.volumeevm.render_dvr() == {"FINISHED"}
+    dvr = ext.blender.dvr
+    assert (image_rgba(f"{dvr.DEFAULT_IMAGE} DVR")[..., 3] > 0.2).any()
+    assert bpy.ops.volumeevm.setup_compositor() == {"FINISHED"}
+    np.testing.assert_allclose(f12_exr(scene, tmp_path / "f12.exr"),
+                               image_rgba(dvr.DEFAULT_IMAGE), atol=2e-3)
