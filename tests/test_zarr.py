@@ -307,3 +307,20 @@ def test_fuzz_metadata_and_chunks(small_store, ct, version):
         path.write_bytes(original)
     print(version, outcomes)
     assert outcomes["refused"] > 0 and outcomes["exact"] > 0
+
+
+def test_a_label_store_is_a_label_map_found_chunk_by_chunk(tmp_path, data_dir):
+    """``labels=True`` on a store: its labels found one chunk at a time (the array stays lazy),
+    the same as in memory; a negative label in one chunk is refused naming the store."""
+    liver = np.load(data_dir / "seg_liver_cgal.npy")[150:278, 100:196, 60:108]
+    store = write_store(tmp_path / "liver.zarr", pyramid(liver, 2), chunks=(16, 32, 32))
+    chunk_files(store, 1)[0].write_bytes(b"")  # level 1 is never read for level 0
+    vol = read_volume(store, labels=True)
+    assert vol.is_label_map and not isinstance(vol.array, np.ndarray)
+    present = sorted(set(np.unique(liver).tolist()) - {0})
+    assert sorted(vol.labels) == present and len(present) >= 2
+    signed = liver.astype(np.int16)
+    signed[100, 50, 40] = -1
+    bad = write_store(tmp_path / "signed.zarr", pyramid(signed, 1), chunks=(16, 32, 32))
+    with raises(bad, "negative"):
+        read_volume(bad, labels=True)

@@ -281,6 +281,10 @@ def swept_labels(array, wanted, offset=(0, 0, 0), *, source="array"):
     map: its vertices in the grid's coordinates), for the labels ``wanted``
     (:func:`wanted_labels`), without a warning for the wanted labels it lacks."""
     array = checked_labels(array, source)
+    if is_lazy(array):
+        found = [labels_present(np.asarray(array.blocks[index]), source)
+                 for index in np.ndindex(*array.numblocks)]
+        return np.unique(np.concatenate(found))
     hi = int(array.max())
     lookup = hi < _LOOKUP_RANGE
     if lookup:
@@ -351,7 +355,8 @@ def warn_missing(wanted, regions, source):
 def labels_present(array, source="array"):
     """The labels a map holds, 0 (the background) left out: sorted int64.
 
-    One counting pass for labels up to 2**22, a sort otherwise.
+    One counting pass for labels up to 2**22, a sort otherwise. A lazy (Dask) array is
+    counted chunk by chunk: one chunk in memory at a time, never the whole map.
 
     Raises
     ------
@@ -359,6 +364,10 @@ def labels_present(array, source="array"):
         For what :func:`checked_labels` refuses.
     """
     array = checked_labels(array, source)
+    if is_lazy(array):
+        found = [labels_present(np.asarray(array.blocks[index]), source)
+                 for index in np.ndindex(*array.numblocks)]
+        return np.unique(np.concatenate(found))
     hi = int(array.max())
     if hi < _LOOKUP_RANGE:
         values = np.flatnonzero(_present(array, hi + 1))
