@@ -50,6 +50,18 @@ def assert_surface_is(surface, vevm, **options):
     return assert_mesh_is(surface, *vevm.mesh(**options))
 
 
+def assert_identical(got, expected):
+    """Every field of two VolumeEVMs equal: vertices, the three tables (values and dtype) and the
+    geometry."""
+    assert np.array_equal(got.evm.vertices, expected.evm.vertices)
+    for axis in range(3):
+        assert got.table(axis).dtype == expected.table(axis).dtype
+        assert np.array_equal(got.table(axis), expected.table(axis))
+    for name in ("shape", "spacing", "origin", "units", "threshold", "upper", "voxel_count"):
+        assert getattr(got, name) == getattr(expected, name), name
+    assert np.array_equal(got.orientation, expected.orientation)
+
+
 def assert_mesh_is(surface, verts_mm, polys):
     """The Blender surface mesh equals a core mesh (vertices in mm, polygons) exactly (x 0.001);
     returns the polygons."""

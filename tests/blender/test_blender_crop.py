@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mathutils import Euler, Matrix
 
-from blender_helpers import CT_BONE_HU, CT_CROP, assert_surface_is
+from blender_helpers import CT_BONE_HU, CT_CROP, assert_identical, assert_surface_is
 from zarr_files import pyramid, write_store
 
 BRAIN_HU = 20  # soft tissue: some boxes below lie in the brain
@@ -29,16 +29,6 @@ def box_object(name, lo_bu, hi_bu):
     bpy.context.scene.collection.objects.link(obj)
     bpy.context.view_layer.update()
     return obj
-
-
-def assert_identical(got, expected):
-    assert np.array_equal(got.evm.vertices, expected.evm.vertices)
-    for axis in range(3):
-        assert got.table(axis).dtype == expected.table(axis).dtype
-        assert np.array_equal(got.table(axis), expected.table(axis))
-    for name in ("shape", "spacing", "origin", "units", "threshold", "upper"):
-        assert getattr(got, name) == getattr(expected, name), name
-    assert np.array_equal(got.orientation, expected.orientation)
 
 
 def assert_crop_of(core, part, volume, threshold, box):

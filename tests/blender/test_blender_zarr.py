@@ -18,7 +18,7 @@ import bpy
 import numpy as np
 import pytest
 
-from blender_helpers import CT_BONE_HU, CT_CROP, assert_surface_is
+from blender_helpers import CT_BONE_HU, CT_CROP, assert_identical, assert_surface_is
 from zarr_files import chunk_files, pyramid, write_store
 
 LEVELS = 3
@@ -161,15 +161,6 @@ def _dense_build(core, store, level, threshold):
                                       threshold)
 
 
-def _assert_identical(got, expected):
-    assert np.array_equal(got.evm.vertices, expected.evm.vertices)
-    for axis in range(3):
-        assert got.table(axis).dtype == expected.table(axis).dtype
-        assert np.array_equal(got.table(axis), expected.table(axis))
-    for name in ("shape", "spacing", "origin", "units", "threshold", "voxel_count"):
-        assert getattr(got, name) == getattr(expected, name), name
-
-
 @pytest.mark.parametrize("version", [2, 3])
 def test_build_at_each_level_equals_from_array_on_the_dense_data(tmp_path, crop, api, core,
                                                                  version):
@@ -179,8 +170,8 @@ def test_build_at_each_level_equals_from_array_on_the_dense_data(tmp_path, crop,
     for level in (0, 1):
         obj.volumeevm.level = level
         vevm = api.build(obj, CT_BONE_HU)
-        _assert_identical(vevm, _dense_build(core, store, level, CT_BONE_HU))
-        _assert_identical(api.get_vevm(obj), vevm)
+        assert_identical(vevm, _dense_build(core, store, level, CT_BONE_HU))
+        assert_identical(api.get_vevm(obj), vevm)
         s = obj.volumeevm
         assert (s.built_level, s.voxel_count) == (level, vevm.voxel_count)
         assert s.voxel_count == np.count_nonzero(crop[::2 ** level, ::2 ** level, ::2 ** level]
