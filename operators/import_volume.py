@@ -43,6 +43,19 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
     name: StringProperty(name="Name", description="Object name (default: the file's name)")
     units: StringProperty(name="Units", description="The data's units, e.g. HU (empty: as the "
                                                     "file says)")
+    read_as: EnumProperty(
+        name="Read As",
+        items=(("AUTO", "Automatic", "As the file says (a 3D Slicer .seg.nrrd is a label map, "
+                                     "other files densities)"),
+               ("DENSITIES", "Densities", "Values are densities (CT, MRI, microscopy)"),
+               ("LABELS", "Label Map", "A segmentation: every integer value >= 1 is a label, "
+                                       "0 the background")),
+        default="AUTO", options={"SKIP_SAVE"},  # each import starts from what the file says
+        description="Whether the file holds densities or a label map (segmentation)")
+    label_table: StringProperty(
+        name="Label Table", subtype="FILE_PATH", options={"SKIP_SAVE"},
+        description="Label Map: the labels' names and colours, an ITK-SNAP label description "
+                    "(.txt) or JSON {label: {name, color}} (empty: a fixed palette)")
     raw_shape: IntVectorProperty(
         name="Raw Size", size=3, min=0, default=(0, 0, 0),
         description="Raw files: voxels along x, y, z (x fastest in the file)")
@@ -66,6 +79,9 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
         layout.use_property_split = True
         layout.prop(self, "name")
         layout.prop(self, "units")
+        layout.prop(self, "read_as")
+        if self.read_as == "LABELS":
+            layout.prop(self, "label_table")
         header, body = layout.panel("VOLUMEEVM_import_raw", default_closed=True)
         header.label(text="Raw Files")
         if body:
@@ -88,11 +104,16 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
         return self.filepath
 
     def _options(self, source):
+        options = {}
+        if self.read_as == "DENSITIES":
+            options["labels"] = False
+        elif self.read_as == "LABELS":
+            options["labels"] = bpy.path.abspath(self.label_table) if self.label_table else True
         if isinstance(source, str) and _is_raw(source):
-            return dict(shape=tuple(self.raw_shape), dtype=self.raw_dtype,
-                        byte_order=self.raw_byte_order, header_bytes=self.raw_header_bytes,
-                        spacing=tuple(self.raw_spacing))
-        return {}
+            options.update(shape=tuple(self.raw_shape), dtype=self.raw_dtype,
+                           byte_order=self.raw_byte_order, header_bytes=self.raw_header_bytes,
+                           spacing=tuple(self.raw_spacing))
+        return options
 
     def job(self, context):
         source = self._source()
@@ -103,8 +124,9 @@ class VOLUMEEVM_OT_import_volume(jobs.JobOperator, bpy.types.Operator, ImportHel
 
     def finished(self, context, obj):
         s = obj.volumeevm
-        self.report({"INFO"}, f"Imported {obj.name}: {tuple(s.shape)} voxels, "
-                              f"values {s.value_min:g} .. {s.value_max:g} {s.units}")
+        what = (f"{s.label_count} labels" if s.label_count
+                else f"values {s.value_min:g} .. {s.value_max:g} {s.units}")
+        self.report({"INFO"}, f"Imported {obj.name}: {tuple(s.shape)} voxels, {what}")
         enclosing = framing.enclosing_objects(obj, context.scene)
         if enclosing:
             self.report({"WARNING"}, f"{', '.join(o.name for o in enclosing)} enclose(s) the "
