@@ -281,10 +281,6 @@ def swept_labels(array, wanted, offset=(0, 0, 0), *, source="array"):
     map: its vertices in the grid's coordinates), for the labels ``wanted``
     (:func:`wanted_labels`), without a warning for the wanted labels it lacks."""
     array = checked_labels(array, source)
-    if is_lazy(array):
-        found = [labels_present(np.asarray(array.blocks[index]), source)
-                 for index in np.ndindex(*array.numblocks)]
-        return np.unique(np.concatenate(found))
     hi = int(array.max())
     lookup = hi < _LOOKUP_RANGE
     if lookup:
