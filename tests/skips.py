@@ -14,11 +14,13 @@ def in_ci():
     return bool(os.environ.get("CI"))
 
 
-def skip_unless_ci(reason):
-    """Skip the calling test because of ``reason``; fail instead in CI."""
+def skip_unless_ci(reason, *, module_level=False):
+    """Skip the calling test (or, with ``module_level``, module) because of ``reason``; fail
+    instead in CI."""
     if in_ci():
-        pytest.fail(f"{reason} (CI is set: a required dependency may not be missing)")
-    pytest.skip(reason)
+        pytest.fail(f"{reason} (CI is set: a required dependency may not be missing)",
+                    pytrace=False)
+    pytest.skip(reason, allow_module_level=module_level)
 
 
 def required_module(name):
@@ -27,8 +29,4 @@ def required_module(name):
     try:
         return importlib.import_module(name)
     except ImportError as error:
-        reason = f"{name} is not installed ({error})"
-        if in_ci():
-            pytest.fail(f"{reason} (CI is set: a required dependency may not be missing)",
-                        pytrace=False)
-        pytest.skip(reason, allow_module_level=True)
+        skip_unless_ci(f"{name} is not installed ({error})", module_level=True)
