@@ -106,6 +106,33 @@ def test_skip_empty_equals_dense_brain_and_blocks(brain):
         np.testing.assert_allclose(d1, d0, rtol=1e-6)
 
 
+def test_default_blocks_grow_with_the_grid_and_keep_the_image(brain):
+    """Up to 1024³ voxels the default blocks are 4³; a larger grid gets the next edge whose
+    block grid holds at most MAX_BLOCKS blocks (their memory is grid-sized). A small region
+    in a 1100³ grid: the default render is the render with 8³ blocks, bit for bit, and its
+    memory estimate is that one's, a fraction of what 4³ blocks would need."""
+    assert _raycast.leap_block(None, (1024, 1024, 1024)) == 4
+    assert _raycast.leap_block(None, (1025, 1024, 1024)) == 8
+    assert _raycast.leap_block(None, (4096, 4096, 2048)) == 16
+    assert _raycast.leap_block(5, (4096, 4096, 4096)) == 5
+    a, sp = brain
+    small = VolumeEVM.from_array(a, 40, spacing=sp)
+    v = VolumeEVM(EVM.from_mask(small.evm.to_mask(small.shape), offset=(500, 520, 540)),
+                  small.table(), shape=(1100, 1100, 1100), spacing=sp)
+    g = grid_to_world(v.spacing, v.origin)
+    tf = TransferFunction.preset("mri", data_range=(0, 202))
+    cam = camera("ORTHO", g, v, (-0.1, -0.12, 0.08), 120 * max(sp) * BU, res=(48, 48))
+    r, d = render_raycast(v, cam, tf, g)
+    r8, d8 = render_raycast(v, cam, tf, g, block=8)
+    assert r[..., 3].max() > 0.5
+    np.testing.assert_array_equal(r, r8)
+    np.testing.assert_array_equal(d, d8)
+    need = {block: _raycast.table_bytes(v, {"block": block}, navigate=False)
+            + _raycast._block_view_bytes(v, {"skip_empty": True, "block": block})
+            for block in (None, 4, 8)}
+    assert need[None] == need[8] < need[4] / 4
+
+
 @pytest.mark.parametrize("size, reach", [(4, 1), (3, 2), (5, 3)])
 def test_blocks_cover_what_samples_can_read(size, reach):
     """Block occupancy (the region voxels within one voxel of the block's cells) and density

@@ -130,6 +130,31 @@ BLOCK = 4
 brainsmall (512² and 256², both cameras, steps of 2, 1 and 1/2 voxel): 4 is as fast as 8 or up
 to 17 % faster (fewer samples in transparent space beside what is seen)."""
 
+MAX_BLOCKS = 1 << 24
+"""The most space-leaping blocks the default edge makes (a 1024³ grid in blocks of 4³). The
+blocks are grid-sized (:data:`_LEAP_BLOCK_BYTES` kept, :data:`_BLOCK_VIEW_BYTES` per view): in
+blocks of 4³ a 2048³ grid would need 7.3 GiB for them, more than its sampling table, so larger
+grids get the next edge that keeps them under this count (8³ at 2048³: 0.9 GiB)."""
+
+
+def leap_block(block, shape):
+    """The edge of the space-leaping blocks a render of a grid of ``shape`` uses: ``block``
+    when given, else :data:`BLOCK`, doubled while the grid would hold more than
+    :data:`MAX_BLOCKS` blocks. The image does not depend on it (up to float rounding, as
+    ``skip_empty`` does not), only the render's memory and speed.
+
+    >>> leap_block(None, (1024, 1024, 1024)), leap_block(None, (2048, 2048, 2048))
+    (4, 8)
+    >>> leap_block(3, (2048, 2048, 2048))
+    3
+    """
+    if block is not None:
+        return block
+    edge = BLOCK
+    while math.prod(-(-int(n) // edge) for n in shape) > MAX_BLOCKS:
+        edge *= 2
+    return edge
+
 
 # ---------------------------------------------------------------------------- tables
 def _box_rows(vevm):
@@ -453,7 +478,8 @@ def tables_to_build(vevm, options, *, navigate):
     step_mm = checked_step_mm(options.get("step_mm"), spacing, RAY_STEPS_PER_VOXEL)
     preintegrate = bool(options.get("preintegrate", False)) and mode in ("over", "under")
     tables, blocks = _cache_keys(spacing, navigate, shaded, options.get("skip_empty", True),
-                                 options.get("block", BLOCK), step_mm, preintegrate)
+                                 leap_block(options.get("block"), vevm.shape), step_mm,
+                                 preintegrate)
     keys = tables + (() if blocks is None else (blocks,))
     return int(not all(key in vevm.cache for key in keys))
 
@@ -495,7 +521,8 @@ def table_bytes(vevm, options, *, navigate):
         needed += stored * BLOCK_VOXELS * (16 if shaded else 4) + math.prod(shape) \
             * _TABLE_BLOCK_BYTES + (stored * 24 + _GATHER_BYTES if shaded else 0)
     if options.get("skip_empty", True):
-        block = max(1, int(options.get("block", BLOCK)))  # a block of 0 is the render's to refuse
+        # A block of 0 is the render's to refuse.
+        block = max(1, int(leap_block(options.get("block"), vevm.shape)))
         needed += math.prod(-(-int(n) // block) for n in vevm.shape) * _LEAP_BLOCK_BYTES
     return int(needed)
 
@@ -547,7 +574,7 @@ def _render(vevm, camera, tf, grid_to_world, *, navigate, mode, depth_in, step_m
         shading = None
     spacing = np.asarray(vevm.spacing, dtype=np.float64)
     step_mm = checked_step_mm(step_mm, spacing, RAY_STEPS_PER_VOXEL)
-    block = positive_integer("block", block)
+    block = positive_integer("block", leap_block(block, vevm.shape))
     chunk_rays = positive_integer("chunk_rays", chunk_rays)
     h, w = camera.shape
     rgba = np.zeros((h * w, 4), np.float32)
@@ -615,7 +642,7 @@ def _floats(values):
 
 def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None, step_mm=None,
                    skip_empty=True, termination=0.99, shading=None, xray_scale=1.0,
-                   xray_offset=0.0, block=BLOCK, chunk_rays=1024, jitter=False,
+                   xray_offset=0.0, block=None, chunk_rays=1024, jitter=False,
                    preintegrate=False):
     """Ray cast a VolumeEVM with the EVM as space-leaping structure.
 
@@ -644,8 +671,9 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
         Gradient shading (Blinn–Phong headlight, :class:`._shading.Shading`) for over/under.
     xray_scale, xray_offset : float
         X-ray attenuation per mm per data unit and the density of zero attenuation.
-    block : int
-        Edge (voxels) of the space-leaping blocks (:data:`BLOCK` by default).
+    block : int, optional
+        Edge (voxels) of the space-leaping blocks; by default :data:`BLOCK`, larger for grids
+        of more than :data:`MAX_BLOCKS` such blocks (:func:`leap_block`).
     chunk_rays : int
         Pixels per task of the threads (square tiles of at most this many pixels): each ray is
         cast on its own, so the image does not depend on it; it only balances the work between
@@ -674,7 +702,7 @@ def render_raycast(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=Non
 
 def render_raycast_navigate(vevm, camera, tf, grid_to_world, *, mode="over", depth_in=None,
                             step_mm=None, skip_empty=True, termination=0.99, shading=None,
-                            xray_scale=1.0, xray_offset=0.0, block=BLOCK, chunk_rays=1024,
+                            xray_scale=1.0, xray_offset=0.0, block=None, chunk_rays=1024,
                             jitter=False, preintegrate=False):
     """Ray cast a VolumeEVM locating every density through the EVM (the report's baseline).
 
@@ -702,7 +730,7 @@ def _block_view_bytes(vevm, options):
     block of 0 is the renderer's to refuse: counted as 1 here)."""
     if not options["skip_empty"]:
         return 0
-    block = max(1, int(options["block"]))
+    block = max(1, int(leap_block(options["block"], vevm.shape)))
     return math.prod(-(-int(n) // block) + 2 for n in vevm.shape) * _BLOCK_VIEW_BYTES
 
 
