@@ -13,7 +13,9 @@ time: the N³ array never exists in memory. For each N, each of these runs in a 
 The targets: build ≤ 1.5 × read, and ns per voxel within 1.5× across sizes. For the smallest N
 the chunked build is compared with ``from_array`` on the same resampled head in memory. For the
 largest N the build (2 threads) is saved as a ``.vevm``, and fresh processes load it and time
-``mesh()`` and a 512² shear-warp render at ``level="auto"`` and ``"full"``. Runs on N ≥ 1024
+``mesh()`` and 512² renders, shear-warp and ray casting, at ``level="auto"`` and ``"full"``
+(ray casting's sampling table follows the region; shear-warp's run layouts still follow the
+grid, so its full level may be refused: recorded with its message). Runs on N ≥ 1024
 and the mesh and renders have ``VOLUMEEVM_MEMORY_LIMIT=6G``. Compiled kernels are used once on
 a small phantom before any timing (in each cluster worker too). A step that fails (a refused
 budget, a crash) is recorded with its message. Stores are deleted at the end unless ``--keep``.
@@ -139,7 +141,7 @@ def run_step(spec):
                 facts["faces"] = len(mesh[1]) if isinstance(mesh, tuple) else str(type(mesh))
             else:
                 camera, tf = view(vevm)
-                rgba, _ = render(vevm, camera, tf, method="shear_warp", level=spec["level"])
+                rgba, _ = render(vevm, camera, tf, method=spec["method"], level=spec["level"])
                 facts["covered_pixels"] = int((rgba[..., 3] > 0).sum())
     facts.setdefault("seconds", time.perf_counter() - start)
     facts["peak_rss_bytes"] = peak_rss()
@@ -279,13 +281,16 @@ def main():
                 shutil.rmtree(path)
         saved = folder / f"head{sizes[-1]}.vevm"
         if saved.exists():
-            for step, extra in (("mesh", {}), ("render", {"level": "auto"}),
-                                ("render", {"level": "full"})):
+            steps = [("mesh", {})] + [("render", {"method": method, "level": level})
+                                      for method in ("shear_warp", "raycast")
+                                      for level in ("auto", "full")]
+            for step, extra in steps:
                 spec = {"step": step, "vevm": str(saved), "n": sizes[-1], "mode_name": "threads2",
                         "threads": 2, **extra}
                 r = spawn(spec, True)
-                largest[f"{step} {extra.get('level', '')}".strip()] = r
-                print(f"[bench] {sizes[-1]}^3 {step} {extra.get('level', '')}: "
+                name = " ".join([step, *extra.values()])
+                largest[name] = r
+                print(f"[bench] {sizes[-1]}^3 {name}: "
                       + (f"FAILED {r['failed']}" if "failed" in r else
                          f"{r['seconds']:.2f} s, peak {gib(r['peak_rss_bytes'])} GiB"),
                       flush=True)
