@@ -130,7 +130,9 @@ def _import_steps(path, options, units):
 
 
 def _zarr_import_steps(path, options, units):
-    """An OME-Zarr store's levels, geometry (metadata only) and its coarsest level's histogram."""
+    """An OME-Zarr store's levels, geometry (metadata only) and its coarsest level's histogram,
+    read chunk by chunk (a store without a pyramid has only its full level, which may be larger
+    than memory)."""
     yield 0.0, f"reading the levels of {default_name(path)}"
     levels = volume_levels(path)
     vol = read_volume(path, **options)  # lazy: metadata only
@@ -143,7 +145,7 @@ def _zarr_import_steps(path, options, units):
     coarsest = levels[-1]["level"]
     yield 0.3, f"histogram of level {coarsest}"
     options = dict(options, level=coarsest)
-    coarse = np.asarray(read_volume(path, **options).array)
+    coarse = read_volume(path, **options).array
     counts, lo, hi = density_histogram(coarse, bins=HISTOGRAM_BINS)
     return vol, file_units, counts, lo, hi, otsu_threshold(coarse), levels
 

@@ -71,3 +71,29 @@ def test_otsu_splits_two_clusters_and_keeps_a_constant_value():
 def test_bad_input_raises_naming_the_parameter(function, array, bins, match):
     with pytest.raises(VolumeEVMError, match=match):
         function(array, bins=bins)
+
+
+@pytest.mark.parametrize("name", ["ct_head_invesalius", "mr_brainsmall_volpack",
+                                  "micro_nuclei3d_stardist"])
+def test_lazy_volumes_give_the_in_memory_histogram_and_otsu(data_dir, name):
+    """A lazy array (a store's level, possibly larger than memory) is counted chunk by chunk,
+    with the same counts, range and threshold as in memory; every chunk is read, none whole."""
+    import dask.array as da
+
+    array = np.load(data_dir / f"{name}.npy")
+    lazy = da.from_array(array, chunks=(37, 50, 29))
+    for bins in (32, 256):
+        counts, lo, hi = density_histogram(lazy, bins=bins)
+        want = density_histogram(array, bins=bins)
+        assert np.array_equal(counts, want[0]) and (lo, hi) == want[1:]
+        assert counts.dtype == np.int64
+    assert otsu_threshold(lazy) == otsu_threshold(array)
+
+
+def test_lazy_nan_is_refused():
+    import dask.array as da
+
+    array = np.zeros((6, 6, 6), np.float32)
+    array[5, 5, 5] = np.nan
+    with pytest.raises(VolumeEVMError, match="NaN or infinite"):
+        density_histogram(da.from_array(array, chunks=3))

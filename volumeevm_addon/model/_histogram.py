@@ -7,21 +7,42 @@ the threshold and the transfer function) and starts the threshold field at Otsu'
 import numpy as np
 
 from .._errors import VolumeEVMError
+from ._volume import is_lazy
 
 __all__ = ["density_histogram", "otsu_threshold"]
 
 
 def _value_range(array):
-    """``(array, lo, hi)``: the densities and their range, checked (non-empty, finite)."""
-    array = np.asarray(array)
+    """``(array, lo, hi)``: the densities and their range, checked (non-empty, finite). A lazy
+    (Dask) array stays lazy: its range is one pass over its chunks, in parallel, a few chunks
+    in memory at a time."""
+    if not is_lazy(array):
+        array = np.asarray(array)
     if array.size == 0 or not (np.issubdtype(array.dtype, np.integer)
                                or np.issubdtype(array.dtype, np.floating)):
         raise VolumeEVMError(f"array: expected a non-empty array of numbers, got "
                              f"{array.dtype} with shape {array.shape}")
-    lo, hi = float(array.min()), float(array.max())
+    if is_lazy(array):
+        import dask
+
+        lo, hi = (float(v) for v in dask.compute(array.min(), array.max()))
+    else:
+        lo, hi = float(array.min()), float(array.max())
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise VolumeEVMError(f"array: holds NaN or infinite values (range {lo} .. {hi})")
     return array, lo, hi
+
+
+def _counts(array, bins, value_range):
+    """``np.histogram(array, bins, range=value_range)``; a lazy array's counts are summed
+    chunk by chunk (Dask's histogram: each value falls in the same bin, so the counts are
+    those of the whole array in memory)."""
+    if not is_lazy(array):
+        return np.histogram(array, bins=bins, range=value_range)
+    import dask.array as da
+
+    counts, edges = da.histogram(array, bins=bins, range=value_range)
+    return counts.compute(), edges
 
 
 def _bin_count(bins):
@@ -35,8 +56,10 @@ def density_histogram(array, *, bins=256):
 
     Parameters
     ----------
-    array : ndarray
-        The densities (any shape, integer or floating point), in the data's own units.
+    array : ndarray or dask.array.Array
+        The densities (any shape, integer or floating point), in the data's own units. A lazy
+        array (a store's level) is read chunk by chunk, twice (its range, then the counts),
+        never whole; the result is the one of the same array in memory.
     bins : int, optional
         Number of bins between the smallest and the largest density.
 
@@ -61,7 +84,7 @@ def density_histogram(array, *, bins=256):
     """
     array, lo, hi = _value_range(array)
     bins = _bin_count(bins)
-    counts, _ = np.histogram(array, bins=bins, range=(lo, hi) if hi > lo else (lo, lo + 1.0))
+    counts, _ = _counts(array, bins, (lo, hi) if hi > lo else (lo, lo + 1.0))
     return counts.astype(np.int64), lo, hi
 
 
@@ -74,8 +97,9 @@ def otsu_threshold(array, *, bins=256):
 
     Parameters
     ----------
-    array : ndarray
-        The densities (any shape, integer or floating point), in the data's own units.
+    array : ndarray or dask.array.Array
+        The densities (any shape, integer or floating point), in the data's own units; a lazy
+        array is read chunk by chunk, as by :func:`density_histogram`.
     bins : int, optional
         Number of histogram bins.
 
@@ -105,7 +129,7 @@ def otsu_threshold(array, *, bins=256):
     bins = _bin_count(bins)
     if hi <= lo:
         return lo
-    counts, edges = np.histogram(array, bins=bins, range=(lo, hi))
+    counts, edges = _counts(array, bins, (lo, hi))
     counts = counts.astype(np.float64)
     centres = 0.5 * (edges[:-1] + edges[1:])
     w0 = np.cumsum(counts)
