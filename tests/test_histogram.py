@@ -74,10 +74,11 @@ def test_bad_input_raises_naming_the_parameter(function, array, bins, match):
 
 
 @pytest.mark.parametrize("name", ["ct_head_invesalius", "mr_brainsmall_volpack",
-                                  "micro_nuclei3d_stardist"])
+                                  "micro_nuclei3d_stardist", "ct_skull_cgal"])
 def test_lazy_volumes_give_the_in_memory_histogram_and_otsu(data_dir, name):
-    """A lazy array (a store's level, possibly larger than memory) is counted chunk by chunk,
-    with the same counts, range and threshold as in memory; every chunk is read, none whole."""
+    """A lazy array (a store's level, possibly larger than memory) is counted chunk by chunk
+    (int16, uint8, uint16: their values counted in one pass; float32: range, then counts),
+    with the same counts, range and threshold as in memory."""
     import dask.array as da
 
     array = np.load(data_dir / f"{name}.npy")

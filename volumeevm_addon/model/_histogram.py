@@ -13,15 +13,21 @@ __all__ = ["density_histogram", "otsu_threshold"]
 
 
 def _value_range(array):
-    """``(array, lo, hi)``: the densities and their range, checked (non-empty, finite). A lazy
-    (Dask) array stays lazy: its range is one pass over its chunks, in parallel, a few chunks
-    in memory at a time."""
+    """``(data, lo, hi)``: the densities, checked (non-empty, finite), and their range. ``data``
+    is what :func:`_counts` bins: the array in memory; for a lazy (Dask) array of 8- or 16-bit
+    integers, its possible values and how many voxels hold each (:func:`_value_counts`, one
+    pass over the chunks); for another lazy array the array itself (its range one pass here,
+    the counts another)."""
     if not is_lazy(array):
         array = np.asarray(array)
     if array.size == 0 or not (np.issubdtype(array.dtype, np.integer)
                                or np.issubdtype(array.dtype, np.floating)):
         raise VolumeEVMError(f"array: expected a non-empty array of numbers, got "
                              f"{array.dtype} with shape {array.shape}")
+    if is_lazy(array) and array.dtype.kind in "iu" and array.dtype.itemsize <= 2:
+        values, counts = _value_counts(array)
+        present = values[counts > 0]
+        return (values, counts), float(present[0]), float(present[-1])
     if is_lazy(array):
         import dask
 
@@ -33,16 +39,46 @@ def _value_range(array):
     return array, lo, hi
 
 
-def _counts(array, bins, value_range):
-    """``np.histogram(array, bins, range=value_range)``; a lazy array's counts are summed
-    chunk by chunk (Dask's histogram: each value falls in the same bin, so the counts are
-    those of the whole array in memory)."""
-    if not is_lazy(array):
-        return np.histogram(array, bins=bins, range=value_range)
-    import dask.array as da
+def _value_counts(array):
+    """``(values, counts)``: every value of the lazy integer ``array``'s dtype (8 or 16 bits)
+    and how many voxels hold it, counted chunk by chunk (:func:`_chunk_sums`)."""
+    info = np.iinfo(array.dtype)
+    values = np.arange(int(info.min), int(info.max) + 1)
 
-    counts, edges = da.histogram(array, bins=bins, range=value_range)
-    return counts.compute(), edges
+    def count(block):
+        return np.bincount((np.asarray(block, np.int32) - int(info.min)).ravel(),
+                           minlength=len(values))
+
+    return values, _chunk_sums(array, count)
+
+
+def _chunk_sums(array, function):
+    """The sum over the chunks of the lazy ``array`` of ``function(chunk)`` (an array of
+    integers, the same shape for every chunk), on Dask's scheduler (in parallel, or on a
+    cluster's workers) and summed in pairs, so a few results are in memory at a time."""
+    import dask
+
+    parts = [dask.delayed(function)(block) for block in array.to_delayed().ravel()]
+    while len(parts) > 1:
+        parts = [dask.delayed(np.add)(*parts[i:i + 2]) if i + 1 < len(parts) else parts[i]
+                 for i in range(0, len(parts), 2)]
+    return dask.compute(parts[0])[0]
+
+
+def _counts(data, bins, value_range):
+    """``np.histogram`` of ``data`` (:func:`_value_range`) with ``bins`` over ``value_range``:
+    the voxels' values, weighted by their counts when ``data`` holds counts (each value falls
+    in the bin it falls in as a voxel: the counts of the array in memory, exact in float64 up
+    to 2**53 voxels); a lazy array's chunks are binned one by one, the counts summed."""
+    if isinstance(data, tuple):
+        values, counts = data
+        counts, edges = np.histogram(values, bins=bins, range=value_range, weights=counts)
+        return counts.astype(np.int64), edges
+    if not is_lazy(data):
+        return np.histogram(data, bins=bins, range=value_range)
+    _, edges = np.histogram(np.zeros(0, data.dtype), bins=bins, range=value_range)
+    return _chunk_sums(data, lambda block: np.histogram(block, bins=bins,
+                                                        range=value_range)[0]), edges
 
 
 def _bin_count(bins):
@@ -58,8 +94,9 @@ def density_histogram(array, *, bins=256):
     ----------
     array : ndarray or dask.array.Array
         The densities (any shape, integer or floating point), in the data's own units. A lazy
-        array (a store's level) is read chunk by chunk, twice (its range, then the counts),
-        never whole; the result is the one of the same array in memory.
+        array (a store's level) is read chunk by chunk, never whole: once for 8- and 16-bit
+        integers (their values counted), else twice (the range, then the counts); the result
+        is the one of the same array in memory.
     bins : int, optional
         Number of bins between the smallest and the largest density.
 
@@ -82,9 +119,9 @@ def density_histogram(array, *, bins=256):
     >>> density_histogram(np.array([0, 1, 1, 2, 3, 3, 3, 4]), bins=4)
     (array([1, 2, 1, 4]), 0.0, 4.0)
     """
-    array, lo, hi = _value_range(array)
+    data, lo, hi = _value_range(array)
     bins = _bin_count(bins)
-    counts, _ = _counts(array, bins, (lo, hi) if hi > lo else (lo, lo + 1.0))
+    counts, _ = _counts(data, bins, (lo, hi) if hi > lo else (lo, lo + 1.0))
     return counts.astype(np.int64), lo, hi
 
 
@@ -125,11 +162,11 @@ def otsu_threshold(array, *, bins=256):
     >>> otsu_threshold(np.array([1, 2, 2, 3, 7, 8, 8, 9]), bins=8)  # the voxels >= 4: 7, 8, 8, 9
     4.0
     """
-    array, lo, hi = _value_range(array)
+    data, lo, hi = _value_range(array)
     bins = _bin_count(bins)
     if hi <= lo:
         return lo
-    counts, edges = _counts(array, bins, (lo, hi))
+    counts, edges = _counts(data, bins, (lo, hi))
     counts = counts.astype(np.float64)
     centres = 0.5 * (edges[:-1] + edges[1:])
     w0 = np.cumsum(counts)
