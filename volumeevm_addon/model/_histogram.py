@@ -7,6 +7,7 @@ the threshold and the transfer function) and starts the threshold field at Otsu'
 import numpy as np
 
 from .._errors import VolumeEVMError
+from .._jit import kernel
 from ._volume import is_lazy
 
 __all__ = ["density_histogram", "otsu_threshold"]
@@ -46,10 +47,20 @@ def _value_counts(array):
     values = np.arange(int(info.min), int(info.max) + 1)
 
     def count(block):
-        return np.bincount((np.asarray(block, np.int32) - int(info.min)).ravel(),
-                           minlength=len(values))
+        counts = np.zeros(len(values), np.int64)
+        _count_values(np.ravel(block, order="K"), int(info.min), counts)  # K: no copy
+        return counts
 
     return values, _chunk_sums(array, count)
+
+
+@kernel
+def _count_values(values, lowest, counts):
+    """Add one to ``counts[v - lowest]`` for each ``v`` of ``values`` (a compiled loop that
+    releases the GIL, so Dask's threads count chunks in parallel; NumPy's ``bincount`` does
+    not, and took 110 s for the chunks of a 2048³ store)."""
+    for v in values:
+        counts[np.int64(v) - lowest] += 1
 
 
 def _chunk_sums(array, function):
