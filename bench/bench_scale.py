@@ -82,15 +82,19 @@ def make_store(folder, n):
 # ------------------------------------------------------------------ the steps, in fresh processes
 def warm_kernels():
     """Use the compiled kernels once, in memory and chunk by chunk, and import numcodecs (loading
-    them is not the step's time or memory)."""
+    them is not the step's time or memory). The chunked build runs on int16 densities in
+    transposed chunks, as the stores' (z, y, x) chunks reach it, and with the same threshold:
+    Numba compiles a kernel for each dtype it meets, so a float phantom alone would leave the
+    int16 kernels to load or compile inside the timed build."""
     import dask.array as da
     import numcodecs  # noqa: F401
 
     from volumeevm_addon import Volume, VolumeEVM, phantoms
 
-    box = phantoms.box((12, 12, 12), lo=(3, 3, 3), hi=(9, 9, 9))
-    VolumeEVM.from_volume(box, 0.5).mesh()
-    VolumeEVM.from_volume(Volume(da.from_array(box.array, chunks=6)), 0.5)
+    box = phantoms.box((12, 12, 12), lo=(3, 3, 3), hi=(9, 9, 9), density=1000.0)
+    VolumeEVM.from_volume(box, THRESHOLD).mesh()
+    zyx = da.from_array(np.ascontiguousarray(box.array.T.astype(np.int16)), chunks=6)
+    VolumeEVM.from_volume(Volume(zyx.T), THRESHOLD)
 
 
 def peak_rss():

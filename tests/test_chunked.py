@@ -92,6 +92,23 @@ def test_chunked_equals_in_memory_on_synthetic_volumes(case):
         assert_identical(got, expected)
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.uint32, np.int64])
+def test_integer_densities_with_any_bounds_equal_in_memory(dtype):
+    """Float, integer and out-of-range bounds on integer densities (compared in the densities'
+    own type chunk by chunk) select what ``from_array`` selects."""
+    info = np.iinfo(dtype)
+    middle = int(info.min) // 2 + int(info.max) // 2
+    array = (middle + np.random.default_rng(3).integers(-50, 50, (14, 11, 9))).astype(dtype)
+    array[0, 0, :2] = (info.min, info.max)
+    intervals = [(middle + 0.5, None), (middle - 10.0, middle + 20.25), (middle, None),
+                 (info.min - 0.5, None), (info.min - 10**20, -1.5 + middle),
+                 (float(info.max), None), (info.max - 0.5, info.max + 0.5), (-(10**20), 10**20)]
+    for threshold, upper in intervals:
+        expected = VolumeEVM.from_array(array, threshold, upper)
+        got = VolumeEVM.from_volume(lazy(array, (5, 4, 9)), threshold, upper)
+        assert_identical(got, expected)
+
+
 def test_thread_count_does_not_change_the_result(data_dir):
     array = np.load(data_dir / "mr_t1_itk_kmeans.npy")
     results = []

@@ -79,6 +79,7 @@ def chunk_region(block, offset, threshold, upper, source):
         bad = tuple(int(i) + o for i, o in zip(np.argwhere(~np.isfinite(given))[0], offset))
         raise VolumeEVMError(f"{source}: densities are NaN or infinite in the chunk at voxel "
                              f"{tuple(offset)} (first at voxel {bad}); densities must be finite")
+    threshold, upper = _own_type(block.dtype, threshold, upper)
     selected = block >= threshold
     if upper is not None:
         selected &= block <= upper
@@ -104,6 +105,24 @@ def _native(block):
     OME-Zarr store's ``(z, y, x)`` chunks, which would otherwise be copied axis by axis."""
     flipped = abs(block.strides[0]) < abs(block.strides[2])
     return np.ascontiguousarray(block.T if flipped else block), flipped
+
+
+def _own_type(dtype, threshold, upper):
+    """The density interval in the densities' own integer type where that selects the same
+    voxels: ``v >= t`` is ``v >= ceil(t)`` and ``v <= u`` is ``v <= floor(u)`` for integers, and
+    comparing integers of up to 32 bits with a float is exact, as is comparing like types. The
+    comparison then runs on the integers as they are instead of converting the chunk to float
+    (about 5 times faster for int16). Bounds outside the type's range, 64-bit integers (whose
+    comparison with a float is rounded) and floats are left as they are."""
+    if dtype.kind not in "iu" or dtype.itemsize > 4:
+        return threshold, upper
+    info = np.iinfo(dtype)
+    bounds = []
+    for bound, exact in ((threshold, math.ceil), (upper, math.floor)):
+        if bound is not None and info.min <= exact(bound) <= info.max:
+            bound = dtype.type(exact(bound))
+        bounds.append(bound)
+    return tuple(bounds)
 
 
 @kernel
