@@ -133,6 +133,40 @@ def test_default_blocks_grow_with_the_grid_and_keep_the_image(brain):
     assert need[None] == need[8] < need[4] / 4
 
 
+@pytest.mark.parametrize("dtype", [np.int16, np.uint8, np.uint16])
+def test_integer_pools_keep_the_image_and_halve_the_table(ct, dtype):
+    """8- and 16-bit densities stay in their own type in the sampling table (the type's
+    smallest value marks outside the region): the images, shaded included, and the depths are
+    those of the same densities as float32, bit for bit; a region holding that smallest value
+    falls back to float32."""
+    a, sp = ct
+    data = {np.int16: a, np.uint16: (a - a.min()).astype(np.uint16),
+            np.uint8: ((a - a.min()) // 16).astype(np.uint8)}[dtype]
+    v = VolumeEVM.from_array(data, float(np.percentile(data, 80)), spacing=sp)
+    f = VolumeEVM(v.evm, v.table().astype(np.float32), shape=v.shape, spacing=sp)
+    g = grid_to_world(v.spacing, v.origin)
+    tf = TransferFunction.preset("ct_bone", data_range=(float(data.min()), float(data.max())))
+    cam = camera("PERSP", g, v, (0.15, -0.2, 0.1), 0.0)
+    for shading in (None, True):
+        r, d = render_raycast(v, cam, tf, g, shading=shading)
+        rf, df = render_raycast(f, cam, tf, g, shading=shading)
+        assert r[..., 3].max() > 0.5
+        np.testing.assert_array_equal(r, rf)
+        np.testing.assert_array_equal(d, df)
+    table = v.cache.get(("raycast", "table"), lambda: None)
+    assert table.table.dtype == dtype and table.hole == np.iinfo(dtype).min
+    per_set = _raycast.table_bytes(v, {}, navigate=False)
+    assert per_set < _raycast.table_bytes(f, {}, navigate=False)
+    lowest = np.iinfo(dtype).min
+    full = VolumeEVM(v.evm, np.r_[lowest, v.table()[1:]].astype(dtype), shape=v.shape)
+    pool, hole = _raycast.pool_type(full.table())
+    assert pool == np.float32 and np.isnan(hole)
+    r_full, _ = render_raycast(full, cam, tf, g)
+    r_full_f, _ = render_raycast(VolumeEVM(v.evm, full.table().astype(np.float32),
+                                           shape=v.shape), cam, tf, g)
+    np.testing.assert_array_equal(r_full, r_full_f)
+
+
 @pytest.mark.parametrize("size, reach", [(4, 1), (3, 2), (5, 3)])
 def test_blocks_cover_what_samples_can_read(size, reach):
     """Block occupancy (the region voxels within one voxel of the block's cells) and density

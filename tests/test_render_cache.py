@@ -108,13 +108,14 @@ def test_renders_fill_the_cache_it_counts_and_clearing_changes_no_image(head, me
 
 
 def test_the_sampling_table_is_counted(head):
-    """Ray casting keeps a float32 table over the stored blocks of the padded grid and their
-    int32 index: the count includes both."""
+    """Ray casting keeps a table over the stored blocks of the padded grid (the CT head's
+    int16, in its own type) and their int32 index: the count includes both."""
     vevm = fresh(head[0])
     draw(vevm, head[1], "x", "raycast", {})
     table = vevm.cache.get(("raycast", "table"), lambda: None)
     stored = int((table.index >= 0).sum())
-    assert stored > 0 and table.table.nbytes == 4 * BLOCK_VOXELS * stored
+    assert vevm.table().dtype == table.table.dtype == np.int16
+    assert stored > 0 and table.table.nbytes == 2 * BLOCK_VOXELS * stored
     assert vevm.size_report()["cache_bytes"] >= table.table.nbytes + table.index.nbytes
 
 

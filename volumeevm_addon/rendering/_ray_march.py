@@ -90,8 +90,10 @@ each side is cut into blocks of :data:`TABLE_BLOCK`³ voxels; ``index`` (int32, 
 whose voxels, nor those of its apron (the next voxel along each axis), is in the region. A
 stored block holds its :data:`TABLE_BLOCK` + 1 voxels per axis (C order, :data:`BLOCK_VOXELS`
 in all), so that the 8 corners of every cell whose first corner lies in the block are in it.
-``table`` (BLOCK_VOXELS per block) float32: each voxel's density, NaN outside the region
-(densities are finite), read as the density and region weight 1, or 0 and 0; ``grad``
+``table``: ``(pool, hole)``, the pool (BLOCK_VOXELS per block) holding each voxel's density
+and ``hole`` where the voxel is outside the region — float32 and NaN, or for densities of 8 or
+16 bits their own type and its smallest value when no region voxel holds it — read as the
+density (as float32) and region weight 1, or 0 and 0; ``grad``
 (3·BLOCK_VOXELS per block)
 float32, each voxel's gradient (empty without shading). Navigation: ``densities``, the
 densities table of order "xyz" as float32, and ``relation`` (int64), the arrays
@@ -330,24 +332,29 @@ def _table_row(index, strides, base):
 @kernel
 def _table_corners(table, row):
     """The densities and region weights (8 each) of the corners of the cell whose first corner
-    is voxel ``row`` of the pool (:func:`_table_row`; -1: all zeros): a voxel outside the
-    region (NaN) reads density 0 and weight 0, one inside its density and weight 1."""
+    is voxel ``row`` of the pool (``table`` = ``(pool, hole)``, :data:`Volume`;
+    :func:`_table_row`; -1: all zeros): a voxel outside the region reads density 0 and weight
+    0, one inside its density and weight 1."""
     if row < 0:
         return _ZEROS8, _ZEROS8
+    pool, hole = table
     i, j, k, m = _corner_rows(row, 1)
     one = np.uint64(1)
-    a, b, c, d = _voxel(table[i]), _voxel(table[i + one]), _voxel(table[j]), _voxel(table[j + one])
-    e, f, g, h = _voxel(table[k]), _voxel(table[k + one]), _voxel(table[m]), _voxel(table[m + one])
+    a, b = _voxel(pool[i], hole), _voxel(pool[i + one], hole)
+    c, d = _voxel(pool[j], hole), _voxel(pool[j + one], hole)
+    e, f = _voxel(pool[k], hole), _voxel(pool[k + one], hole)
+    g, h = _voxel(pool[m], hole), _voxel(pool[m + one], hole)
     return ((a[0], b[0], c[0], d[0], e[0], f[0], g[0], h[0]),
             (a[1], b[1], c[1], d[1], e[1], f[1], g[1], h[1]))
 
 
 @kernel
-def _voxel(value):
-    """A voxel of the sampling table as (density, region weight): NaN is (0, 0)."""
-    if value != value:
+def _voxel(value, hole):
+    """A voxel of the sampling table as (density as float32, region weight): NaN or ``hole``
+    (outside the region) is (0, 0); an integer density converts to float32 exactly."""
+    if value != value or value == hole:
         return np.float32(0), np.float32(0)
-    return value, np.float32(1)
+    return np.float32(value), np.float32(1)
 
 
 @kernel

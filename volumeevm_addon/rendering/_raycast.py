@@ -73,15 +73,16 @@ Each ray is a loop of its own in a compiled kernel (:mod:`._ray_march`), which h
 in registers: a render allocates its image and little else. The image is cut into square
 tiles of at most ``chunk_rays`` pixels, cast on all threads (:func:`.._jit.parallel_map`); no
 ray depends on another, so the image does not depend on the tiles or the number of threads.
-The sampling table (float32 densities, NaN outside the region; float32 gradients when
+The sampling table (the densities, as float32 with NaN outside the region, or for 8- and 16-bit
+data in their own type with a value no region voxel holds outside it; float32 gradients when
 shading) is block-sparse (:class:`_SamplingTable`): only the blocks of 8³ voxels of the padded
 grid that hold region voxels, with a one-voxel apron so that every sample reads one block, are
 stored, and a block index (int32 over the grid of blocks, -1 for empty) leads to them; the
 samples are those of the dense table, bit for bit. It, the navigation variant's float32
-densities and the space-leaping blocks are built on first use straight from the EVM's boxes
-and the densities table (no grid-sized array), and kept in the VolumeEVM's cache,
-``vevm.cache``: 4 bytes per voxel of the stored blocks (16 with gradients) and 4 per block of
-the grid;
+densities and the space-leaping blocks are built on first use straight from the EVM's boxes and
+the densities table (no grid-sized array), and kept in the VolumeEVM's cache, ``vevm.cache``: 1
+to 4 bytes per voxel of the stored blocks (:func:`pool_type`; 12 more with gradients) and 4 per
+block of the grid;
 :func:`tables_to_build` tells whether a render would build them, :func:`table_bytes` what
 building them costs.
 
@@ -200,16 +201,19 @@ def _mark_boxes(first, stop, grid):
 
 class _SamplingTable:
     """The block-sparse sampling table ray casting reads (:data:`._ray_march.Volume`): the
-    float32 densities of the grid padded by one voxel each side, NaN outside the region,
-    stored only in the blocks of :data:`._ray_march.TABLE_BLOCK`³ padded voxels that hold a
-    region voxel in the block or its apron; a sample reads every other voxel as density and
-    weight 0, as it read the dense complex64 table ``density·r + i·r`` this replaces (so
-    samples are identical, bit for bit). Memory follows the region: 4 bytes per voxel of the
-    stored blocks (:data:`._ray_march.BLOCK_VOXELS` each) and 4 per block of the grid.
+    densities of the grid padded by one voxel each side, ``hole`` outside the region, stored
+    only in the blocks of :data:`._ray_march.TABLE_BLOCK`³ padded voxels that hold a region
+    voxel in the block or its apron; a sample reads every other voxel as density and weight 0,
+    as it read the dense complex64 table ``density·r + i·r`` this replaces (so samples are
+    identical, bit for bit). The pool keeps densities of 8 and 16 bits in their own type
+    (:func:`pool_type`: half the memory of float32 for the int16 and uint16 of CT and
+    microscopy), else float32. Memory follows the region: 1 to 4 bytes per voxel of the stored
+    blocks (:data:`._ray_march.BLOCK_VOXELS` each) and 4 per block of the grid.
 
     ``index`` (int32, flat, strides ``strides``): each block's place in the pool, -1 when not
-    stored; ``shape``: blocks per axis; ``table``: the pool, flat. Written straight from the
-    EVM's boxes and the densities table (no grid-sized array)."""
+    stored; ``shape``: blocks per axis; ``table``: the pool, flat; ``hole``: its value outside
+    the region. Written straight from the EVM's boxes and the densities table (no grid-sized
+    array)."""
 
     def __init__(self, vevm):
         lo, hi, rows = _box_rows(vevm)
@@ -221,8 +225,9 @@ class _SamplingTable:
         del stored
         self.index = index.ravel()
         self.strides = (self.shape[1] * self.shape[2], self.shape[2], 1)
-        self.table = np.full(BLOCK_VOXELS * count, np.nan, np.float32)
         dens = vevm.table(0)
+        dtype, self.hole = pool_type(dens)
+        self.table = np.full(BLOCK_VOXELS * count, self.hole, dtype)
         parallel_map(_fill_table, [(lo, hi, rows, dens, first, stop, self.index, self.strides,
                                     self.table) for first, stop in _box_chunks(lo, hi, 16)])
 
@@ -240,9 +245,23 @@ class _SamplingTable:
         for first in range(0, count, _GATHER_BLOCKS):
             stop = min(count, first + _GATHER_BLOCKS)
             window = np.zeros((2, stop - first) + (edge + 2,) * 3, np.float32)
-            _gather(self.table, self.index, self.strides, self.shape, blocks[first:stop], window)
+            _gather(self.table, self.hole, self.index, self.strides, self.shape,
+                    blocks[first:stop], window)
             region_gradients(window[0], window[1], np.moveaxis(grad[first:stop], -1, 0))
         return grad.ravel()
+
+
+def pool_type(densities):
+    """The sampling table's type and its value outside the region, ``(dtype, hole)``, for a
+    densities table: its own integer type and that type's smallest value when the densities
+    are of 8 or 16 bits and none of them is that value (so ``hole`` marks no region voxel),
+    else float32 and NaN (densities are finite)."""
+    dtype = densities.dtype
+    if dtype.kind in "iu" and dtype.itemsize <= 2 and len(densities):
+        lowest = np.iinfo(dtype).min
+        if densities.min() > lowest:
+            return dtype, dtype.type(lowest)
+    return np.dtype(np.float32), np.float32(np.nan)
 
 
 _GATHER_BLOCKS = 1024
@@ -261,7 +280,7 @@ def _fill_table(lo, hi, rows, dens, first, stop, index, strides, table):
                 start = (rows[k, 0] + (a - lo[k, 0]) * rows[k, 1] + (b - lo[k, 1]) * rows[k, 2]
                          - lo[k, 2])
                 for c in range(lo[k, 2], hi[k, 2]):
-                    d = np.float32(dens[start + c])
+                    d = dens[start + c]
                     for i in range(2):
                         bx = (a + 1) // size - i
                         lx = a + 1 - bx * size
@@ -283,12 +302,12 @@ def _fill_table(lo, hi, rows, dens, first, stop, index, strides, table):
 
 
 @kernel
-def _gather(table, index, strides, shape, blocks, window):
+def _gather(table, hole, index, strides, shape, blocks, window):
     """Into ``window`` (2, m, E + 2, E + 2, E + 2) (``E`` = :data:`._ray_march.TABLE_BLOCK` +
     1): the densities (``window[0]``) and region flags (``window[1]``) of the voxels of the
     stored ``blocks`` (m, 3) and one voxel around them, from the pool ``table``; zeros where
-    the padded grid has no voxel, the block holding one is not stored or the voxel is NaN
-    (outside the region)."""
+    the padded grid has no voxel, the block holding one is not stored or the voxel is NaN or
+    ``hole`` (outside the region)."""
     size, edge = TABLE_BLOCK, TABLE_BLOCK + 1
     for s in range(len(blocks)):
         for u in range(edge + 2):
@@ -311,8 +330,8 @@ def _gather(table, index, strides, shape, blocks, window):
                         continue
                     d = table[np.int64(slot) * BLOCK_VOXELS
                               + ((px - bx * size) * edge + py - by * size) * edge + pz - bz * size]
-                    if d == d:
-                        window[0, s, u, v, w] = d
+                    if d == d and d != hole:
+                        window[0, s, u, v, w] = np.float32(d)
                         window[1, s, u, v, w] = np.float32(1)
 
 
@@ -500,8 +519,9 @@ of :func:`.region_gradients` on it (measured: 35 MiB)."""
 
 def table_bytes(vevm, options, *, navigate):
     """Estimated peak bytes of building the tables a render with ``options`` (the renderer's
-    keywords) reads, none cached: the sampling table's pool (4 bytes per voxel of the stored
-    blocks, 16 with shading's gradients; the stored blocks are counted from the EVM's boxes,
+    keywords) reads, none cached: the sampling table's pool (its type's bytes per voxel of the
+    stored blocks, :func:`pool_type`, 12 more with shading's gradients; the stored blocks are
+    counted from the EVM's boxes,
     no grid is made) and its block index, or with ``navigate`` the float32 densities and the
     relation v; the space-leaping blocks with ``skip_empty``; the construction's temporaries
     (per box of the EVM and per block)."""
@@ -518,7 +538,8 @@ def table_bytes(vevm, options, *, navigate):
                                                   shape)))
         shaded = (options.get("mode", "over") in ("over", "under")
                   and options.get("shading") not in (None, False))
-        needed += stored * BLOCK_VOXELS * (16 if shaded else 4) + math.prod(shape) \
+        per_voxel = pool_type(vevm.table(0))[0].itemsize + (12 if shaded else 0)
+        needed += stored * BLOCK_VOXELS * per_voxel + math.prod(shape) \
             * _TABLE_BLOCK_BYTES + (stored * 24 + _GATHER_BYTES if shaded else 0)
     if options.get("skip_empty", True):
         # A block of 0 is the render's to refuse.
@@ -625,11 +646,12 @@ def _volume(vevm, keys):
     nothing = np.zeros(0, np.float32)
     if keys[0] == ("raycast", "navigation"):
         tables = vevm.cache.get(keys[0], lambda: _NavigationTables(vevm))
-        return Volume(n, (0, 0, 0), np.zeros(0, np.int32), nothing, nothing, True,
+        return Volume(n, (0, 0, 0), np.zeros(0, np.int32), (nothing, np.float32(np.nan)),
+                      nothing, True,
                       tables.densities, tables.relation, tables.relation_at)
     table = vevm.cache.get(keys[0], lambda: _SamplingTable(vevm))
     grad = vevm.cache.get(keys[1], table.gradients) if len(keys) > 1 else nothing
-    return Volume(n, table.strides, table.index, table.table, grad, False, nothing,
+    return Volume(n, table.strides, table.index, (table.table, table.hole), grad, False, nothing,
                   np.zeros(0, np.int64), (0,) * (len(RELATION_FIELDS) + 1))
 
 
