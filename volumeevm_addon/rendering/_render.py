@@ -165,7 +165,8 @@ def render(vevm, camera, tf, *, method="shear_warp", mode="over", depth_in=None,
         one sample per sheet; 3 removes the popping with the rays' sub-voxel phase at 2.2x
         the time. MIP always takes one.
     block : int
-        Default ``4`` (raycast, raycast_navigate). Edge in voxels of the space-leaping blocks.
+        Default ``None`` (raycast, raycast_navigate). Edge in voxels of the space-leaping
+        blocks; None: 4, doubled for grids of more than 2**24 such blocks (past 1024³ voxels).
     chunk_rays : int
         Default ``1024`` (raycast, raycast_navigate), ``8192`` (reference). Ray casters: pixels
         per task of the threads (square tiles; the image does not depend on it). Reference:
