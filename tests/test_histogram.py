@@ -98,3 +98,30 @@ def test_lazy_nan_is_refused():
     array[5, 5, 5] = np.nan
     with pytest.raises(VolumeEVMError, match="NaN or infinite"):
         density_histogram(da.from_array(array, chunks=3))
+
+
+def test_a_lazy_arrays_histogram_and_threshold_read_it_once(data_dir):
+    """An import asks for both of one store level: its chunks are read once, not twice; a
+    new array of the same values is counted again."""
+    import dask.array as da
+
+    array = np.load(data_dir / "ct_head_invesalius.npy")
+    reads = []
+
+    def read(block):
+        reads.append(1)
+        return block
+
+    def lazy():
+        return da.from_array(array, chunks=(64, 64, 54)).map_blocks(
+            read, meta=np.empty((0, 0, 0), array.dtype))
+
+    level = lazy()
+    counts, lo, hi = density_histogram(level, bins=32)
+    first = len(reads)
+    assert first == level.npartitions == 32  # every chunk once
+    assert otsu_threshold(level) == otsu_threshold(array)
+    assert len(reads) == first
+    assert np.array_equal(counts, density_histogram(array, bins=32)[0])
+    density_histogram(lazy(), bins=32)
+    assert len(reads) == 2 * first

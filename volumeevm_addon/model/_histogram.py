@@ -26,9 +26,13 @@ def _value_range(array):
         raise VolumeEVMError(f"array: expected a non-empty array of numbers, got "
                              f"{array.dtype} with shape {array.shape}")
     if is_lazy(array) and array.dtype.kind in "iu" and array.dtype.itemsize <= 2:
-        values, counts = _value_counts(array)
-        present = values[counts > 0]
-        return (values, counts), float(present[0]), float(present[-1])
+        last = _last_counted
+        if last[0] is not array:  # the histogram and the threshold of one array: one pass
+            values, counts = _value_counts(array)
+            present = values[counts > 0]
+            last = _last_counted[:] = [array, ((values, counts), float(present[0]),
+                                               float(present[-1]))]
+        return last[1]
     if is_lazy(array):
         import dask
 
@@ -38,6 +42,12 @@ def _value_range(array):
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise VolumeEVMError(f"array: holds NaN or infinite values (range {lo} .. {hi})")
     return array, lo, hi
+
+
+_last_counted = [None, None]
+"""The lazy integer array counted last and what :func:`_value_range` made of it: an import
+asks for the histogram and Otsu's threshold of the same array, read once (the array object
+itself is kept, so the same object is the same data)."""
 
 
 def _value_counts(array):
