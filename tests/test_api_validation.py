@@ -324,8 +324,8 @@ def test_other_axis_tables_check_memory(monkeypatch):
     array = np.arange(64**3).reshape(64, 64, 64) % 7
     vevm = VolumeEVM.from_array(array, 5)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "256K")
-    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM grid \(64, 64, 64\): making the dense "
-                                             r"grid needs about"):
+    with pytest.raises(VolumeEVMError, match=r"^VolumeEVM table\(2\): the densities table in zxy "
+                                             r"order needs about"):
         vevm.table(2)
     monkeypatch.setenv("VOLUMEEVM_MEMORY_LIMIT", "1G")
     expected = np.transpose(array, (2, 0, 1))[np.transpose(array >= 5, (2, 0, 1))]

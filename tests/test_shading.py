@@ -10,6 +10,7 @@ import pytest
 
 from render_helpers import camera
 from volumeevm_addon import TransferFunction, VolumeEVM, grid_to_world, render
+from volumeevm_addon.rendering import _gradients
 from volumeevm_addon.rendering._gradients import region_gradients
 from volumeevm_addon.rendering._ray_march import _hood_gradients
 
@@ -89,6 +90,29 @@ def test_linear_field_exact_and_outside_never_read():
     out = np.zeros_like(got)
     region_gradients(pad, np.pad(inside, 1), out)
     np.testing.assert_array_equal(out, got)
+
+
+@pytest.mark.parametrize("slab_voxels", [1, 1 << 18])
+def test_table_gradients_are_the_grids(data_dir, monkeypatch, slab_voxels):
+    """Shear-warp's gradients, made on x-slabs of the region (one slice a slab with
+    ``slab_voxels=1``, the default sizes otherwise), equal bit for bit those of the whole padded
+    float32 grid at the region's voxels, in the table's order: the CT head's bone and skin and
+    random regions of every size."""
+    monkeypatch.setattr(_gradients, "_SLAB_VOXELS", slab_voxels)
+    monkeypatch.setattr(_gradients, "_SLAB_SLICES", 1 if slab_voxels == 1 else 8)
+    head = np.load(data_dir / "ct_head_invesalius.npy")[::2, ::2, :]
+    rng = np.random.default_rng(7)
+    cases = [(head, 300), (head, -300)] + [
+        (rng.normal(0, 1, tuple(rng.integers(1, 30, 3))).astype(np.float32), rng.normal())
+        for _ in range(30)]
+    for array, threshold in cases:
+        vevm = VolumeEVM.from_array(array, threshold)
+        if vevm.evm.is_empty():
+            continue
+        inside = vevm.evm.to_mask(vevm.shape)
+        want = gradients(array, inside, np.float32)
+        got = _gradients.table_gradients(vevm)
+        np.testing.assert_array_equal(got, want[:, inside])
 
 
 def test_navigation_kernel_is_the_same_arithmetic():

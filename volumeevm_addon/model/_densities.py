@@ -15,6 +15,7 @@ the ordered boxes of the EVM (:func:`._sweep.boxes`).
 
 import numpy as np
 
+from .._jit import kernel, parallel_map
 from . import _sweep
 
 TABLE_ORDERS = ("xyz", "yxz", "zxy")
@@ -101,3 +102,114 @@ class TableIndex:
         out[ok] = index[ok]
         return out
 
+
+
+# ------------------------------------------------------------------- runs and other orders
+@kernel
+def scanline_runs(lo, hi, slices, lines):
+    """The region's runs per scanline from the EVM's ordered boxes, in a table's order.
+
+    ``lo``, ``hi`` (m, 3): the boxes of :meth:`EVM.boxes` in the table order, columns
+    permuted to (slice, scanline, column): slabs of boxes sharing a slice range, split in
+    sub-slabs sharing a scanline range, split in runs. The table lists each slice's voxels
+    scanline by scanline, each scanline run by run, so a running count gives every run's
+    position. Returns ``(starts, run_lo, run_hi, pos)``: scanline ``a`` of slice ``s`` has
+    the runs ``starts[s·lines + a] .. starts[s·lines + a + 1] - 1``, run ``r`` covers the
+    columns ``run_lo[r] .. run_hi[r] - 1`` and its first voxel is ``pos[r]`` in the table.
+    """
+    m = lo.shape[0]
+    starts = np.zeros(slices * lines + 1, np.int64)
+    for k in range(m):
+        for s in range(lo[k, 0], hi[k, 0]):
+            for a in range(lo[k, 1], hi[k, 1]):
+                starts[s * lines + a + 1] += 1
+    for line in range(slices * lines):
+        starts[line + 1] += starts[line]
+    total = starts[slices * lines]
+    run_lo = np.empty(total, np.int32)
+    run_hi = np.empty(total, np.int32)
+    pos = np.empty(total, np.int64)
+    fill = starts[:-1].copy()
+    at = 0
+    k = 0
+    while k < m:
+        slab = k
+        while slab < m and lo[slab, 0] == lo[k, 0] and hi[slab, 0] == hi[k, 0]:
+            slab += 1
+        for s in range(lo[k, 0], hi[k, 0]):
+            u = k
+            while u < slab:
+                v = u
+                while v < slab and lo[v, 1] == lo[u, 1] and hi[v, 1] == hi[u, 1]:
+                    v += 1
+                for a in range(lo[u, 1], hi[u, 1]):
+                    w = fill[s * lines + a]
+                    for r in range(u, v):
+                        run_lo[w] = lo[r, 2]
+                        run_hi[w] = hi[r, 2]
+                        pos[w] = at
+                        at += hi[r, 2] - lo[r, 2]
+                        w += 1
+                    fill[s * lines + a] = w
+                u = v
+        k = slab
+    return starts, run_lo, run_hi, pos
+
+
+_SLAB_SLICES = 16
+"""Slices of the other order per task of :func:`reordered_table` (cut by size, not threads)."""
+
+
+def reordered_table(evm, table, shape, axis, out=None):
+    """``table`` (the densities in the order ``TABLE_ORDERS[0]``, or any per-voxel values)
+    listed in the order of ``axis`` (1 or 2), into ``out`` when given, without a grid: memory
+    is the new table and the scanline runs.
+
+    The runs of the stored order are read scanline ``(x, y)`` by scanline; slabs of the other
+    order's slices (y for "yxz", z for "zxy") are filled in parallel, each voxel going to its
+    slice's cursor, which visits x then y then z as the other order lists them."""
+    nx, ny, nz = (int(n) for n in shape)
+    lo, hi = (np.ascontiguousarray(corner, dtype=np.int64) for corner in evm.boxes("xyz"))
+    starts, run_lo, run_hi, pos = scanline_runs(lo, hi, nx, ny)
+    slices = (ny, nz)[axis - 1]
+    base = np.zeros(slices + 1, np.int64)
+    np.cumsum(_slice_counts(starts, run_lo, run_hi, ny, slices, axis), out=base[1:])
+    out = np.empty_like(table) if out is None else out
+    parallel_map(lambda s0: _fill_slices(starts, run_lo, run_hi, pos, table, base, s0,
+                                         min(s0 + _SLAB_SLICES, slices), nx, ny, axis, out),
+                 [(s0,) for s0 in range(0, slices, _SLAB_SLICES)])
+    return out
+
+
+@kernel
+def _slice_counts(starts, run_lo, run_hi, lines, slices, axis):
+    """Region voxels per slice of the order of ``axis``: per y (1) or per z (2)."""
+    counts = np.zeros(slices, np.int64)
+    for line in range(starts.size - 1):
+        for r in range(starts[line], starts[line + 1]):
+            if axis == 1:
+                counts[line % lines] += run_hi[r] - run_lo[r]
+            else:
+                for z in range(run_lo[r], run_hi[r]):
+                    counts[z] += 1
+    return counts
+
+
+@kernel
+def _fill_slices(starts, run_lo, run_hi, pos, table, base, s0, s1, nx, ny, axis, out):
+    """Slices ``s0 .. s1 - 1`` of the order of ``axis`` into ``out``, from the stored order's
+    runs: scanlines (x, y) in x, y order, so each slice receives its voxels in its own order."""
+    cursor = base[s0:s1].copy()
+    for x in range(nx):
+        for y in range(s0 if axis == 1 else 0, s1 if axis == 1 else ny):
+            line = x * ny + y
+            for r in range(starts[line], starts[line + 1]):
+                if axis == 1:  # "yxz": the scanline is a line of slice y
+                    at = cursor[y - s0]
+                    for i in range(run_hi[r] - run_lo[r]):
+                        out[at + i] = table[pos[r] + i]
+                    cursor[y - s0] = at + run_hi[r] - run_lo[r]
+                else:  # "zxy": each voxel of the scanline in slice z is next in line x
+                    for z in range(max(run_lo[r], s0), min(run_hi[r], s1)):
+                        out[cursor[z - s0]] = table[pos[r] + z - run_lo[r]]
+                        cursor[z - s0] += 1

@@ -27,7 +27,7 @@ from .._jit import kernel
 from .._memory import available_memory, check_memory
 from ._cache import DerivedCache, default_budget
 from ._chunked import build_chunked, labels_chunked
-from ._densities import TABLE_ORDERS, TableIndex
+from ._densities import TABLE_ORDERS, TableIndex, reordered_table
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
 from ._labels import checked_labels, layered_regions, wanted_labels, warn_missing
@@ -441,14 +441,15 @@ class VolumeEVM:
         """Densities of the region's voxels in slice-major order along ``axis`` (0, 1, 2).
 
         Axis 0 is the stored table; the others are made on first use and cached. Making one
-        scatters the stored table into a transient grid and reads it back in the other order:
-        two vectorized passes, and only the cached table stays.
+        reads the stored table scanline by scanline into the other order
+        (:func:`._densities.reordered_table`): no grid, only the new table and the region's
+        runs per scanline.
 
         Parameters
         ----------
         axis : {0, 1, 2}, optional
-            The slowest axis of the order: 0 is x, y, z (the C order of the ``[x, y, z]``
-            array), 1 is y, z, x and 2 is z, x, y.
+            The slowest axis of the order (:data:`TABLE_ORDERS`): 0 is x, y, z (the C order of
+            the ``[x, y, z]`` array), 1 is y, x, z and 2 is z, x, y.
 
         Returns
         -------
@@ -460,14 +461,19 @@ class VolumeEVM:
         VolumeEVMError
             If ``axis`` is not 0, 1 or 2.
         VolumeEVMError
-            When the transient grid would need more memory than is available.
+            When the new table would need more memory than is available.
         """
         if axis not in (0, 1, 2):
             raise VolumeEVMError(f"axis must be 0, 1 or 2, got {axis!r}")
         if axis not in self._tables:
-            axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
-            dense, mask = self._scatter(0)
-            self._tables[axis] = np.transpose(dense, axes)[np.transpose(mask, axes)]
+            table = self._tables[0]
+            lo, hi = self.evm.boxes("xyz")
+            runs = int(((hi[:, 0] - lo[:, 0]) * (hi[:, 1] - lo[:, 1])).sum())
+            check_memory(table.nbytes + int(self.shape[0]) * int(self.shape[1]) * 8 + runs * 16,
+                         f"the densities table in {TABLE_ORDERS[axis]} order",
+                         source=f"VolumeEVM table({axis})",
+                         advice="render at a coarser level or clip the region")
+            self._tables[axis] = reordered_table(self.evm, table, self.shape, axis)
         return self._tables[axis]
 
     def index(self, voxels, axis=0):

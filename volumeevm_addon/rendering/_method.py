@@ -59,10 +59,10 @@ class MemoryModel:
         Per region voxel, for each set of tables the render builds.
     axis_table : bool
         Each set of tables also reads the densities table of its principal axis
-        (:meth:`VolumeEVM.table`), made through a transient grid of the table's type and the
-        mask: ``1 + itemsize`` per grid voxel.
-    shading_grid : int
-        Per grid voxel with ``shading``: the gradient tables and their temporaries.
+        (:meth:`VolumeEVM.table`), made scanline by scanline: ``itemsize`` per region voxel.
+    shading_grid, shading_region : int
+        Per grid voxel and per region voxel with ``shading``: the gradient tables and their
+        temporaries.
     per_set : callable or None
         ``per_set(vevm, options) -> int``: bytes of each set of tables beyond ``grid`` and
         ``region`` (tables whose size follows something else, such as occupied blocks).
@@ -77,6 +77,7 @@ class MemoryModel:
     region: int = 0
     axis_table: bool = False
     shading_grid: int = 0
+    shading_region: int = 0
     per_set: Callable | None = None
     per_view: Callable | None = None
 
@@ -101,14 +102,15 @@ class MemoryModel:
         """
         grid = int(np.prod(np.asarray(vevm.shape, dtype=np.int64) + 2))
         needed = pixels * (IMAGE_BYTES_PER_PIXEL + self.pixel) + self.fixed
-        each_set = grid * self.grid + int(vevm.voxel_count) * self.region
+        region = int(vevm.voxel_count)
+        each_set = grid * self.grid + region * self.region
         if self.axis_table:
-            each_set += grid * (1 + vevm.table(0).dtype.itemsize)
+            each_set += region * vevm.table(0).dtype.itemsize
         if self.per_set is not None:
             each_set += self.per_set(vevm, options)
         needed += sets * each_set
         if options.get("shading") not in (None, False):
-            needed += grid * self.shading_grid
+            needed += grid * self.shading_grid + region * self.shading_region
         if self.per_view is not None:
             needed += self.per_view(vevm, options)
         return int(needed)

@@ -40,6 +40,7 @@ import numpy as np
 
 from .._jit import kernel
 from ..model import _sweep
+from ._gradients import voxel_gradient
 from ._modes import MODE_CODES, MODES
 from ._optics import (
     attenuation_threshold,
@@ -451,51 +452,14 @@ def _inner(hood):
 def _hood_gradients(hood, hood_in, step, first, second):
     """One axis (``step`` in the flat 4x4x4 ``hood``; ``first`` and ``second``: the steps of
     the other two axes, the lower axis first) of the gradients at its 8 inner voxels."""
-    return (_hood_gradient(hood, hood_in, 21, step, first, second),
-            _hood_gradient(hood, hood_in, 22, step, first, second),
-            _hood_gradient(hood, hood_in, 25, step, first, second),
-            _hood_gradient(hood, hood_in, 26, step, first, second),
-            _hood_gradient(hood, hood_in, 37, step, first, second),
-            _hood_gradient(hood, hood_in, 38, step, first, second),
-            _hood_gradient(hood, hood_in, 41, step, first, second),
-            _hood_gradient(hood, hood_in, 42, step, first, second))
-
-
-@kernel
-def _hood_gradient(hood, hood_in, h, step, first, second):
-    """One axis of the gradient at voxel ``h`` of the flat 4x4x4 ``hood``: the estimator of
-    :func:`._gradients.region_gradients` with its arithmetic, in float32 (the 9 lines' differences
-    weighted ``1 2 1`` along ``first``, then along ``second``, over the weights used)."""
-    if not hood_in[h]:
-        return np.float32(0)
-    two = np.float32(2)
-    total, used = np.float32(0), np.float32(0)
-    for j in range(3):
-        across = h + (j - 1) * second
-        d0, u0 = _hood_line(hood, hood_in, across - first, step)
-        d1, u1 = _hood_line(hood, hood_in, across, step)
-        d2, u2 = _hood_line(hood, hood_in, across + first, step)
-        weight = two if j == 1 else np.float32(1)
-        if j == 0:
-            total, used = (d0 + two * d1) + d2, (u0 + two * u1) + u2
-        else:
-            total = total + weight * ((d0 + two * d1) + d2)
-            used = used + weight * ((u0 + two * u1) + u2)
-    return total / max(used, np.float32(1))
-
-
-@kernel
-def _hood_line(hood, hood_in, h, step):
-    """The difference along ``step`` of the line through voxel ``h`` of the hood and 1, or 0
-    and 0 where it is missing (:mod:`._gradients`)."""
-    plus, middle, minus = hood_in[h + step], hood_in[h], hood_in[h - step]
-    if plus and minus:
-        return np.float32(0.5) * (hood[h + step] - hood[h - step]), np.float32(1)
-    if plus and middle:
-        return hood[h + step] - hood[h], np.float32(1)
-    if minus and middle:
-        return hood[h] - hood[h - step], np.float32(1)
-    return np.float32(0), np.float32(0)
+    return (voxel_gradient(hood, hood_in, 21, step, first, second),
+            voxel_gradient(hood, hood_in, 22, step, first, second),
+            voxel_gradient(hood, hood_in, 25, step, first, second),
+            voxel_gradient(hood, hood_in, 26, step, first, second),
+            voxel_gradient(hood, hood_in, 37, step, first, second),
+            voxel_gradient(hood, hood_in, 38, step, first, second),
+            voxel_gradient(hood, hood_in, 41, step, first, second),
+            voxel_gradient(hood, hood_in, 42, step, first, second))
 
 
 @kernel

@@ -90,7 +90,7 @@ from ..._jit import kernel, parallel_map
 from .._modes import MODE_CODES, MODES, finish_mode
 from .._optics import attenuation_threshold, optics, visible
 from .._shading import Shading, fade
-from ._layouts import mixed_runs, post_table, voxel_classes, voxel_gradients
+from ._layouts import lit_codes, mixed_runs, post_table, voxel_classes, voxel_gradients
 
 __all__ = ["Plan", "Voxels", "Light", "Tables", "Frame", "NEVER", "Sampling", "Clip",
            "intermediate_image", "lit_colours", "tap", "span", "composite"]
@@ -274,8 +274,9 @@ def _classification(vevm, view, layout, tf, compositing, sampling, delta):
     classes = voxel_classes(vevm, layout, tf, lut_size)
     if shading is None:
         return classes.work, Voxels(classes.rows, lut, 4), optical, tables
-    lit = _lit_voxels(classes, voxel_gradients(layout, vevm), tables)
-    return classes.work, Voxels(classes.index, lit, 4), optical, tables
+    codes, index = lit_codes(vevm, layout, tf, lut_size)
+    lit = _lit_voxels(codes, classes.rows, voxel_gradients(layout, vevm), tables)
+    return classes.work, Voxels(index, lit, 4), optical, tables
 
 
 def _light(view, optical):
@@ -289,14 +290,13 @@ def _light(view, optical):
                  *(np.float32(w) for w in optical.phong[:4]), *optical.phong[4:])
 
 
-def _lit_voxels(classes, gradients, tables):
-    """Shaded pre-classification: the lit colours of the visible voxels, ``(1 + visible, 4)``
-    (row 0 transparent, then by :attr:`._layouts.Classes.index`), in parallel over chunks of
-    them (:func:`lit_colours`)."""
-    codes = classes.codes
+def _lit_voxels(codes, rows, gradients, tables):
+    """Shaded pre-classification: the lit colours of the visible voxels ``codes``, ``(1 +
+    visible, 4)`` (row 0 transparent, then in the order of ``codes``: :func:`._layouts.lit_codes`),
+    in parallel over chunks of them (:func:`lit_colours`)."""
     out = np.zeros((len(codes) + 1, 4), np.float32)
     chunk = 1 << 16
-    parallel_map(lambda start: lit_colours(codes[start:start + chunk], classes.rows, gradients,
+    parallel_map(lambda start: lit_colours(codes[start:start + chunk], rows, gradients,
                                            tables.lut, tables.straight, tables.light,
                                            out[start:start + chunk + 1]),
                  [(start,) for start in range(0, len(codes), chunk)])

@@ -27,12 +27,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..._jit import kernel
-from ...model._densities import TABLE_ORDERS
-from .._gradients import region_gradients
+from ...model._densities import TABLE_ORDERS, reordered_table, scanline_runs
+from .._gradients import region_gradients, table_gradients
 
 __all__ = ["Runs", "Layout", "Classes", "cache_key", "region_layout", "dense_layout",
-           "voxel_gradients", "post_table", "voxel_classes", "mixed_runs", "box_runs", "mask_runs",
-           "flagged_runs", "mixed_codes"]
+           "voxel_gradients", "post_table", "voxel_classes", "table_rows", "lit_codes",
+           "mixed_runs", "box_runs", "mask_runs", "flagged_runs", "mixed_codes"]
 
 Runs = namedtuple("Runs", "lines columns starts lo hi pos box")
 Runs.__doc__ = """Runs of voxels along the scanlines of the slices of one principal axis.
@@ -93,7 +93,7 @@ def cache_key(axis, part, tf=None, lut_size=None):
     on: equal functions share them, and the cache keeps no function (nor its own tables) alive.
     One function for the render and the package's ``tables_to_build``, so that the memory check
     sees the same cache the render uses."""
-    if part in ("classes", "mixed"):
+    if part in ("classes", "lit", "mixed"):
         return ("shear_warp", part, axis, tf.points.tobytes(), lut_size)
     return ("shear_warp", part, axis)
 
@@ -115,16 +115,22 @@ def region_layout(vevm, axis):
 
 def _make_region_layout(vevm, axis):
     """The runs of the EVM's ordered boxes in the table order of ``axis`` (slabs, sub-slabs,
-    runs: :meth:`EVM.boxes`), numbered as ``vevm.table(axis)`` lists their voxels."""
+    runs: :meth:`EVM.boxes`), numbered as ``vevm.table(axis)`` lists their voxels. The values
+    are that table behind a 0, listed straight into place (the VolumeEVM does not keep a
+    second copy)."""
     order = TABLE_ORDERS[axis]
     axes = ["xyz".index(ch) for ch in order]
     shape = tuple(int(vevm.shape[a]) for a in axes)
     lo, hi = (np.ascontiguousarray(corner[:, axes], dtype=np.int64)
               for corner in vevm.evm.boxes(order))
     runs = Runs(shape[1], shape[2], *box_runs(lo, hi, shape[0], shape[1]))
-    table = vevm.table(axis)
-    return Layout(axis, axes, shape, runs, np.concatenate([np.zeros(1, table.dtype), table]),
-                  True)
+    stored = vevm.table(0)
+    values = np.zeros(len(stored) + 1, stored.dtype)
+    if axis == 0:
+        values[1:] = stored
+    else:
+        reordered_table(vevm.evm, stored, vevm.shape, axis, out=values[1:])
+    return Layout(axis, axes, shape, runs, values, True)
 
 
 def dense_layout(vevm, axis):
@@ -148,20 +154,28 @@ def voxel_gradients(layout, vevm):
 
 def _make_gradients(layout, vevm):
     """Per voxel, in code order, ``(codes, 3)`` float32: index-space gradients over region
-    voxels, the reference's rule (:func:`.._gradients.region_gradients`)."""
-    mask = vevm.evm.to_mask(vevm.shape)
+    voxels, the reference's rule (:func:`.._gradients.region_gradients`). The region's are made
+    slab by slab in the stored table's order (:func:`.._gradients.table_gradients`) and listed
+    in the layout's (:func:`...model._densities.reordered_table`); the dense layout's on the
+    dense grid (no EVM)."""
+    out = np.zeros((len(layout.values), 3), np.float32)
+    if layout.region_only:
+        if layout.axis == 0:
+            table_gradients(vevm, out=out[1:].T)
+        else:
+            stored = table_gradients(vevm)
+            for k in range(3):
+                reordered_table(vevm.evm, stored[k], vevm.shape, layout.axis, out=out[1:, k])
+        return out
     pad = tuple(int(n) + 2 for n in vevm.shape)
     dense = np.zeros(pad, np.float32)
     dense[1:-1, 1:-1, 1:-1] = vevm.to_dense()
     region = np.zeros(pad, bool)
-    region[1:-1, 1:-1, 1:-1] = mask
+    region[1:-1, 1:-1, 1:-1] = vevm.evm.to_mask(vevm.shape)
     grads = np.empty((3,) + tuple(int(n) for n in vevm.shape), np.float32)
     region_gradients(dense, region, grads)
-    chosen = np.transpose(mask, layout.axes) if layout.region_only else None
-    out = np.zeros((len(layout.values), 3), np.float32)
     for k in range(3):
-        grad = np.transpose(grads[k], layout.axes)
-        out[1:, k] = grad[chosen] if layout.region_only else grad.ravel()
+        out[1:, k] = np.transpose(grads[k], layout.axes).ravel()
     return out
 
 
@@ -171,10 +185,11 @@ def post_table(layout, vevm, with_gradients):
     (:func:`_kept`)."""
 
     def make():
-        columns = [layout.values.astype(np.float32)[:, None]]
+        table = np.empty((len(layout.values), 4 if with_gradients else 1), np.float32)
+        table[:, 0] = layout.values
         if with_gradients:
-            columns.append(voxel_gradients(layout, vevm))
-        return np.ascontiguousarray(np.concatenate(columns, axis=1))
+            table[:, 1:] = voxel_gradients(layout, vevm)
+        return table
 
     return _kept(vevm, layout, "post_shaded" if with_gradients else "post", make)
 
@@ -183,47 +198,68 @@ def post_table(layout, vevm, with_gradients):
 class Classes:
     """Pre-classification by one transfer function and table size.
 
-    ``rows``: per code, the voxel's row of the classification table (0: outside);
-    ``codes``: the codes of the voxels the function does not make transparent (all, on the
-    dense layout) and ``index``: per code, 1 + its place among them (0: the others), where
-    shading lights them; ``work``: the runs of those voxels (:data:`Runs`).
+    ``rows``: per code, the voxel's row of the classification table (0: outside), int16
+    (``lut_size`` < 32767); ``work``: the runs of the voxels the function does not make
+    transparent (:data:`Runs`; every voxel's, on the dense layout).
     """
 
     rows: np.ndarray
-    codes: np.ndarray
-    index: np.ndarray
     work: Runs
 
     @property
     def nbytes(self):
         """Bytes of its arrays: what ``vevm.cache`` counts (at once, on every use)."""
-        return self.rows.nbytes + self.codes.nbytes + self.index.nbytes + _runs_bytes(self.work)
+        return self.rows.nbytes + _runs_bytes(self.work)
 
     @classmethod
     def of(cls, layout, tf, lut_size):
         """The classes of the voxels of ``layout``."""
-        q = tf.quantize(layout.values[1:], n=lut_size)
-        rows = np.zeros(len(layout.values), np.int32)
-        rows[1:] = q + 1
-        if layout.region_only:
-            visible = np.zeros(len(layout.values), bool)
-            visible[1:] = tf.straight_table(n=lut_size)[q, 3] > 0
-            starts, lo, hi, box = flagged_runs(layout.runs, visible, layout.shape[0])
-            work = layout.runs._replace(starts=starts, lo=lo, hi=hi, pos=np.zeros(0, np.int64),
-                                        box=box)
-            codes = np.flatnonzero(visible)
-        else:  # dense: every voxel is worked on
-            work = layout.runs
-            codes = np.arange(1, len(layout.values))
-        index = np.zeros(len(layout.values), np.int32)
-        index[codes] = np.arange(1, len(codes) + 1, dtype=np.int32)
-        return cls(rows, codes, index, work)
+        rows = table_rows(layout.values, tf, lut_size)
+        if not layout.region_only:  # dense: every voxel is worked on
+            return cls(rows, layout.runs)
+        visible = np.r_[False, tf.straight_table(n=lut_size)[:, 3] > 0][rows]
+        starts, lo, hi, box = flagged_runs(layout.runs, visible, layout.shape[0])
+        return cls(rows, layout.runs._replace(starts=starts, lo=lo, hi=hi,
+                                              pos=np.zeros(0, np.int64), box=box))
+
+
+def table_rows(values, tf, lut_size):
+    """Per code, 1 + the classification table's row of ``values[code]`` (``values[0]``, outside:
+    0), int16; quantized a chunk at a time, so that no float64 copy of the table is made."""
+    rows = np.zeros(len(values), np.int16)
+    for start in range(1, len(values), CHUNK):
+        stop = min(start + CHUNK, len(values))
+        rows[start:stop] = tf.quantize(values[start:stop], n=lut_size) + 1
+    return rows
+
+
+CHUNK = 1 << 18
+"""Voxels per chunk of :func:`table_rows` (its temporaries: about 32 B each)."""
 
 
 def voxel_classes(vevm, layout, tf, lut_size):
     """The :class:`Classes` of ``tf`` and ``lut_size`` for ``layout``, kept (:func:`_kept`)."""
     return _kept(vevm, layout, "classes", lambda: Classes.of(layout, tf, lut_size), tf,
                  lut_size)
+
+
+def lit_codes(vevm, layout, tf, lut_size):
+    """Shaded pre-classification: ``(codes, index)``, the codes of the voxels ``tf`` does not
+    make transparent (all, on the dense layout) and per code 1 + its place among them (0: the
+    others): the voxels each view lights, and where their colours go. Kept (:func:`_kept`)."""
+
+    def make():
+        rows = voxel_classes(vevm, layout, tf, lut_size).rows
+        if layout.region_only:
+            codes = np.flatnonzero(np.r_[False, tf.straight_table(n=lut_size)[:, 3] > 0][rows])
+        else:
+            codes = np.arange(1, len(rows))
+        kind = np.int32 if len(rows) < 2 ** 31 else np.int64
+        index = np.zeros(len(rows), kind)
+        index[codes] = np.arange(1, len(codes) + 1, dtype=kind)
+        return codes.astype(kind), index
+
+    return _kept(vevm, layout, "lit", make, tf, lut_size)
 
 
 def mixed_runs(vevm, layout, tf, lut_size):
@@ -233,10 +269,9 @@ def mixed_runs(vevm, layout, tf, lut_size):
 
     def make():
         visible = tf.straight_table(n=lut_size)[:, 3] > 0
-        # Per table row: -1 where visible, else the index of its run of transparent rows.
+        # Per table row + 1: -1 where visible, else the index of its run of transparent rows.
         ids = np.where(visible, -1, np.cumsum(np.r_[True, visible[1:] != visible[:-1]]) - 1)
-        codes = np.zeros(len(layout.values), np.int32)
-        codes[1:] = ids[tf.quantize(layout.values[1:], n=lut_size)]
+        codes = np.r_[-2, ids].astype(np.int32)[table_rows(layout.values, tf, lut_size)]
         flags = mixed_codes(layout.runs, codes, layout.shape[0], layout.shape[2])
         starts, lo, hi, box = flagged_runs(layout.runs, flags, layout.shape[0])
         return layout.runs._replace(starts=starts, lo=lo, hi=hi, pos=np.zeros(0, np.int64),
@@ -250,50 +285,11 @@ def mixed_runs(vevm, layout, tf, lut_size):
 # ------------------------------------------------------------------------------------- kernels
 @kernel
 def box_runs(lo, hi, slices, lines):
-    """The region's runs per scanline from the EVM's ordered boxes, in the table's order.
-
-    ``lo``, ``hi`` (m, 3): the boxes of :meth:`EVM.boxes` in the table order, columns
-    permuted to (slice, scanline, column): slabs of boxes sharing a slice range, split in
-    sub-slabs sharing a scanline range, split in runs. The table lists each slice's voxels
-    scanline by scanline, each scanline run by run, so a running count gives every run's
-    position. Returns ``(starts, run_lo, run_hi, pos, box)`` of :data:`Runs`.
+    """The region's runs per scanline from the EVM's ordered boxes, in the table's order
+    (:func:`...model._densities.scanline_runs`), and the slices' spans. Returns ``(starts,
+    run_lo, run_hi, pos, box)`` of :data:`Runs`.
     """
-    m = lo.shape[0]
-    starts = np.zeros(slices * lines + 1, np.int64)
-    for k in range(m):
-        for s in range(lo[k, 0], hi[k, 0]):
-            for a in range(lo[k, 1], hi[k, 1]):
-                starts[s * lines + a + 1] += 1
-    for line in range(slices * lines):
-        starts[line + 1] += starts[line]
-    total = starts[slices * lines]
-    run_lo = np.empty(total, np.int32)
-    run_hi = np.empty(total, np.int32)
-    pos = np.empty(total, np.int64)
-    fill = starts[:-1].copy()
-    at = 0
-    k = 0
-    while k < m:
-        slab = k
-        while slab < m and lo[slab, 0] == lo[k, 0] and hi[slab, 0] == hi[k, 0]:
-            slab += 1
-        for s in range(lo[k, 0], hi[k, 0]):
-            u = k
-            while u < slab:
-                v = u
-                while v < slab and lo[v, 1] == lo[u, 1] and hi[v, 1] == hi[u, 1]:
-                    v += 1
-                for a in range(lo[u, 1], hi[u, 1]):
-                    w = fill[s * lines + a]
-                    for r in range(u, v):
-                        run_lo[w] = lo[r, 2]
-                        run_hi[w] = hi[r, 2]
-                        pos[w] = at
-                        at += hi[r, 2] - lo[r, 2]
-                        w += 1
-                    fill[s * lines + a] = w
-                u = v
-        k = slab
+    starts, run_lo, run_hi, pos = scanline_runs(lo, hi, slices, lines)
     return starts, run_lo, run_hi, pos, _boxes(starts, run_lo, run_hi, slices, lines)
 
 
@@ -395,33 +391,38 @@ def mixed_codes(region, ids, slices, columns):
     """Post-classification: per code, whether a sample with a tap on this voxel may be visible.
 
     ``ids[code]``: -1 where the voxel's table row is visible, else the index of the run of
-    transparent rows its row is in. A sample's density lies between its taps' densities, so
-    its row between theirs: when all its taps are in one run of transparent rows, it is
-    transparent. A voxel is flagged when it is visible or a region voxel next to it (the 26
-    around it: every tap of a sample is next to the others) is in another run or visible;
-    a sample without a flagged tap is transparent.
+    transparent rows its row is in (-2 at code 0). A sample's density lies between its taps'
+    densities, so its row between theirs: when all its taps are in one run of transparent rows,
+    it is transparent. A voxel is flagged when it is visible or a region voxel next to it (the
+    26 around it: every tap of a sample is next to the others) is in another run or visible;
+    a sample without a flagged tap is transparent. Three slices of codes are kept at a time.
     """
     lines = region.lines
     run_starts, run_lo, run_hi, run_pos = region.starts, region.lo, region.hi, region.pos
-    grid = np.full((slices, lines, columns), -2, np.int32)  # -2: outside the region
-    for s in range(slices):
-        for a in range(lines):
-            for r in range(run_starts[s * lines + a], run_starts[s * lines + a + 1]):
-                code = run_pos[r] + 1 - run_lo[r]
-                for b in range(run_lo[r], run_hi[r]):
-                    grid[s, a, b] = ids[code + b]
+    window = np.full((3, lines, columns), -2, np.int32)  # slice s in window[s % 3]; -2: outside
     out = np.zeros(ids.size, np.bool_)
-    for s in range(slices):
+    for s in range(-1, slices):
+        if s + 1 < slices:  # the next slice replaces slice s - 2
+            grid = window[(s + 1) % 3]
+            grid[:] = -2
+            for line in range((s + 1) * lines, (s + 2) * lines):
+                a = line - (s + 1) * lines
+                for r in range(run_starts[line], run_starts[line + 1]):
+                    code = run_pos[r] + 1 - run_lo[r]
+                    for b in range(run_lo[r], run_hi[r]):
+                        grid[a, b] = ids[code + b]
+        if s < 0:
+            continue
         for a in range(lines):
             for r in range(run_starts[s * lines + a], run_starts[s * lines + a + 1]):
                 code = run_pos[r] + 1 - run_lo[r]
                 for b in range(run_lo[r], run_hi[r]):
-                    own = grid[s, a, b]
+                    own = window[s % 3, a, b]
                     mixed = own < 0
                     for ds in range(max(s - 1, 0), min(s + 2, slices)):
                         for da in range(max(a - 1, 0), min(a + 2, lines)):
                             for db in range(max(b - 1, 0), min(b + 2, columns)):
-                                other = grid[ds, da, db]
+                                other = window[ds % 3, da, db]
                                 mixed |= other != own and other != -2
                     out[code + b] = mixed
     return out
