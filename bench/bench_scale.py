@@ -13,9 +13,10 @@ time: the N³ array never exists in memory. For each N, each of these runs in a 
 The targets: build ≤ 1.5 × read, and ns per voxel within 1.5× across sizes. For the smallest N
 the chunked build is compared with ``from_array`` on the same resampled head in memory. For the
 largest N the build (2 threads) is saved as a ``.vevm``, and fresh processes load it and time
-``mesh()`` and 512² renders, shear-warp and ray casting, at ``level="auto"`` and ``"full"``
-(ray casting's sampling table follows the region; shear-warp's run layouts still follow the
-grid, so its full level may be refused: recorded with its message). Runs on N ≥ 1024
+``mesh()`` and 512² renders, shear-warp and ray casting, at ``level="auto"`` and ``"full"``;
+first a fresh process checks that build against the store itself, slab by slab (the region's
+mask at every voxel and its densities in order: equality with ``from_array`` without the
+grid, which does not fit under the cap). Runs on N ≥ 1024
 and the mesh and renders have ``VOLUMEEVM_MEMORY_LIMIT=6G``. Compiled kernels are used once on
 a small phantom before any timing (in each cluster worker too). A step that fails (a refused
 budget, a crash) is recorded with its message. Stores are deleted at the end unless ``--keep``.
@@ -137,6 +138,9 @@ def run_step(spec):
                 facts["equals_from_array"] = equals_in_memory(vevm, spec["n"])
             if spec.get("save"):
                 vevm.save(spec["save"], overwrite=False)
+        elif step == "check":
+            facts["equals_store"] = equals_store(VolumeEVM.load(spec["vevm"]),
+                                                 read_volume(spec["store"]))
         else:
             vevm = VolumeEVM.load(spec["vevm"])
             start = time.perf_counter()
@@ -169,6 +173,25 @@ def equals_in_memory(vevm, n):
     same &= all(getattr(vevm, f) == getattr(expected, f)
                 for f in ("shape", "spacing", "origin", "threshold", "voxel_count"))
     return bool(same)
+
+
+def equals_store(vevm, volume):
+    """Whether ``vevm`` holds exactly the voxels ≥ 300 HU of the store and their densities, in
+    order: its mask and table compared slab by slab (64 slices, never the grid) with the store
+    read again: what equality with ``from_array`` means, at a size whose grid does not fit."""
+    from volumeevm_addon.model._evm import mask_slabs
+
+    table, at, thickness = vevm.table(0), 0, 64
+    for x0, mask in zip(range(0, vevm.shape[0], thickness),
+                        mask_slabs(vevm.evm, vevm.shape, thickness)):
+        slab = np.asarray(volume.array[x0:x0 + len(mask)])
+        if not np.array_equal(mask, slab >= THRESHOLD):
+            return False
+        values = slab[mask]
+        if not np.array_equal(table[at:at + len(values)], values):
+            return False
+        at += len(values)
+    return at == len(table) and vevm.threshold == THRESHOLD
 
 
 def view(vevm):
@@ -285,18 +308,21 @@ def main():
                 shutil.rmtree(path)
         saved = folder / f"head{sizes[-1]}.vevm"
         if saved.exists():
-            steps = [("mesh", {})] + [("render", {"method": method, "level": level})
+            steps = [("check", {"store": str(folder / f"head{sizes[-1]}.ome.zarr")}),
+                     ("mesh", {})] + [("render", {"method": method, "level": level})
                                       for method in ("shear_warp", "raycast")
                                       for level in ("auto", "full")]
             for step, extra in steps:
                 spec = {"step": step, "vevm": str(saved), "n": sizes[-1], "mode_name": "threads2",
                         "threads": 2, **extra}
                 r = spawn(spec, True)
-                name = " ".join([step, *extra.values()])
+                name = step if step == "check" else " ".join([step, *extra.values()])
                 largest[name] = r
                 print(f"[bench] {sizes[-1]}^3 {name}: "
                       + (f"FAILED {r['failed']}" if "failed" in r else
-                         f"{r['seconds']:.2f} s, peak {gib(r['peak_rss_bytes'])} GiB"),
+                         f"{r['seconds']:.2f} s, peak {gib(r['peak_rss_bytes'])} GiB"
+                         + (f", equals the store: {r['equals_store']}"
+                            if "equals_store" in r else "")),
                       flush=True)
     finally:
         if not args.keep:
