@@ -86,13 +86,18 @@ def _plane_keys(before, after, plane, oy, oz, out):
     cells = np.empty(nz, np.uint8)  # XOR of the 4 cells at each z
     count = 0
     for y in range(ny + 1):
+        changed = 0  # a row whose cells are all 0 (most, away from the surface) has no vertex
         if y < ny:
             for z in range(nz):
                 across = before[y, z] ^ after[y, z]
                 cells[z] = row[z] ^ across
+                changed |= cells[z]
                 row[z] = across
         else:
             cells[:] = row
+            changed = 1
+        if not changed:
+            continue
         key = plane | ((y + oy) << _sweep.BITS)
         left = 0
         for z in range(nz):
