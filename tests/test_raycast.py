@@ -159,7 +159,7 @@ def test_integer_pools_keep_the_image_and_halve_the_table(ct, dtype):
     assert per_set < _raycast.table_bytes(f, {}, navigate=False)
     lowest = np.iinfo(dtype).min
     full = VolumeEVM(v.evm, np.r_[lowest, v.table()[1:]].astype(dtype), shape=v.shape)
-    pool, hole = _raycast.pool_type(full.table())
+    pool, hole = _raycast.pool_type(full)
     assert pool == np.float32 and np.isnan(hole)
     r_full, _ = render_raycast(full, cam, tf, g)
     r_full_f, _ = render_raycast(VolumeEVM(v.evm, full.table().astype(np.float32),

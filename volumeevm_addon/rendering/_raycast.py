@@ -226,7 +226,7 @@ class _SamplingTable:
         self.index = index.ravel()
         self.strides = (self.shape[1] * self.shape[2], self.shape[2], 1)
         dens = vevm.table(0)
-        dtype, self.hole = pool_type(dens)
+        dtype, self.hole = pool_type(vevm)
         self.table = np.full(BLOCK_VOXELS * count, self.hole, dtype)
         parallel_map(_fill_table, [(lo, hi, rows, dens, first, stop, self.index, self.strides,
                                     self.table) for first, stop in _box_chunks(lo, hi, 16)])
@@ -251,11 +251,17 @@ class _SamplingTable:
         return grad.ravel()
 
 
-def pool_type(densities):
+def pool_type(vevm):
     """The sampling table's type and its value outside the region, ``(dtype, hole)``, for a
-    densities table: its own integer type and that type's smallest value when the densities
-    are of 8 or 16 bits and none of them is that value (so ``hole`` marks no region voxel),
-    else float32 and NaN (densities are finite)."""
+    VolumeEVM's densities: their own integer type and that type's smallest value when they are
+    of 8 or 16 bits and none of them is that value (so ``hole`` marks no region voxel), else
+    float32 and NaN (densities are finite). Kept in ``vevm.cache``: the memory check and the
+    table ask, and the answer takes a pass over the densities."""
+    return vevm.cache.get(("raycast", "pool_type"), lambda: _pool_type(vevm.table(0)))
+
+
+def _pool_type(densities):
+    """:func:`pool_type` of a densities table."""
     dtype = densities.dtype
     if dtype.kind in "iu" and dtype.itemsize <= 2 and len(densities):
         lowest = np.iinfo(dtype).min
@@ -538,7 +544,7 @@ def table_bytes(vevm, options, *, navigate):
                                                   shape)))
         shaded = (options.get("mode", "over") in ("over", "under")
                   and options.get("shading") not in (None, False))
-        per_voxel = pool_type(vevm.table(0))[0].itemsize + (12 if shaded else 0)
+        per_voxel = pool_type(vevm)[0].itemsize + (12 if shaded else 0)
         needed += stored * BLOCK_VOXELS * per_voxel + math.prod(shape) \
             * _TABLE_BLOCK_BYTES + (stored * 24 + _GATHER_BYTES if shaded else 0)
     if options.get("skip_empty", True):
