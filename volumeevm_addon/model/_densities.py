@@ -103,7 +103,6 @@ class TableIndex:
         return out
 
 
-
 # ------------------------------------------------------------------- runs and other orders
 @kernel
 def scanline_runs(lo, hi, slices, lines):

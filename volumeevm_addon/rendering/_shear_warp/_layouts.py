@@ -223,6 +223,10 @@ class Classes:
                                               pos=np.zeros(0, np.int64), box=box))
 
 
+CHUNK = 1 << 18
+"""Voxels per chunk of :func:`table_rows` (its temporaries: about 32 B each)."""
+
+
 def table_rows(values, tf, lut_size):
     """Per code, 1 + the classification table's row of ``values[code]`` (``values[0]``, outside:
     0), int16; quantized a chunk at a time, so that no float64 copy of the table is made."""
@@ -231,10 +235,6 @@ def table_rows(values, tf, lut_size):
         stop = min(start + CHUNK, len(values))
         rows[start:stop] = tf.quantize(values[start:stop], n=lut_size) + 1
     return rows
-
-
-CHUNK = 1 << 18
-"""Voxels per chunk of :func:`table_rows` (its temporaries: about 32 B each)."""
 
 
 def voxel_classes(vevm, layout, tf, lut_size):
@@ -269,7 +269,8 @@ def mixed_runs(vevm, layout, tf, lut_size):
 
     def make():
         visible = tf.straight_table(n=lut_size)[:, 3] > 0
-        # Per table row + 1: -1 where visible, else the index of its run of transparent rows.
+        # Per table row: -1 where visible, else the index of its run of transparent rows; read
+        # by a voxel's row + 1 (:func:`table_rows`; 0, outside, reads -2).
         ids = np.where(visible, -1, np.cumsum(np.r_[True, visible[1:] != visible[:-1]]) - 1)
         codes = np.r_[-2, ids].astype(np.int32)[table_rows(layout.values, tf, lut_size)]
         flags = mixed_codes(layout.runs, codes, layout.shape[0], layout.shape[2])
