@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from volumeevm_addon import EVM, VolumeEVM, VolumeEVMError
-from volumeevm_addon.model._densities import TABLE_ORDERS
+from volumeevm_addon.model._densities import TABLE_ORDERS, run_count
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +59,8 @@ def test_tables_for_each_principal_axis(head, bone, axis):
 def test_other_orders_equal_the_transposed_grid_on_random_regions():
     """The tables of the other orders, read scanline by scanline from the stored one, list the
     region's densities exactly as the transposed grid does, in the data's dtype; thin grids,
-    single voxels and many slabs of slices included."""
+    single voxels and many slabs of slices included. The runs counted from the boxes are the
+    scanlines' runs of the mask."""
     rng = np.random.default_rng(18)
     for trial in range(60):
         shape = tuple(int(n) for n in rng.integers(1, 40 if trial % 3 else 6, 3))
@@ -67,6 +68,11 @@ def test_other_orders_equal_the_transposed_grid_on_random_regions():
         array = (rng.random(shape) * 100).astype(dtype)
         vevm = VolumeEVM.from_array(array, array.max() * rng.random())
         mask = vevm.evm.to_mask(vevm.shape)
+        for order in TABLE_ORDERS:  # the memory estimates' count of the scanlines' runs
+            axes = ["xyz".index(a) for a in order]
+            lines = np.transpose(mask, axes).reshape(-1, mask.shape[axes[2]]).astype(np.int8)
+            starts = np.diff(lines, axis=1, prepend=0) == 1
+            assert run_count(vevm.evm, order) == int(starts.sum())
         for axis in (1, 2):
             axes = ["xyz".index(a) for a in TABLE_ORDERS[axis]]
             table = vevm.table(axis)

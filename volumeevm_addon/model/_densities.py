@@ -155,6 +155,14 @@ def scanline_runs(lo, hi, slices, lines):
     return starts, run_lo, run_hi, pos
 
 
+def run_count(evm, order):
+    """How many runs the scanlines of ``order`` hold (:func:`scanline_runs`): each ordered box
+    adds one per (slice, scanline) it spans. From the boxes alone, for memory estimates."""
+    lo, hi = evm.boxes(order)
+    a, b = "xyz".index(order[0]), "xyz".index(order[1])
+    return int(np.sum((hi[:, a] - lo[:, a]) * (hi[:, b] - lo[:, b])))
+
+
 _SLAB_SLICES = 16
 """Slices of the other order per task of :func:`reordered_table` (cut by size, not threads)."""
 

@@ -27,7 +27,7 @@ from .._jit import kernel
 from .._memory import available_memory, check_memory
 from ._cache import DerivedCache, default_budget
 from ._chunked import build_chunked, labels_chunked
-from ._densities import TABLE_ORDERS, TableIndex, reordered_table
+from ._densities import TABLE_ORDERS, TableIndex, reordered_table, run_count
 from ._evm import EVM, check_lattice_range, integer_triple, vertex_keys
 from ._label_set import LabelSet
 from ._labels import checked_labels, layered_regions, wanted_labels, warn_missing
@@ -467,8 +467,7 @@ class VolumeEVM:
             raise VolumeEVMError(f"axis must be 0, 1 or 2, got {axis!r}")
         if axis not in self._tables:
             table = self._tables[0]
-            lo, hi = self.evm.boxes("xyz")
-            runs = int(((hi[:, 0] - lo[:, 0]) * (hi[:, 1] - lo[:, 1])).sum())
+            runs = run_count(self.evm, TABLE_ORDERS[0])
             check_memory(table.nbytes + int(self.shape[0]) * int(self.shape[1]) * 8 + runs * 16,
                          f"the densities table in {TABLE_ORDERS[axis]} order",
                          source=f"VolumeEVM table({axis})",

@@ -40,7 +40,7 @@ VolPack 1.0b3 (``vp_view.c``, ``vp_renderA.c``, ``vp_warp.c``), Stanford Univers
 import numpy as np
 
 from ..._errors import VolumeEVMError
-from ...model._densities import TABLE_ORDERS
+from ...model._densities import TABLE_ORDERS, run_count
 from .._camera import BACKGROUND_DEPTH
 from .._checks import categorical, checked_view, flag, positive_integer
 from .._method import MemoryModel, Method, keyword_options
@@ -250,16 +250,9 @@ def _set_bytes(vevm, options):
         per_voxel = 4 + 4 + 1 + 2
     else:
         per_voxel = 2 + 1
-    runs = max(int(np.sum((hi[:, a] - lo[:, a]) * (hi[:, b] - lo[:, b])))
-               for order in TABLE_ORDERS
-               for (lo, hi), (a, b) in [(vevm.evm.boxes(order), _slow_axes(order))])
+    runs = max(run_count(vevm.evm, order) for order in TABLE_ORDERS)
     return (int(vevm.voxel_count) * (itemsize + per_voxel) + 2 * 16 * runs + 48 * face
             + 32 * CHUNK)
-
-
-def _slow_axes(order):
-    """The grid axes of an order's slices and scanlines (a run per pair of them)."""
-    return "xyz".index(order[0]), "xyz".index(order[1])
 
 
 def _quality(quality, smallest_mm):
