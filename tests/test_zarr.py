@@ -309,6 +309,40 @@ def test_fuzz_metadata_and_chunks(small_store, ct, version):
     assert outcomes["refused"] > 0 and outcomes["exact"] > 0
 
 
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_label_image_is_a_label_map_with_its_colours(tmp_path, data_dir, version):
+    """A store whose group says ``image-label`` (NGFF 0.4 and 0.5) reads as a label map with
+    its colours and the names its properties give, lazily; a colour for an absent label warns;
+    ``labels=True`` keeps them, ``labels=False`` reads the values; bad colours are refused
+    naming the store and the entry."""
+    liver = np.load(data_dir / "seg_liver_cgal.npy")[150:278, 100:196, 60:108]
+    present = sorted(set(np.unique(liver).tolist()) - {0})
+    colors = [{"label-value": label, "rgba": [255, 10 * k, 0, 255]}
+              for k, label in enumerate(present)] + [{"label-value": 9, "rgba": [1, 2, 3, 4]}]
+    image_label = {"version": "0.4", "colors": colors,
+                   "properties": [{"label-value": present[0], "name": "vessel"}]}
+    store = write_store(tmp_path / "seg.zarr", pyramid(liver, 2), version=version,
+                        chunks=(16, 32, 32), attributes={"image-label": image_label})
+    with pytest.warns(UserWarning, match=r"names labels the data does not have: \[9\]"):
+        vol = read_volume(store)
+    assert vol.is_label_map and not isinstance(vol.array, np.ndarray)
+    assert sorted(vol.labels) == present
+    assert vol.labels[present[0]].name == "vessel"
+    assert vol.labels[present[1]].name == f"label {present[1]}"
+    assert vol.labels[present[1]].color == (1.0, round(10 / 255, 6), 0.0)
+    with pytest.warns(UserWarning):
+        assert read_volume(store, labels=True).labels == vol.labels
+    with pytest.warns(UserWarning):
+        assert not read_volume(store, labels=False).is_label_map
+    for entry, message in (({"label-value": 1, "rgba": [1, 2, 3]}, "colors[0]: rgba must be 4"),
+                           ({"label-value": -1, "rgba": [1, 2, 3, 4]}, "label-value must be"),
+                           ("red", "colors[0] is not an object")):
+        bad = write_store(tmp_path / f"bad{len(message)}.zarr", [liver], version=version,
+                          attributes={"image-label": {"colors": [entry]}})
+        with raises(bad, "image-label", message):
+            read_volume(bad)
+
+
 def test_a_label_store_is_a_label_map_found_chunk_by_chunk(tmp_path, data_dir):
     """``labels=True`` on a store: its labels found one chunk at a time (the array stays lazy),
     the same as in memory; a negative label in one chunk is refused naming the store."""

@@ -28,8 +28,10 @@ def pyramid(volume_xyz, levels):
 
 def write_store(path, arrays, *, version=2, chunks=(64, 64, 64), codec="blosc",
                 spacing_zyx=(1.5, 0.957, 0.957), translation_zyx=(0.0, 0.0, 0.0),
-                unit="millimeter", axes="zyx", separator=None, fill_value=0, skip=()):
-    """Write ``arrays`` (level 0 first, store axis order ``axes``) as an OME-Zarr store.
+                unit="millimeter", axes="zyx", separator=None, fill_value=0, skip=(),
+                attributes=None):
+    """Write ``arrays`` (level 0 first, store axis order ``axes``) as an OME-Zarr store, with
+    the NGFF ``attributes`` (such as ``image-label``) beside ``multiscales``.
 
     Level ``k`` gets the scale ``spacing * 2**k`` on its spatial axes. ``chunks`` is the
     spatial chunk shape (channel and time chunks are 1). Chunks listed in ``skip`` (level,
@@ -54,13 +56,15 @@ def write_store(path, arrays, *, version=2, chunks=(64, 64, 64), codec="blosc",
                     "datasets": datasets}]
     if version == 2:
         (path / ".zgroup").write_text(json.dumps({"zarr_format": 2}))
-        (path / ".zattrs").write_text(json.dumps({"multiscales": multiscales}))
+        (path / ".zattrs").write_text(json.dumps({"multiscales": multiscales,
+                                                  **(attributes or {})}))
     else:
         for entry in multiscales:
             del entry["version"]
         (path / "zarr.json").write_text(json.dumps({
             "zarr_format": 3, "node_type": "group",
-            "attributes": {"ome": {"version": "0.5", "multiscales": multiscales}}}))
+            "attributes": {"ome": {"version": "0.5", "multiscales": multiscales,
+                                   **(attributes or {})}}}))
     return path
 
 

@@ -76,10 +76,12 @@ def read_volume(path, *, units=None, labels=None, **options):
     labels : bool, str or os.PathLike, optional
         Whether the volume is a label map (a segmentation: integers, 0 = background), and its
         labels' names and colours. ``None`` keeps what the file says (a 3D Slicer
-        ``.seg.nrrd`` is a label map with its segments' names and colours); ``True`` reads a
-        label map named and coloured by a fixed palette; a path reads one named by that label
-        table (ITK-SNAP label description ``.txt``, or JSON ``{label: {name, color}}``);
-        ``False`` reads densities. The result's ``labels`` holds them (``is_label_map``).
+        ``.seg.nrrd`` is a label map with its segments' names and colours, an OME-Zarr label
+        image one with its ``image-label`` colours); ``True`` reads a label map, named and
+        coloured by the file where it is one, by a fixed palette otherwise; a path reads one
+        named by that label table (ITK-SNAP label description ``.txt``, or JSON ``{label:
+        {name, color}}``); ``False`` reads densities. The result's ``labels`` holds them
+        (``is_label_map``).
     **options
         Format options, keyword only:
 

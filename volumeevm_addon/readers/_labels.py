@@ -30,9 +30,10 @@ def label_map(volume, table=None):
 
 def as_label_map(volume, labels):
     """What ``read_volume(..., labels=)`` asks of the volume read: ``None`` keeps what the file
-    says, ``False`` reads densities, ``True`` a label map with the palette's names and colours,
-    a path a label map named by that label table (ITK-SNAP ``.txt`` or JSON)."""
-    if labels is None:
+    says, ``False`` reads densities, ``True`` a label map (with the file's names and colours
+    when it is one, else the palette's), a path a label map named by that label table
+    (ITK-SNAP ``.txt`` or JSON)."""
+    if labels is None or (labels is True and volume.is_label_map):
         return volume
     if labels is False:  # a segmentation in layers: their overlay
         return dataclasses.replace(volume, labels=None, layers=None)

@@ -16,6 +16,8 @@ does the decoding.
 Supported: regular chunk grids, chunk keys ``0.0.0`` or ``0/0/0`` (v2) and the ``default``
 and ``v2`` key encodings (v3); v2 compressors and filters that numcodecs knows; the v3 codecs
 ``bytes``, ``gzip``, ``zstd``, ``blosc`` and ``crc32c``; integer and real floating-point data.
+A label image (the group's ``image-label``: a segmentation, as under an image's ``labels/``)
+reads as a label map with its ``colors`` (and a ``name`` its ``properties`` give a label).
 Sharded v3 arrays and other codecs are refused by name. Axes ``zyx``, ``czyx`` or ``tczyx``
 (``channel=`` and ``time=`` pick one 3-D volume); ``scale`` transformations give the spacing
 in mm (by the axes' units), ``translation`` the origin; space axes without a unit keep the
@@ -39,8 +41,10 @@ import numpy as np
 
 from .._errors import VolumeEVMError
 from .._memory import check_memory
+from ..model._label_table import LabelInfo, default_label_info
 from ..model._volume import Volume
 from ._checks import MM_PER_UNIT, import_reader_package
+from ._labels import label_map
 
 #: NGFF axis names this reader accepts, slowest first.
 AXES = (("z", "y", "x"), ("c", "z", "y", "x"), ("t", "c", "z", "y", "x"))
@@ -178,7 +182,9 @@ def read_zarr(path, level=0, channel=0, time=0):
     -------
     Volume
         ``array`` a Dask array ``(X, Y, Z)`` with the store's chunks; spacing and origin from
-        the level's coordinate transformations, in mm.
+        the level's coordinate transformations, in mm. A label image (NGFF ``image-label``) is
+        a label map with the store's colours: its labels are found chunk by chunk, a pass over
+        the level.
 
     Raises
     ------
@@ -207,8 +213,10 @@ def read_zarr(path, level=0, channel=0, time=0):
     array = da.from_array(ChunkSource(chosen), chunks=chosen.chunks, name=name, asarray=False,
                           fancy=False, meta=np.empty((0,) * len(chosen.shape), chosen.dtype))
     array = array[tuple(selection)].transpose(2, 1, 0)
-    return Volume(array=array, spacing=chosen.spacing, origin=chosen.origin, source=str(path),
-                  spacing_known=chosen.spacing_known)
+    volume = Volume(array=array, spacing=chosen.spacing, origin=chosen.origin, source=str(path),
+                    spacing_known=chosen.spacing_known)
+    table = _image_label(_group(Path(path))[0], path)
+    return volume if table is None else label_map(volume, table)
 
 
 def volume_levels(path):
@@ -270,8 +278,9 @@ def _json(path, store):
     return value
 
 
-def _levels(store):
-    """The store's checked levels and its axis names."""
+def _group(store):
+    """The store group's OME-NGFF attributes (v3: ``attributes.ome``; v2: ``.zattrs``) and the
+    Zarr version."""
     if not store.is_dir():
         raise VolumeEVMError(f"{store}: an OME-Zarr store is a folder; this is not one")
     group = _json(store / "zarr.json", store)
@@ -279,15 +288,61 @@ def _levels(store):
         if group.get("zarr_format") != 3 or group.get("node_type") != "group":
             raise VolumeEVMError(f"{store}: zarr.json is not a Zarr v3 group")
         ome = (group.get("attributes") or {}).get("ome")
-        multiscales = ome.get("multiscales") if isinstance(ome, dict) else None
-        version = 3
-    else:
-        attrs = _json(store / ".zattrs", store)
-        if attrs is None:
-            raise VolumeEVMError(f"{store}: neither zarr.json (Zarr v3) nor .zattrs (Zarr v2): "
-                                 f"not an OME-Zarr store")
-        multiscales = attrs.get("multiscales")
-        version = 2
+        return (ome if isinstance(ome, dict) else {}), 3
+    attrs = _json(store / ".zattrs", store)
+    if attrs is None:
+        raise VolumeEVMError(f"{store}: neither zarr.json (Zarr v3) nor .zattrs (Zarr v2): "
+                             f"not an OME-Zarr store")
+    return attrs, 2
+
+
+def _image_label(attrs, store):
+    """An ``image-label`` store's label table, ``label -> LabelInfo``, from its ``colors``
+    (``label-value``, ``rgba`` in 0..255; alpha left out) and the string ``name`` its
+    ``properties`` may give a label; ``None`` for a store that is not a label image."""
+    meta = attrs.get("image-label")
+    if meta is None:
+        return None
+    where = f"{store}: image-label"
+    if not isinstance(meta, dict):
+        raise VolumeEVMError(f"{where} is not a JSON object")
+    names = {}
+    for entry in meta.get("properties") or []:
+        if isinstance(entry, dict) and isinstance(entry.get("name"), str):
+            names[_label_value(entry, where)] = entry["name"]
+    table = {}
+    colors = meta.get("colors") or []
+    if not isinstance(colors, list):
+        raise VolumeEVMError(f"{where} colors is not a list")
+    for index, entry in enumerate(colors):
+        if not isinstance(entry, dict):
+            raise VolumeEVMError(f"{where} colors[{index}] is not an object")
+        label = _label_value(entry, f"{where} colors[{index}]")
+        rgba = entry.get("rgba")
+        if (not isinstance(rgba, list) or len(rgba) != 4
+                or not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= 255
+                           for c in rgba)):
+            raise VolumeEVMError(f"{where} colors[{index}]: rgba must be 4 integers in 0..255, "
+                                 f"got {rgba!r}")
+        if label in table:
+            raise VolumeEVMError(f"{where} colors: label-value {label} is given twice")
+        table[label] = LabelInfo(names.get(label, default_label_info(label).name),
+                                 tuple(round(c / 255, 6) for c in rgba[:3]))
+    return table
+
+
+def _label_value(entry, where):
+    """An entry's ``label-value``: an integer >= 0."""
+    value = entry.get("label-value")
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise VolumeEVMError(f"{where}: label-value must be an integer >= 0, got {value!r}")
+    return value
+
+
+def _levels(store):
+    """The store's checked levels and its axis names."""
+    attrs, version = _group(store)
+    multiscales = attrs.get("multiscales")
     if not isinstance(multiscales, list) or not multiscales or not isinstance(multiscales[0], dict):
         raise VolumeEVMError(f"{store}: no OME-NGFF 'multiscales' in the group's attributes")
     scales = multiscales[0]
