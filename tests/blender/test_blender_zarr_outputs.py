@@ -85,6 +85,24 @@ def test_label_store_gives_the_label_meshes_of_from_labels_in_memory(api, core, 
         assert regions[label].voxel_count == np.count_nonzero(array == label)
 
 
+def test_a_label_image_imports_as_a_label_map_in_its_colours(api, tmp_path, data_dir):
+    """A store whose group says NGFF ``image-label`` needs no ``labels=``: the object's label
+    table holds its labels with the store's colours and names."""
+    array = np.ascontiguousarray(np.load(data_dir / "seg_liver_cgal.npy")[LIVER_CROP])
+    present = sorted(set(np.unique(array).tolist()) - {0})
+    colors = [{"label-value": label, "rgba": [0, 255, 5 * k, 255]}
+              for k, label in enumerate(present)]
+    path = write_store(tmp_path / "seg.ome.zarr", [array], chunks=CHUNKS_ZYX,
+                       attributes={"image-label": {"colors": colors, "properties": [
+                           {"label-value": present[-1], "name": "body"}]}})
+    obj = api.import_volume(path)
+    rows = {row.label: row for row in obj.volumeevm.labels}
+    assert sorted(rows) == present and obj.volumeevm.label_count == len(present)
+    for k, label in enumerate(present):
+        assert tuple(rows[label].color) == pytest.approx((0.0, 1.0, 5 * k / 255), abs=1e-6)
+    assert rows[present[-1]].name == "body" and rows[present[0]].name == f"label {present[0]}"
+
+
 def test_label_store_builds_and_renders_its_label_colours(api, liver, data_dir, tmp_path):
     path, array = liver
     obj = api.import_volume(path, labels=True)
