@@ -136,12 +136,13 @@ def read_volume(path, *, units=None, labels=None, **options):
         )
     if not (labels is None or isinstance(labels, (bool, str, os.PathLike))):
         raise VolumeEVMError(f"labels: {labels!r} is not True, False, None or a label table's path")
-    volume = as_label_map(_read(path, options), labels)
+    volume = as_label_map(_read(path, options, labels), labels)
     return volume if units is None else dataclasses.replace(volume, units=units.strip())
 
 
-def _read(path, options):
-    """The volume at ``path`` as its reader gives it (see :func:`read_volume`)."""
+def _read(path, options, labels=None):
+    """The volume at ``path`` as its reader gives it (see :func:`read_volume`); ``labels=False``
+    spares an OME-Zarr label image the pass that finds its labels."""
     if isinstance(path, (bytes, bytearray)):
         raise VolumeEVMError(
             f"{path!r}: a path given as bytes is not supported; pass a str or pathlib.Path "
@@ -159,7 +160,7 @@ def _read(path, options):
     if name.endswith(".zarr"):
         if not stat.S_ISDIR(mode):
             raise VolumeEVMError(f"{path}: not a folder; an OME-Zarr store is a folder")
-        return read_zarr(path, **options)
+        return read_zarr(path, label_image=labels is not False, **options)
     if stat.S_ISDIR(mode):
         if ending is not None and _READERS[ending] is not read_dicom:
             raise VolumeEVMError(

@@ -166,7 +166,7 @@ def read_chunk(level, chunk):
     return array.astype(native, order="C")
 
 
-def read_zarr(path, level=0, channel=0, time=0):
+def read_zarr(path, level=0, channel=0, time=0, *, label_image=True):
     """Open one level of an OME-Zarr store lazily: metadata now, chunks when computed.
 
     Parameters
@@ -177,6 +177,9 @@ def read_zarr(path, level=0, channel=0, time=0):
         The pyramid level (0 = full resolution).
     channel, time : int
         The channel and time point, for stores with those axes.
+    label_image : bool
+        Whether a label image (NGFF ``image-label``) reads as a label map (False: its values,
+        without the pass that finds its labels).
 
     Returns
     -------
@@ -215,7 +218,7 @@ def read_zarr(path, level=0, channel=0, time=0):
     array = array[tuple(selection)].transpose(2, 1, 0)
     volume = Volume(array=array, spacing=chosen.spacing, origin=chosen.origin, source=str(path),
                     spacing_known=chosen.spacing_known)
-    table = _image_label(_group(Path(path))[0], path)
+    table = _image_label(_group(Path(path))[0], path) if label_image else None
     return volume if table is None else label_map(volume, table)
 
 
