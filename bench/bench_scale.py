@@ -194,11 +194,10 @@ def equals_store(vevm, volume):
     """Whether ``vevm`` holds exactly the voxels ≥ 300 HU of the store and their densities, in
     order: its mask and table compared slab by slab (64 slices, never the grid) with the store
     read again: what equality with ``from_array`` means, at a size whose grid does not fit."""
-    from volumeevm_addon.model._evm import mask_slabs
-
     table, at, thickness = vevm.table(0), 0, 64
-    for x0, mask in zip(range(0, vevm.shape[0], thickness),
-                        mask_slabs(vevm.evm, vevm.shape, thickness)):
+    nx, ny, nz = vevm.shape
+    for x0 in range(0, nx, thickness):
+        mask = vevm.evm.to_mask((min(thickness, nx - x0), ny, nz), offset=(x0, 0, 0))
         slab = np.asarray(volume.array[x0:x0 + len(mask)])
         if not np.array_equal(mask, slab >= THRESHOLD):
             return False
