@@ -194,7 +194,7 @@ def read_zarr(path, level=0, channel=0, time=0, *, label_image=True):
     VolumeEVMError
         For a store, level, channel or time that is not as described (see the module).
     """
-    levels, axes = _levels(Path(path))
+    levels, axes, attrs = _levels(Path(path))
     chosen = _choice(level, "level", len(levels), path)
     selection = []
     for name, value in (("t", time), ("c", channel)):
@@ -218,7 +218,7 @@ def read_zarr(path, level=0, channel=0, time=0, *, label_image=True):
     array = array[tuple(selection)].transpose(2, 1, 0)
     volume = Volume(array=array, spacing=chosen.spacing, origin=chosen.origin, source=str(path),
                     spacing_known=chosen.spacing_known)
-    table = _image_label(_group(Path(path))[0], path) if label_image else None
+    table = _image_label(attrs, path) if label_image else None
     return volume if table is None else label_map(volume, table)
 
 
@@ -248,7 +248,7 @@ def volume_levels(path):
     >>> [(lv["level"], lv["shape"]) for lv in volume_levels("head.ome.zarr")]  # doctest: +SKIP
     [(0, (256, 256, 108)), (1, (128, 128, 54)), (2, (64, 64, 27))]
     """
-    levels, _ = _levels(Path(path))
+    levels, _, _ = _levels(Path(path))
     return [{"level": lv.index, "path": lv.folder.name, "shape": lv.xyz_shape,
              "chunks": tuple(reversed(lv.chunks[-3:])), "dtype": lv.dtype.newbyteorder("=").name,
              "spacing": lv.spacing, "spacing_known": lv.spacing_known,
@@ -343,7 +343,8 @@ def _label_value(entry, where):
 
 
 def _levels(store):
-    """The store's checked levels and its axis names."""
+    """The store's checked levels, its axis names and its group's NGFF attributes
+    (:func:`_group`)."""
     attrs, version = _group(store)
     multiscales = attrs.get("multiscales")
     if not isinstance(multiscales, list) or not multiscales or not isinstance(multiscales[0], dict):
@@ -376,7 +377,7 @@ def _levels(store):
         levels.append(Level(store=str(store), index=index, folder=folder, spacing=spacing,
                             origin=origin, spacing_known=all(units[-3:]), **array))
     _check_pyramid(levels, store)
-    return levels, axes
+    return levels, axes, attrs
 
 
 def _axes(axes, store):

@@ -217,7 +217,7 @@ class Classes:
         rows = table_rows(layout.values, tf, lut_size)
         if not layout.region_only:  # dense: every voxel is worked on
             return cls(rows, layout.runs)
-        visible = np.r_[False, tf.straight_table(n=lut_size)[:, 3] > 0][rows]
+        visible = _visible(rows, tf, lut_size)
         starts, lo, hi, box = flagged_runs(layout.runs, visible, layout.shape[0])
         return cls(rows, layout.runs._replace(starts=starts, lo=lo, hi=hi,
                                               pos=np.zeros(0, np.int64), box=box))
@@ -237,6 +237,11 @@ def table_rows(values, tf, lut_size):
     return rows
 
 
+def _visible(rows, tf, lut_size):
+    """Per code, whether ``tf`` leaves its voxel (table row ``rows[code] - 1``) any opacity."""
+    return np.r_[False, tf.straight_table(n=lut_size)[:, 3] > 0][rows]
+
+
 def voxel_classes(vevm, layout, tf, lut_size):
     """The :class:`Classes` of ``tf`` and ``lut_size`` for ``layout``, kept (:func:`_kept`)."""
     return _kept(vevm, layout, "classes", lambda: Classes.of(layout, tf, lut_size), tf,
@@ -251,7 +256,7 @@ def lit_codes(vevm, layout, tf, lut_size):
     def make():
         rows = voxel_classes(vevm, layout, tf, lut_size).rows
         if layout.region_only:
-            codes = np.flatnonzero(np.r_[False, tf.straight_table(n=lut_size)[:, 3] > 0][rows])
+            codes = np.flatnonzero(_visible(rows, tf, lut_size))
         else:
             codes = np.arange(1, len(rows))
         kind = np.int32 if len(rows) < 2 ** 31 else np.int64
